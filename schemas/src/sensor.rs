@@ -26,7 +26,9 @@ pub enum SensorError {
         points: usize,
     },
     /// Image data does not match `width × height × channels`.
-    #[error("image in frame `{frame_id}`: {got} bytes for {width}x{height} {format:?} (expected {expected})")]
+    #[error(
+        "image in frame `{frame_id}`: {got} bytes for {width}x{height} {format:?} (expected {expected})"
+    )]
     ImageSize {
         /// Frame of the image.
         frame_id: String,
@@ -572,10 +574,31 @@ mod tests {
             intensity: vec![0.0; 2],
             ..Default::default()
         };
-        assert!(cloud.validate().unwrap_err().to_string().contains("intensity has 2"));
-        let image = Image::new(Stamp::default(), "cam", 4, 2, PixelFormat::Rgb8, vec![0; 23]);
+        assert!(
+            cloud
+                .validate()
+                .unwrap_err()
+                .to_string()
+                .contains("intensity has 2")
+        );
+        let image = Image::new(
+            Stamp::default(),
+            "cam",
+            4,
+            2,
+            PixelFormat::Rgb8,
+            vec![0; 23],
+        );
         assert!(image.is_err());
-        let image = Image::new(Stamp::default(), "cam", 4, 2, PixelFormat::Mono8, vec![7; 8]).unwrap();
+        let image = Image::new(
+            Stamp::default(),
+            "cam",
+            4,
+            2,
+            PixelFormat::Mono8,
+            vec![7; 8],
+        )
+        .unwrap();
         assert_eq!(image.pixel(3, 1), Some(&[7u8][..]));
         assert_eq!(image.pixel(4, 1), None);
         let mut cam = calibration(Distortion::None);

@@ -1,8 +1,10 @@
 //! A batch written section by section and read back; malformed batches rejected.
 
+#![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
+
 use superflow_schemas::batch::{
-    BATCH_FORMAT_VERSION, BatchError, BatchHeader, BatchLayout, BatchMeta, BatchView,
-    BatchWriter, DType, SectionId,
+    BATCH_FORMAT_VERSION, BatchError, BatchHeader, BatchLayout, BatchMeta, BatchView, BatchWriter,
+    DType, SectionId,
 };
 
 /// 8-byte aligned storage, as iceoryx2 hands out.
@@ -74,13 +76,26 @@ fn written_batch_reads_back_section_by_section() {
 
     let meta = view.meta();
     assert_eq!(
-        (meta.run.as_str(), meta.epoch, meta.step, meta.seed, meta.sequence),
+        (
+            meta.run.as_str(),
+            meta.epoch,
+            meta.step,
+            meta.seed,
+            meta.sequence
+        ),
         ("roundtrip", 3, 11, 42, 1234)
     );
     assert_eq!(meta.sample_count, 3);
     assert_eq!(
         view.section_names().collect::<Vec<_>>(),
-        ["points", "sample_ids", "voxel_coords", "images", "stamps_nanos", "empty"]
+        [
+            "points",
+            "sample_ids",
+            "voxel_coords",
+            "images",
+            "stamps_nanos",
+            "empty"
+        ]
     );
 
     let points = view.get::<f32>("points").unwrap();
@@ -96,17 +111,29 @@ fn written_batch_reads_back_section_by_section() {
     let images = view.get::<u8>("images").unwrap();
     assert_eq!(images.shape(), &[1, 2, 3, 3]);
     assert_eq!(images.data[17], 170);
-    assert_eq!(view.get::<i64>("stamps_nanos").unwrap().data, &[-5, 0, i64::MAX]);
+    assert_eq!(
+        view.get::<i64>("stamps_nanos").unwrap().data,
+        &[-5, 0, i64::MAX]
+    );
     let empty = view.get::<u8>("empty").unwrap();
     assert_eq!((empty.shape(), empty.data.len()), (&[0usize, 7][..], 0));
-    assert_eq!(view.describe("voxel_coords").unwrap(), (DType::I32, &[2usize, 2, 4][..]));
+    assert_eq!(
+        view.describe("voxel_coords").unwrap(),
+        (DType::I32, &[2usize, 2, 4][..])
+    );
 
     // Sections start on 64-byte boundaries; the bytes between them are zero.
     for desc in layout.sections() {
         assert_eq!(desc.offset % 64, 0);
     }
-    assert!(matches!(view.get::<u32>("points"), Err(BatchError::WrongDType { .. })));
-    assert!(matches!(view.get::<f32>("nope"), Err(BatchError::Missing { .. })));
+    assert!(matches!(
+        view.get::<u32>("points"),
+        Err(BatchError::WrongDType { .. })
+    ));
+    assert!(matches!(
+        view.get::<f32>("nope"),
+        Err(BatchError::Missing { .. })
+    ));
 
     // The header survives a trip through raw bytes (a file, another language).
     let copy = BatchHeader::from_bytes(header.as_bytes()).unwrap();
@@ -143,15 +170,31 @@ fn malformed_batches_are_rejected_with_clear_errors() {
         );
     };
     check(&|h| h.magic = 0x1234, payload, "not a superflow batch");
-    check(&|h| h.version = BATCH_FORMAT_VERSION + 1, payload, "format version 2");
+    check(
+        &|h| h.version = BATCH_FORMAT_VERSION + 1,
+        payload,
+        "format version 2",
+    );
     check(&|h| h.header_size = 100, payload, "header is 100 bytes");
     check(&|h| h.section_count = 129, payload, "129 sections");
     check(&|h| h.payload_len += 1, payload, "payload has");
-    check(&|h| h.sections[1].dtype = 99, payload, "unknown dtype code 99");
+    check(
+        &|h| h.sections[1].dtype = 99,
+        payload,
+        "unknown dtype code 99",
+    );
     check(&|h| h.sections[1].ndim = 0, payload, "ndim 0");
     check(&|h| h.sections[1].ndim = 5, payload, "ndim 5");
-    check(&|h| h.sections[1].shape[0] = 4, payload, "12 bytes for shape [4]");
-    check(&|h| h.sections[1].shape[2] = 1, payload, "unused shape entries");
+    check(
+        &|h| h.sections[1].shape[0] = 4,
+        payload,
+        "12 bytes for shape [4]",
+    );
+    check(
+        &|h| h.sections[1].shape[2] = 1,
+        payload,
+        "unused shape entries",
+    );
     check(
         &|h| {
             h.sections[0].shape[0] = u64::MAX / 2;
@@ -165,13 +208,29 @@ fn malformed_batches_are_rejected_with_clear_errors() {
         payload,
         "outside the payload",
     );
-    check(&|h| h.sections[4].offset = u64::MAX - 4, payload, "outside the payload");
+    check(
+        &|h| h.sections[4].offset = u64::MAX - 4,
+        payload,
+        "outside the payload",
+    );
     check(&|h| h.sections[1].offset = 4, payload, "overlap");
     check(&|h| h.sections[0].offset = 2, payload, "aligned");
-    check(&|h| h.sections[2].name = h.sections[1].name, payload, "used twice");
+    check(
+        &|h| h.sections[2].name = h.sections[1].name,
+        payload,
+        "used twice",
+    );
     check(&|h| h.sections[2].name = [0; 32], payload, "empty");
-    check(&|h| h.sections[2].name = [b'a'; 32], payload, "not NUL-terminated");
-    check(&|h| h.sections[2].name[1] = 0xFF, payload, "not NUL-padded UTF-8");
+    check(
+        &|h| h.sections[2].name = [b'a'; 32],
+        payload,
+        "not NUL-terminated",
+    );
+    check(
+        &|h| h.sections[2].name[1] = 0xFF,
+        payload,
+        "not NUL-padded UTF-8",
+    );
     check(&|_| {}, &payload[..payload.len() - 1], "payload has");
 }
 

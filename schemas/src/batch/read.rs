@@ -127,16 +127,17 @@ impl<'a> BatchView<'a> {
                 )));
             }
             let start = usize::try_from(desc.offset).unwrap_or(usize::MAX);
-            let end = start.checked_add(expected).filter(|end| *end <= payload_len).ok_or_else(
-                || {
+            let end = start
+                .checked_add(expected)
+                .filter(|end| *end <= payload_len)
+                .ok_or_else(|| {
                     bad(format!(
                         "bytes {}..{}+{expected} lie outside the payload of {payload_len} bytes",
                         desc.offset, desc.offset
                     ))
-                },
-            )?;
+                })?;
             let bytes = &payload[start..end];
-            if (bytes.as_ptr() as usize) % dtype.size() != 0 {
+            if !(bytes.as_ptr() as usize).is_multiple_of(dtype.size()) {
                 let address = bytes.as_ptr() as usize;
                 return Err(BatchError::Misaligned {
                     found: 1 << address.trailing_zeros().min(12),

@@ -3,8 +3,7 @@
 use super::BatchError;
 use super::format::{
     BATCH_FORMAT_VERSION, BATCH_MAGIC, BatchHeader, BatchMeta, DType, Element, MAX_DIMS,
-    MAX_SECTIONS, SECTION_ALIGN, SectionDesc, nul_padded_str,
-    validate_run_name, write_nul_padded,
+    MAX_SECTIONS, SECTION_ALIGN, SectionDesc, nul_padded_str, validate_run_name, write_nul_padded,
 };
 use bytemuck::Zeroable;
 
@@ -49,7 +48,11 @@ impl BatchLayout {
     }
 
     /// Plans a section of element type `T` and the given shape (row-major).
-    pub fn add<T: Element>(&mut self, name: &str, shape: &[usize]) -> Result<SectionId, BatchError> {
+    pub fn add<T: Element>(
+        &mut self,
+        name: &str,
+        shape: &[usize],
+    ) -> Result<SectionId, BatchError> {
         self.add_dtype(name, T::DTYPE, shape)
     }
 
@@ -179,7 +182,7 @@ impl<'a> BatchWriter<'a> {
             .max()
             .unwrap_or(1);
         let address = payload.as_ptr() as usize;
-        if address % needed != 0 {
+        if !address.is_multiple_of(needed) {
             return Err(BatchError::Misaligned {
                 found: 1 << address.trailing_zeros().min(12),
                 needed,
@@ -203,9 +206,13 @@ impl<'a> BatchWriter<'a> {
     /// The section's elements, to be written in place. Each section can be taken once.
     pub fn take<T: Element>(&mut self, id: SectionId) -> Result<&'a mut [T], BatchError> {
         let name = || self.layout.name(id).to_string();
-        let desc = self.layout.sections.get(id.0).ok_or_else(|| BatchError::Missing {
-            name: format!("#{}", id.0),
-        })?;
+        let desc = self
+            .layout
+            .sections
+            .get(id.0)
+            .ok_or_else(|| BatchError::Missing {
+                name: format!("#{}", id.0),
+            })?;
         let actual = DType::from_code(desc.dtype).ok_or_else(|| BatchError::UnknownDType {
             name: name(),
             code: desc.dtype,
@@ -260,7 +267,10 @@ mod tests {
     fn invalid_plans_are_errors() {
         let mut layout = BatchLayout::new();
         layout.add::<u8>("x", &[1]).unwrap();
-        assert!(matches!(layout.add::<u8>("x", &[1]), Err(BatchError::BadName { .. })));
+        assert!(matches!(
+            layout.add::<u8>("x", &[1]),
+            Err(BatchError::BadName { .. })
+        ));
         assert!(layout.add::<u8>("", &[1]).is_err());
         assert!(layout.add::<u8>(&"n".repeat(32), &[1]).is_err());
         assert!(layout.add::<u8>("ok", &[]).is_err());
@@ -277,7 +287,10 @@ mod tests {
             run: "has space".into(),
             ..Default::default()
         };
-        assert!(matches!(layout.header(&meta), Err(BatchError::BadRunName { .. })));
+        assert!(matches!(
+            layout.header(&meta),
+            Err(BatchError::BadRunName { .. })
+        ));
     }
 
     #[test]
@@ -295,9 +308,18 @@ mod tests {
             Err(BatchError::Misaligned { .. })
         ));
         let mut writer = BatchWriter::new(&layout, bytes).unwrap();
-        assert!(matches!(writer.take::<u32>(f), Err(BatchError::WrongDType { .. })));
-        assert!(matches!(writer.write(f, &[1.0f32; 3]), Err(BatchError::BadSection { .. })));
-        assert!(matches!(writer.take::<f32>(f), Err(BatchError::AlreadyTaken { .. })));
+        assert!(matches!(
+            writer.take::<u32>(f),
+            Err(BatchError::WrongDType { .. })
+        ));
+        assert!(matches!(
+            writer.write(f, &[1.0f32; 3]),
+            Err(BatchError::BadSection { .. })
+        ));
+        assert!(matches!(
+            writer.take::<f32>(f),
+            Err(BatchError::AlreadyTaken { .. })
+        ));
     }
 
     #[test]

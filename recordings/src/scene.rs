@@ -1,0 +1,556 @@
+//! A small procedural street: ground regions, buildings, trees, cones, parked and moving
+//! cars and a pedestrian, all boxes, with semantic classes and colours; exact ray casting.
+
+use nalgebra::{Point3, Vector3};
+
+/// Semantic classes, numbered as nuScenes-lidarseg's 16 classes plus 0 for noise and sky.
+pub const CLASSES: [&str; 17] = [
+    "noise",
+    "barrier",
+    "bicycle",
+    "bus",
+    "car",
+    "construction_vehicle",
+    "motorcycle",
+    "pedestrian",
+    "traffic_cone",
+    "trailer",
+    "truck",
+    "driveable_surface",
+    "other_flat",
+    "sidewalk",
+    "terrain",
+    "manmade",
+    "vegetation",
+];
+
+/// Class ids used by the scene.
+pub mod class {
+    /// Sky and anything not hit.
+    pub const NOISE: u8 = 0;
+    /// Concrete barriers.
+    pub const BARRIER: u8 = 1;
+    /// Cars.
+    pub const CAR: u8 = 4;
+    /// Pedestrians.
+    pub const PEDESTRIAN: u8 = 7;
+    /// Traffic cones.
+    pub const TRAFFIC_CONE: u8 = 8;
+    /// The road.
+    pub const DRIVEABLE_SURFACE: u8 = 11;
+    /// Sidewalks.
+    pub const SIDEWALK: u8 = 13;
+    /// Grass beside the sidewalk.
+    pub const TERRAIN: u8 = 14;
+    /// Buildings and poles.
+    pub const MANMADE: u8 = 15;
+    /// Trees.
+    pub const VEGETATION: u8 = 16;
+}
+
+/// Half-width of the road (|y| below is road), in metres.
+pub const ROAD_HALF_WIDTH: f64 = 7.5;
+/// Outer edge of the sidewalks.
+pub const SIDEWALK_EDGE: f64 = 11.0;
+
+/// A deterministic pseudo-random stream (splitmix64), so the scene is identical on every
+/// machine and with every dependency version.
+#[derive(Debug, Clone)]
+pub struct SplitMix(u64);
+
+impl SplitMix {
+    /// A stream from a seed.
+    pub fn new(seed: u64) -> Self {
+        Self(seed)
+    }
+
+    /// The next 64 random bits.
+    pub fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+
+    /// Uniform in `[lo, hi)`.
+    pub fn uniform(&mut self, lo: f64, hi: f64) -> f64 {
+        lo + (hi - lo) * ((self.next_u64() >> 11) as f64 / (1u64 << 53) as f64)
+    }
+}
+
+/// How a box moves: constant velocity along x from `x0` at the drive's start.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Motion {
+    /// Speed along +x in m/s (negative: driving towards -x).
+    pub speed_x: f64,
+}
+
+/// An upright box (yaw only) with a class and a base colour.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SceneBox {
+    /// Stable name, used for landmarks.
+    pub name: String,
+    /// Centre of the box at the drive's start (map frame).
+    pub center: Point3<f64>,
+    /// Half extents along the box's own x, y, z.
+    pub half: Vector3<f64>,
+    /// Heading about z, radians.
+    pub yaw: f64,
+    /// Semantic class.
+    pub class: u8,
+    /// Base colour (linear RGB in 0..1).
+    pub color: [f64; 3],
+    /// LiDAR reflectivity in 0..1.
+    pub reflectivity: f64,
+    /// `None` for static boxes.
+    pub motion: Option<Motion>,
+}
+
+impl SceneBox {
+    /// Centre at `t_secs` after the drive's start.
+    pub fn center_at(&self, t_secs: f64) -> Point3<f64> {
+        match self.motion {
+            None => self.center,
+            Some(m) => self.center + Vector3::new(m.speed_x * t_secs, 0.0, 0.0),
+        }
+    }
+
+    /// The eight corners at `t_secs`, bottom ones first.
+    pub fn corners_at(&self, t_secs: f64) -> [Point3<f64>; 8] {
+        let c = self.center_at(t_secs);
+        let (s, co) = self.yaw.sin_cos();
+        let mut out = [Point3::origin(); 8];
+        for (i, corner) in out.iter_mut().enumerate() {
+            let lx = if i & 1 == 0 {
+                -self.half.x
+            } else {
+                self.half.x
+            };
+            let ly = if i & 2 == 0 {
+                -self.half.y
+            } else {
+                self.half.y
+            };
+            let lz = if i & 4 == 0 {
+                -self.half.z
+            } else {
+                self.half.z
+            };
+            *corner = Point3::new(c.x + co * lx - s * ly, c.y + s * lx + co * ly, c.z + lz);
+        }
+        out
+    }
+}
+
+/// What a ray hit.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Hit {
+    /// Distance along the (unit) ray.
+    pub distance: f64,
+    /// Hit point in the map frame.
+    pub point: Point3<f64>,
+    /// Outward surface normal (unit).
+    pub normal: Vector3<f64>,
+    /// Semantic class.
+    pub class: u8,
+    /// Surface colour at the hit (texture included).
+    pub color: [f64; 3],
+    /// LiDAR reflectivity at the hit.
+    pub reflectivity: f64,
+}
+
+/// The street scene.
+#[derive(Debug, Clone)]
+pub struct Scene {
+    /// Every box of the scene.
+    pub boxes: Vec<SceneBox>,
+}
+
+fn jitter(rng: &mut SplitMix, color: [f64; 3], amount: f64) -> [f64; 3] {
+    let k = rng.uniform(1.0 - amount, 1.0 + amount);
+    color.map(|c| (c * k).clamp(0.0, 1.0))
+}
+
+impl Scene {
+    /// Builds the street from a seed. The ego drives along +x near y = 0.
+    pub fn street(seed: u64) -> Self {
+        let mut rng = SplitMix::new(seed);
+        let mut boxes = Vec::new();
+        let mut add = |name: String,
+                       center: [f64; 3],
+                       size: [f64; 3],
+                       yaw: f64,
+                       class: u8,
+                       color: [f64; 3],
+                       reflectivity: f64,
+                       motion: Option<Motion>| {
+            boxes.push(SceneBox {
+                name,
+                center: Point3::new(center[0], center[1], center[2] + size[2] / 2.0),
+                half: Vector3::new(size[0] / 2.0, size[1] / 2.0, size[2] / 2.0),
+                yaw,
+                class,
+                color,
+                reflectivity,
+                motion,
+            })
+        };
+        // Buildings on both sides of the street.
+        for (side, sign) in [("left", 1.0), ("right", -1.0)] {
+            let mut x = -45.0;
+            let mut index = 0;
+            while x < 95.0 {
+                let length = rng.uniform(8.0, 16.0);
+                let depth = rng.uniform(8.0, 14.0);
+                let height = rng.uniform(6.0, 18.0);
+                let setback = rng.uniform(13.0, 16.0);
+                let color = jitter(&mut rng, [0.62, 0.55, 0.48], 0.25);
+                add(
+                    format!("building_{side}_{index}"),
+                    [x + length / 2.0, sign * (setback + depth / 2.0), 0.0],
+                    [length, depth, height],
+                    rng.uniform(-0.05, 0.05),
+                    class::MANMADE,
+                    color,
+                    0.35,
+                    None,
+                );
+                x += length + rng.uniform(1.5, 5.0);
+                index += 1;
+            }
+            // Trees and poles along the sidewalk edge.
+            let mut x = -40.0 + rng.uniform(0.0, 6.0);
+            let mut index = 0;
+            while x < 90.0 {
+                if index % 3 == 2 {
+                    add(
+                        format!("pole_{side}_{index}"),
+                        [x, sign * 10.2, 0.0],
+                        [0.3, 0.3, 6.0],
+                        0.0,
+                        class::MANMADE,
+                        [0.35, 0.35, 0.38],
+                        0.6,
+                        None,
+                    );
+                } else {
+                    let color = jitter(&mut rng, [0.18, 0.45, 0.15], 0.2);
+                    add(
+                        format!("tree_{side}_{index}"),
+                        [x, sign * 10.0, 0.0],
+                        [1.6, 1.6, rng.uniform(3.5, 6.0)],
+                        rng.uniform(0.0, 1.5),
+                        class::VEGETATION,
+                        color,
+                        0.25,
+                        None,
+                    );
+                }
+                x += rng.uniform(7.0, 11.0);
+                index += 1;
+            }
+        }
+        // Parked cars on the right edge of the road.
+        let mut x = -20.0;
+        let mut index = 0;
+        while x < 80.0 {
+            let color = [
+                rng.uniform(0.1, 0.9),
+                rng.uniform(0.1, 0.9),
+                rng.uniform(0.1, 0.9),
+            ];
+            add(
+                format!("parked_car_{index}"),
+                [x, -6.3, 0.0],
+                [4.5, 1.9, 1.5],
+                rng.uniform(-0.08, 0.08),
+                class::CAR,
+                color,
+                0.5,
+                None,
+            );
+            x += rng.uniform(7.0, 14.0);
+            index += 1;
+        }
+        // Traffic: a car ahead in the ego lane, an oncoming car, a pedestrian.
+        add(
+            "lead_car".into(),
+            [14.0, 0.3, 0.0],
+            [4.6, 1.9, 1.6],
+            0.0,
+            class::CAR,
+            [0.75, 0.1, 0.1],
+            0.5,
+            Some(Motion { speed_x: 6.0 }),
+        );
+        add(
+            "oncoming_car".into(),
+            [45.0, -3.4, 0.0],
+            [4.4, 1.8, 1.5],
+            std::f64::consts::PI,
+            class::CAR,
+            [0.15, 0.2, 0.7],
+            0.5,
+            Some(Motion { speed_x: -9.0 }),
+        );
+        add(
+            "pedestrian".into(),
+            [6.0, 8.8, 0.0],
+            [0.5, 0.6, 1.75],
+            0.0,
+            class::PEDESTRIAN,
+            [0.85, 0.6, 0.2],
+            0.4,
+            Some(Motion { speed_x: 1.4 }),
+        );
+        // Cones and a barrier at a work zone on the left edge of the road.
+        for i in 0..5 {
+            add(
+                format!("cone_{i}"),
+                [22.0 + 2.0 * i as f64, 6.6, 0.0],
+                [0.4, 0.4, 0.7],
+                0.0,
+                class::TRAFFIC_CONE,
+                [1.0, 0.45, 0.05],
+                0.9,
+                None,
+            );
+        }
+        add(
+            "barrier_0".into(),
+            [34.0, 6.8, 0.0],
+            [4.0, 0.5, 1.0],
+            0.0,
+            class::BARRIER,
+            [0.8, 0.8, 0.78],
+            0.7,
+            None,
+        );
+        Scene { boxes }
+    }
+
+    /// The first surface hit by the ray `origin + s·direction` (unit direction, s > 1 cm)
+    /// at `t_secs` after the drive's start, if any within `max_range`.
+    pub fn cast(
+        &self,
+        origin: &Point3<f64>,
+        direction: &Vector3<f64>,
+        t_secs: f64,
+        max_range: f64,
+    ) -> Option<Hit> {
+        let mut best: Option<(f64, usize, Vector3<f64>)> = None;
+        let mut nearest = max_range;
+        for (index, b) in self.boxes.iter().enumerate() {
+            // Bounding-sphere rejection before the exact slab test.
+            let to_center = b.center_at(t_secs) - origin;
+            let along = to_center.dot(direction);
+            let radius2 = b.half.norm_squared();
+            if along < -radius2.sqrt()
+                || along - radius2.sqrt() > nearest
+                || to_center.norm_squared() - along * along > radius2
+            {
+                continue;
+            }
+            if let Some((s, normal)) = intersect_box(b, origin, direction, t_secs, nearest) {
+                nearest = s;
+                best = Some((s, index, normal));
+            }
+        }
+        let ground = (direction.z < -1e-9)
+            .then(|| -origin.z / direction.z)
+            .filter(|s| *s > 0.01 && *s < nearest);
+        if let Some(s) = ground {
+            let point = origin + direction * s;
+            let (class, color, reflectivity) = ground_material(&point);
+            return Some(Hit {
+                distance: s,
+                point,
+                normal: Vector3::z(),
+                class,
+                color,
+                reflectivity,
+            });
+        }
+        let (s, index, normal) = best?;
+        let b = &self.boxes[index];
+        let point = origin + direction * s;
+        let (color, reflectivity) = box_material(b, &point, &normal, t_secs);
+        Some(Hit {
+            distance: s,
+            point,
+            normal,
+            class: b.class,
+            color,
+            reflectivity,
+        })
+    }
+}
+
+/// Slab test in the box's own frame; returns the entry distance and outward normal.
+fn intersect_box(
+    b: &SceneBox,
+    origin: &Point3<f64>,
+    direction: &Vector3<f64>,
+    t_secs: f64,
+    max_s: f64,
+) -> Option<(f64, Vector3<f64>)> {
+    let c = b.center_at(t_secs);
+    let (s, co) = b.yaw.sin_cos();
+    let rel = origin - c;
+    // Rotate into the box frame (inverse yaw).
+    let o = Vector3::new(co * rel.x + s * rel.y, -s * rel.x + co * rel.y, rel.z);
+    let d = Vector3::new(
+        co * direction.x + s * direction.y,
+        -s * direction.x + co * direction.y,
+        direction.z,
+    );
+    let mut t_near = 0.01f64;
+    let mut t_far = max_s;
+    let mut axis = usize::MAX;
+    let mut sign = 0.0;
+    for i in 0..3 {
+        if d[i].abs() < 1e-12 {
+            if o[i].abs() > b.half[i] {
+                return None;
+            }
+            continue;
+        }
+        let inv = 1.0 / d[i];
+        let mut t0 = (-b.half[i] - o[i]) * inv;
+        let mut t1 = (b.half[i] - o[i]) * inv;
+        let mut entry_sign = -1.0;
+        if t0 > t1 {
+            std::mem::swap(&mut t0, &mut t1);
+            entry_sign = 1.0;
+        }
+        if t0 > t_near {
+            t_near = t0;
+            axis = i;
+            sign = entry_sign;
+        }
+        t_far = t_far.min(t1);
+        if t_near > t_far {
+            return None;
+        }
+    }
+    if axis == usize::MAX {
+        return None; // origin inside the box
+    }
+    let mut local = Vector3::zeros();
+    local[axis] = sign;
+    let normal = Vector3::new(
+        co * local.x - s * local.y,
+        s * local.x + co * local.y,
+        local.z,
+    );
+    Some((t_near, normal))
+}
+
+fn ground_material(p: &Point3<f64>) -> (u8, [f64; 3], f64) {
+    let ay = p.y.abs();
+    if ay < ROAD_HALF_WIDTH {
+        // Dashed centre line and solid edge lines.
+        let dash = (p.y + 1.5).abs() < 0.08 && p.x.rem_euclid(6.0) < 3.0;
+        let edge = (ay - 7.2).abs() < 0.1;
+        if dash || edge {
+            (class::DRIVEABLE_SURFACE, [0.92, 0.92, 0.88], 0.85)
+        } else {
+            let patch = ((p.x * 0.7).floor() + (p.y * 0.7).floor()).rem_euclid(2.0);
+            let g = 0.26 + 0.03 * patch;
+            (class::DRIVEABLE_SURFACE, [g, g, g + 0.01], 0.12)
+        }
+    } else if ay < SIDEWALK_EDGE {
+        let tile = ((p.x * 2.0).floor() + (p.y * 2.0).floor()).rem_euclid(2.0);
+        let g = 0.58 + 0.05 * tile;
+        (class::SIDEWALK, [g, g * 0.97, g * 0.92], 0.3)
+    } else {
+        let n = ((p.x * 1.3).sin() * (p.y * 1.7).cos() * 0.5 + 0.5) * 0.08;
+        (class::TERRAIN, [0.22 + n, 0.42 + n, 0.16], 0.2)
+    }
+}
+
+fn box_material(
+    b: &SceneBox,
+    p: &Point3<f64>,
+    normal: &Vector3<f64>,
+    t_secs: f64,
+) -> ([f64; 3], f64) {
+    if b.class != class::MANMADE || b.half.z < 3.5 {
+        // Darker lower half on cars (windows are above the belt line in reality; any
+        // contrast will do for the images).
+        if b.class == class::CAR && p.z > b.center_at(t_secs).z + 0.2 {
+            return (b.color.map(|c| c * 0.45), b.reflectivity * 0.6);
+        }
+        return (b.color, b.reflectivity);
+    }
+    // Buildings: a grid of windows on the facades.
+    let along = if normal.z.abs() > 0.5 {
+        return (b.color.map(|c| c * 0.8), b.reflectivity);
+    } else {
+        p.x * normal.y.abs() + p.y * normal.x.abs()
+    };
+    let window = along.rem_euclid(2.5) > 0.8 && p.z.rem_euclid(3.0) > 1.0 && p.z > 2.5;
+    if window {
+        ([0.2, 0.27, 0.35], 0.1)
+    } else {
+        (b.color, b.reflectivity)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rays_hit_ground_boxes_and_sky() {
+        let scene = Scene::street(7);
+        let origin = Point3::new(0.0, 0.0, 1.8);
+        let down = scene
+            .cast(&origin, &Vector3::new(0.0, 0.0, -1.0), 0.0, 100.0)
+            .unwrap();
+        assert!((down.distance - 1.8).abs() < 1e-12);
+        assert_eq!(down.class, class::DRIVEABLE_SURFACE);
+        assert!(scene.cast(&origin, &Vector3::z(), 0.0, 100.0).is_none());
+        // From the sidewalk, looking left at a building's middle hits its facade.
+        let building = scene
+            .boxes
+            .iter()
+            .find(|b| b.name.starts_with("building_left"))
+            .unwrap();
+        let from = Point3::new(building.center.x, 12.5, building.center.z);
+        let hit = scene.cast(&from, &Vector3::y(), 0.0, 100.0).unwrap();
+        assert_eq!(hit.class, class::MANMADE);
+        assert!(hit.point.y > 12.5 && hit.point.y < building.center.y);
+        assert!((hit.normal.norm() - 1.0).abs() < 1e-12);
+        assert!(
+            hit.normal.y < -0.99,
+            "facade faces the street: {}",
+            hit.normal
+        );
+    }
+
+    #[test]
+    fn box_hit_lies_on_the_box_surface() {
+        let b = SceneBox {
+            name: "b".into(),
+            center: Point3::new(10.0, 0.0, 1.0),
+            half: Vector3::new(1.0, 2.0, 1.0),
+            yaw: 0.3,
+            class: class::CAR,
+            color: [1.0; 3],
+            reflectivity: 1.0,
+            motion: None,
+        };
+        let scene = Scene { boxes: vec![b] };
+        let origin = Point3::new(0.0, 0.0, 1.0);
+        let hit = scene
+            .cast(&origin, &Vector3::new(1.0, 0.0, 0.0), 0.0, 100.0)
+            .unwrap();
+        // The near face is at local x = -1: point minus centre, rotated back, has x = -1.
+        let rel = hit.point - Point3::new(10.0, 0.0, 1.0);
+        let (s, c) = 0.3f64.sin_cos();
+        assert!(((c * rel.x + s * rel.y) + 1.0).abs() < 1e-9);
+        assert!((hit.normal - Vector3::new(-c, -s, 0.0)).norm() < 1e-12);
+    }
+}

@@ -1,0 +1,139 @@
+//! Cross-language checks: independent Python readers (the `mcap` package's ROS 2 and
+//! protobuf decoders, numpy) agree with the drives' ground truth and with the Rust batch
+//! reader. Needs `pip install -r tests/python/requirements.txt`.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
+
+use serde_json::json;
+use std::process::Command;
+use superflow_schemas::batch::{BatchHeader, BatchLayout, BatchMeta, BatchView, BatchWriter};
+use superflow_tests::workspace_root;
+
+fn python(args: &[&str]) -> String {
+    let output = Command::new("python3")
+        .args(args)
+        .current_dir(workspace_root())
+        .output()
+        .expect("python3 runs (install the packages of tests/python/requirements.txt)");
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&output.stdout),
+        String::from_utf8_lossy(&output.stderr)
+    );
+    assert!(output.status.success(), "python3 {args:?} failed:\n{text}");
+    text
+}
+
+#[test]
+fn independent_python_decoders_agree_with_the_ground_truth() {
+    let text = python(&["tests/python/check_drives.py", "recordings/drives"]);
+    let last = text
+        .lines()
+        .rev()
+        .find(|l| !l.trim().is_empty())
+        .unwrap_or("");
+    assert!(
+        last.ends_with(" 0 failed") && !last.starts_with("0 passed"),
+        "{text}"
+    );
+}
+
+#[test]
+fn numpy_reads_a_batch_exactly_as_the_rust_reader() {
+    let mut layout = BatchLayout::new();
+    let points = layout.add::<f32>("points", &[3, 4]).unwrap();
+    let voxels = layout.add::<i32>("voxel_coords", &[2, 3]).unwrap();
+    let ids = layout.add::<u64>("sample_ids", &[2]).unwrap();
+    let image = layout.add::<u8>("images", &[1, 2, 2, 3]).unwrap();
+    let ring = layout.add::<u16>("ring", &[3]).unwrap();
+    let stamps = layout.add::<i64>("stamps_nanos", &[2]).unwrap();
+    let counts = layout.add::<u32>("counts", &[1]).unwrap();
+    let weights = layout.add::<f64>("weights", &[2]).unwrap();
+    let empty = layout.add::<f32>("empty", &[0, 64]).unwrap();
+    let meta = BatchMeta {
+        run: "python-check".into(),
+        epoch: 2,
+        step: 5,
+        seed: 77,
+        sequence: 9,
+        created_unix_nanos: 1_700_000_000_000_000_000,
+        sample_count: 2,
+        flags: 0,
+    };
+    let header = layout.header(&meta).unwrap();
+    let mut storage = vec![0u64; layout.payload_len().div_ceil(8)];
+    let payload: &mut [u8] = bytemuck::cast_slice_mut(&mut storage);
+    {
+        let mut w = BatchWriter::new(&layout, payload).unwrap();
+        w.write(
+            points,
+            &[
+                0.5f32, -1.25, 3.0, 7.0, 1e-3, 2.5e6, -0.0, 1.0, 9.0, 8.0, 7.5, -6.0,
+            ],
+        )
+        .unwrap();
+        w.write(voxels, &[1i32, -2, 3, i32::MAX, i32::MIN, 0])
+            .unwrap();
+        w.write(ids, &[u64::MAX, 12]).unwrap();
+        w.write(image, &[0u8, 10, 20, 30, 40, 50, 60, 70, 80, 90, 100, 255])
+            .unwrap();
+        w.write(ring, &[0u16, 31, 65_535]).unwrap();
+        w.write(stamps, &[1_700_000_000_123_456_789i64, -1])
+            .unwrap();
+        w.write(counts, &[42u32]).unwrap();
+        w.write(weights, &[0.1f64, -1e300]).unwrap();
+        w.write::<f32>(empty, &[]).unwrap();
+    }
+    let payload: &[u8] = payload;
+
+    // The expected arrays are what the Rust reader hands out.
+    let view = BatchView::new(&header, payload).unwrap();
+    let mut sections = serde_json::Map::new();
+    for name in view.section_names() {
+        let (dtype, shape) = view.describe(name).unwrap();
+        let values = match dtype.numpy() {
+            "<f4" => json!(view.get::<f32>(name).unwrap().data),
+            "<f8" => json!(view.get::<f64>(name).unwrap().data),
+            "<i4" => json!(view.get::<i32>(name).unwrap().data),
+            "<i8" => json!(view.get::<i64>(name).unwrap().data),
+            "<u1" => json!(view.get::<u8>(name).unwrap().data),
+            "<u2" => json!(view.get::<u16>(name).unwrap().data),
+            "<u4" => json!(view.get::<u32>(name).unwrap().data),
+            "<u8" => json!(view.get::<u64>(name).unwrap().data),
+            other => panic!("unexpected dtype {other}"),
+        };
+        sections.insert(
+            name.to_string(),
+            json!({ "dtype": dtype.numpy(), "shape": shape, "values": values }),
+        );
+    }
+    let expected = json!({
+        "meta": {
+            "run": meta.run, "epoch": meta.epoch, "step": meta.step, "seed": meta.seed,
+            "sequence": meta.sequence, "sample_count": meta.sample_count,
+        },
+        "sections": sections,
+    });
+
+    let dir = std::env::temp_dir().join(format!("superflow-batch-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let batch_path = dir.join("batch.bin");
+    let expected_path = dir.join("expected.json");
+    let mut file = header.as_bytes().to_vec();
+    assert_eq!(file.len(), BatchHeader::SIZE);
+    file.extend_from_slice(payload);
+    std::fs::write(&batch_path, file).unwrap();
+    std::fs::write(&expected_path, serde_json::to_vec(&expected).unwrap()).unwrap();
+    let text = python(&[
+        "tests/python/read_batch.py",
+        batch_path.to_str().unwrap(),
+        expected_path.to_str().unwrap(),
+    ]);
+    std::fs::remove_dir_all(&dir).ok();
+    let last = text
+        .lines()
+        .rev()
+        .find(|l| !l.trim().is_empty())
+        .unwrap_or("");
+    assert!(last.ends_with(" 0 failed"), "{text}");
+}
