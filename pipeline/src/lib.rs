@@ -26,5 +26,8 @@
 //! # Ok::<(), superflow_pipeline::drive::TfError>(())
 //! ```
 
+pub mod config;
 pub mod decode;
 pub mod drive;
+pub mod inspect;
+pub mod source;

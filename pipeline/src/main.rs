@@ -1,72 +1,96 @@
 //! `superflow-pipeline`: the producer process.
 //!
-//! `superflow-pipeline --mcap <drives>... [--run NAME]` will stream SuperFlow batches over
-//! iceoryx2 (not built yet: it arrives with the ingest, sample-builder and service
-//! issues). Today it opens every drive and reports what its summary holds, so the
-//! command a user types already checks the inputs.
+//! * `superflow-pipeline --mcap <drives>... [--run NAME] [--config pipeline.toml]` — the
+//!   service: streams SuperFlow batches over iceoryx2 (the streaming itself arrives with
+//!   the sample-builder and service issues; today it indexes the drives, checks that they
+//!   hold what training needs and says what is not built yet).
+//! * `superflow-pipeline inspect --mcap <drives>... [--json]` — what the drives hold.
 
 use anyhow::{Context as _, bail};
-use clap::Parser;
+use clap::{Parser, Subcommand};
 use std::path::PathBuf;
+use superflow_pipeline::config::PipelineConfig;
+use superflow_pipeline::drive::Dataset;
+use superflow_pipeline::inspect::InspectReport;
 
 /// Streams SuperFlow training batches from recorded drives to trainers over shared memory.
 #[derive(Debug, Parser)]
 #[command(version, about)]
 struct Args {
     /// MCAP files or directories of them (searched for `*.mcap`).
-    #[arg(long, required = true, num_args = 1..)]
+    #[arg(long, num_args = 1.., global = true)]
     mcap: Vec<PathBuf>,
+    /// Configuration file (TOML); defaults are the paper's.
+    #[arg(long, global = true)]
+    config: Option<PathBuf>,
     /// Run name: the services are `superflow/<run>/...`.
     #[arg(long, default_value = "default")]
     run: String,
+    #[command(subcommand)]
+    command: Option<Command>,
 }
 
-fn drive_files(inputs: &[PathBuf]) -> anyhow::Result<Vec<PathBuf>> {
-    let mut files = Vec::new();
-    for input in inputs {
-        if input.is_dir() {
-            let entries =
-                std::fs::read_dir(input).with_context(|| format!("listing {}", input.display()))?;
-            let mut found: Vec<PathBuf> = entries
-                .filter_map(|e| e.ok().map(|e| e.path()))
-                .filter(|p| p.extension().is_some_and(|e| e == "mcap"))
-                .collect();
-            found.sort();
-            files.extend(found);
-        } else {
-            files.push(input.clone());
-        }
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Lists what the drives hold: dialect, channels and roles, cameras, frame tree,
+    /// time span, usable keyframes and skipped messages.
+    Inspect {
+        /// Print the stable JSON report (`superflow.inspect/1`) instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+fn open(args: &Args) -> anyhow::Result<Dataset> {
+    if args.mcap.is_empty() {
+        bail!("no input: pass --mcap <file or directory>...");
     }
-    if files.is_empty() {
-        bail!("no .mcap files in {inputs:?}");
-    }
-    Ok(files)
+    let config = match &args.config {
+        Some(path) => PipelineConfig::load(path)?,
+        None => PipelineConfig::default(),
+    };
+    Ok(Dataset::open(&args.mcap, &config.ingest)?)
 }
 
 fn run(args: &Args) -> anyhow::Result<()> {
-    superflow_schemas::service::batches_service(&args.run)?;
-    for path in drive_files(&args.mcap)? {
-        let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
-        let summary = mcap::Summary::read(&bytes)
-            .with_context(|| format!("reading the MCAP summary of {}", path.display()))?
-            .with_context(|| format!("{} has no summary section", path.display()))?;
-        let messages = summary.stats.as_ref().map_or(0, |s| s.message_count);
-        tracing::info!(
-            drive = %path.display(),
-            channels = summary.channels.len(),
-            messages,
-            "drive opened"
-        );
+    match &args.command {
+        Some(Command::Inspect { json }) => {
+            let dataset = open(args)?;
+            let report = InspectReport::new(&dataset);
+            if *json {
+                println!("{}", serde_json::to_string_pretty(&report)?);
+            } else {
+                print!("{}", report.to_text());
+            }
+            Ok(())
+        }
+        None => {
+            superflow_schemas::service::batches_service(&args.run)?;
+            let dataset = open(args)?;
+            dataset
+                .check_sensors()
+                .context("the drives cannot be trained on")?;
+            let report = InspectReport::new(&dataset);
+            tracing::info!(
+                files = report.files.len(),
+                sweeps = report.lidar_sweeps,
+                cameras = report.cameras.len(),
+                keyframes = report.usable_keyframes,
+                skipped = report.skipped.total(),
+                "dataset indexed"
+            );
+            bail!(
+                "not yet built: building samples and streaming batches on superflow/{}/batches \
+                 arrive with the sample-builder and service issues",
+                args.run
+            )
+        }
     }
-    bail!(
-        "not yet built: decoding drives into samples and streaming batches on \
-         superflow/{}/batches arrive with the ingest, sample-builder and service issues",
-        args.run
-    )
 }
 
 fn main() -> std::process::ExitCode {
     tracing_subscriber::fmt()
+        .with_writer(std::io::stderr)
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
         )

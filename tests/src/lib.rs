@@ -4,8 +4,7 @@
 use anyhow::{Context as _, bail};
 use std::collections::BTreeMap;
 use std::path::PathBuf;
-use superflow_pipeline::decode::{foxglove, ros2};
-use superflow_pipeline::drive::TransformTree;
+use superflow_pipeline::drive::{Dataset, IngestConfig, TransformTree};
 use superflow_recordings::Dialect;
 use superflow_recordings::truth::GroundTruth;
 use superflow_schemas::sensor::CameraCalibration;
@@ -52,58 +51,37 @@ pub fn sample_drive(dialect: Dialect) -> anyhow::Result<SampleDrive> {
     })
 }
 
+/// The drive indexed by the pipeline's ingest (one pass over the file).
+pub fn dataset(drive: &SampleDrive) -> anyhow::Result<Dataset> {
+    Ok(Dataset::open(
+        &[drive.path.clone()],
+        &IngestConfig::default(),
+    )?)
+}
+
 /// Every transform of the drive in one tree (`/tf`, `/tf_static`), with constant
 /// stamped edges (re-published extrinsics) frozen into static ones.
 pub fn transform_tree(drive: &SampleDrive) -> anyhow::Result<TransformTree> {
-    let mut tree = TransformTree::new(0);
-    for message in mcap::MessageStream::new(&drive.bytes)? {
-        let message = message?;
-        let topic = message.channel.topic.as_str();
-        let schema = message.channel.schema.as_ref().map(|s| s.name.as_str());
-        let transforms = match (topic, schema) {
-            ("/tf" | "/tf_static", Some(ros2::TF_MESSAGE)) => {
-                let msg: ros2::TfMessage = ros2::decode(&message.data)?;
-                ros2::transforms(&msg, topic == "/tf_static")
-            }
-            ("/tf", Some("foxglove.FrameTransform")) => {
-                let msg: foxglove::FrameTransform =
-                    foxglove::decode("foxglove.FrameTransform", &message.data)?;
-                vec![foxglove::frame_transform(&msg, false)]
-            }
-            _ => continue,
-        };
-        for transform in transforms {
-            tree.insert(transform.with_context(|| {
-                format!(
-                    "{}: {topic} at log time {}",
-                    drive.path.display(),
-                    message.log_time
-                )
-            })?)?;
-        }
-    }
-    tree.freeze_constant_edges();
-    Ok(tree)
+    Ok(dataset(drive)?.tf)
 }
 
-/// The first calibration recorded on each calibration topic, by topic.
+/// The calibration of each camera, by calibration topic.
 pub fn calibrations(drive: &SampleDrive) -> anyhow::Result<BTreeMap<String, CameraCalibration>> {
+    let dataset = dataset(drive)?;
     let mut out = BTreeMap::new();
-    for message in mcap::MessageStream::new(&drive.bytes)? {
-        let message = message?;
-        let topic = message.channel.topic.clone();
-        if out.contains_key(&topic) {
-            continue;
-        }
-        let calibration = match message.channel.schema.as_ref().map(|s| s.name.as_str()) {
-            Some(ros2::CAMERA_INFO) => ros2::camera_info(&ros2::decode(&message.data)?)?,
-            Some("foxglove.CameraCalibration") => foxglove::camera_calibration(&foxglove::decode(
-                "foxglove.CameraCalibration",
-                &message.data,
-            )?)?,
-            _ => continue,
-        };
-        out.insert(topic, calibration);
+    for camera in &dataset.cameras {
+        let topic = camera.calibration_topic.clone().with_context(|| {
+            format!(
+                "{}: camera {} has no calibration",
+                drive.path.display(),
+                camera.name
+            )
+        })?;
+        let calibration = camera
+            .calibrations
+            .first()
+            .with_context(|| format!("{topic}: empty"))?;
+        out.insert(topic, calibration.clone());
     }
     if out.is_empty() {
         bail!("{}: no calibration found", drive.path.display());

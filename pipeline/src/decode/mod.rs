@@ -9,6 +9,8 @@
 //! a usable calibration) and report a [`DecodeError`] naming the frame and stamp.
 
 pub mod foxglove;
+pub mod image;
+pub mod points;
 pub mod ros2;
 
 use nalgebra::{Isometry3, Quaternion, Translation3, UnitQuaternion};

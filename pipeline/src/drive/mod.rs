@@ -1,6 +1,10 @@
-//! A drive in time: the transform tree (and, with the ingest work, the index of sweeps
-//! and camera frames).
+//! A drive in time: channel discovery, the index of every LiDAR sweep and camera frame
+//! over one or more files, and the transform tree.
 
+pub mod dataset;
+pub mod discover;
 pub mod tf;
 
+pub use dataset::{CameraStream, Dataset, FrameRef, IngestError, LidarStream, SkipReport};
+pub use discover::{IngestConfig, Role};
 pub use tf::{TfError, TransformTree};

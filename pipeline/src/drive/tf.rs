@@ -157,6 +157,18 @@ impl TransformTree {
         frozen
     }
 
+    /// The root of `frame`'s chain (the frame itself if it has no parent).
+    pub fn root_of(&self, frame: &str) -> Result<String, TfError> {
+        self.known(frame)?;
+        let chain = self.chain(frame)?;
+        Ok(chain.last().map_or(frame, |f| f).to_string())
+    }
+
+    /// Whether any transform mentions `frame`.
+    pub fn contains(&self, frame: &str) -> bool {
+        self.known(frame).is_ok()
+    }
+
     /// Every frame mentioned, sorted.
     pub fn frames(&self) -> Vec<String> {
         let mut frames: Vec<String> = self

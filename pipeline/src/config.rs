@@ -1,0 +1,96 @@
+//! `pipeline.toml`: one serde struct with documented defaults (the paper's), validated
+//! before use. Sections arrive with the issues that use them.
+
+use crate::drive::IngestConfig;
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// The pipeline's configuration file.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct PipelineConfig {
+    /// Channel and frame choices (`[ingest]`).
+    pub ingest: IngestConfig,
+}
+
+/// A configuration file that cannot be used.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    /// Reading failed.
+    #[error("reading {path}: {source}")]
+    Io {
+        /// The file.
+        path: String,
+        /// The error.
+        source: std::io::Error,
+    },
+    /// Not valid TOML for this struct.
+    #[error("{path}: {source}")]
+    Parse {
+        /// The file.
+        path: String,
+        /// The parser's message (line, column, field).
+        source: toml::de::Error,
+    },
+    /// A value out of range.
+    #[error("{path}: {reason}")]
+    Invalid {
+        /// The file.
+        path: String,
+        /// What is wrong.
+        reason: String,
+    },
+}
+
+impl PipelineConfig {
+    /// Loads and validates a TOML file.
+    pub fn load(path: &Path) -> Result<Self, ConfigError> {
+        let name = path.display().to_string();
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Io {
+            path: name.clone(),
+            source,
+        })?;
+        let config: PipelineConfig =
+            toml::from_str(&text).map_err(|source| ConfigError::Parse {
+                path: name.clone(),
+                source,
+            })?;
+        config
+            .validate()
+            .map_err(|reason| ConfigError::Invalid { path: name, reason })?;
+        Ok(config)
+    }
+
+    /// Checks ranges.
+    pub fn validate(&self) -> Result<(), String> {
+        let tol = self.ingest.tf_tolerance_ms;
+        if !(tol.is_finite() && (0.0..=10_000.0).contains(&tol)) {
+            return Err(format!(
+                "ingest.tf_tolerance_ms = {tol} is not in 0..=10000"
+            ));
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn parses_overrides_and_rejects_unknown_fields() {
+        let config: PipelineConfig = toml::from_str(
+            "[ingest]\nlidar_topic = \"/velodyne_points\"\ncamera_topics = [\"/cam/image\"]\ntf_tolerance_ms = 20.0\n",
+        )
+        .unwrap();
+        assert_eq!(
+            config.ingest.lidar_topic.as_deref(),
+            Some("/velodyne_points")
+        );
+        assert_eq!(config.ingest.tf_tolerance_ms, 20.0);
+        assert!(toml::from_str::<PipelineConfig>("[ingest]\nlidar = \"x\"\n").is_err());
+        let mut bad = PipelineConfig::default();
+        bad.ingest.tf_tolerance_ms = -1.0;
+        assert!(bad.validate().is_err());
+    }
+}

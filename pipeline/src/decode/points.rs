@@ -1,0 +1,1 @@
+//! Point cloud field layouts (being written).

@@ -1,0 +1,718 @@
+//! A dataset: one or more MCAP files (a drive split in parts, or many drives) indexed in
+//! one pass each — every LiDAR sweep and camera frame with its sensor stamp and location,
+//! every transform in a [`TransformTree`], every calibration — plus a report of what was
+//! skipped and why.
+
+use super::discover::{self, Dialect, IngestConfig, Role, SchemaKind};
+use super::tf::TransformTree;
+use crate::decode::{foxglove, ros2};
+use crate::source::{ChannelInfo, Damage, McapFile, MessageLoc, MessageRef, SourceError};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use superflow_schemas::Stamp;
+use superflow_schemas::sensor::CameraCalibration;
+
+/// A sensor message located in the dataset.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FrameRef {
+    /// The sensor's own stamp (`header.stamp` / `timestamp`), never the log time.
+    pub stamp: Stamp,
+    /// Index of the file in [`Dataset::files`].
+    pub file: u32,
+    /// Where the message is in that file.
+    pub loc: MessageLoc,
+}
+
+/// The LiDAR stream.
+#[derive(Debug, Clone)]
+pub struct LidarStream {
+    /// Its topic.
+    pub topic: String,
+    /// Frame of its points.
+    pub frame_id: String,
+    /// Encoding dialect.
+    pub dialect: Dialect,
+    /// Every sweep, sorted by stamp.
+    pub sweeps: Vec<FrameRef>,
+}
+
+/// One camera: its image stream, calibration and optional class-map stream.
+#[derive(Debug, Clone)]
+pub struct CameraStream {
+    /// Name (the last segment of its topic namespace, `CAM_FRONT`, `cam_front`).
+    pub name: String,
+    /// Topic of its images.
+    pub image_topic: String,
+    /// Compressed or raw images.
+    pub image_kind: SchemaKind,
+    /// Encoding dialect.
+    pub dialect: Dialect,
+    /// The optical frame of its images.
+    pub frame_id: String,
+    /// Topic of its calibration, if found.
+    pub calibration_topic: Option<String>,
+    /// Distinct calibrations in time order (usually one).
+    pub calibrations: Vec<CameraCalibration>,
+    /// Every image, sorted by stamp.
+    pub frames: Vec<FrameRef>,
+    /// Topic of its per-pixel class maps, if recorded.
+    pub superpixel_topic: Option<String>,
+    /// Compressed or raw class maps.
+    pub superpixel_kind: Option<SchemaKind>,
+    /// Every class map, sorted by stamp.
+    pub superpixels: Vec<FrameRef>,
+}
+
+impl CameraStream {
+    /// The calibration in force at `stamp` (the latest one at or before it, else the first).
+    pub fn calibration_at(&self, stamp: Stamp) -> Option<&CameraCalibration> {
+        self.calibrations
+            .iter()
+            .rev()
+            .find(|c| c.stamp <= stamp)
+            .or(self.calibrations.first())
+    }
+
+    /// Median spacing of the images, nanoseconds.
+    pub fn period_nanos(&self) -> Option<i64> {
+        median_spacing(&self.frames)
+    }
+}
+
+fn median_spacing(frames: &[FrameRef]) -> Option<i64> {
+    let mut gaps: Vec<i64> = frames
+        .windows(2)
+        .map(|w| w[1].stamp.nanos_since(w[0].stamp))
+        .collect();
+    if gaps.is_empty() {
+        return None;
+    }
+    gaps.sort_unstable();
+    Some(gaps[gaps.len() / 2])
+}
+
+/// Counted skips, one entry per kind, with the first occurrence spelled out.
+#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
+pub struct SkipReport {
+    /// Kind → count and first example (`file: topic at stamp: error`).
+    pub entries: BTreeMap<String, SkipEntry>,
+}
+
+/// One kind of skip.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct SkipEntry {
+    /// How many.
+    pub count: u64,
+    /// The first one, in words.
+    pub first: String,
+}
+
+impl SkipReport {
+    /// Counts one skip of `kind`; `detail` is kept for the first.
+    pub fn add(&mut self, kind: impl Into<String>, detail: impl FnOnce() -> String) {
+        self.entries
+            .entry(kind.into())
+            .and_modify(|e| e.count += 1)
+            .or_insert_with(|| SkipEntry {
+                count: 1,
+                first: detail(),
+            });
+    }
+
+    /// Total skips.
+    pub fn total(&self) -> u64 {
+        self.entries.values().map(|e| e.count).sum()
+    }
+}
+
+/// What a channel holds, over all files of the dataset.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ChannelSummary {
+    /// Topic.
+    pub topic: String,
+    /// Role assigned by discovery (or the config).
+    pub role: Role,
+    /// Schema name.
+    pub schema: String,
+    /// Schema encoding.
+    pub schema_encoding: String,
+    /// Message encoding.
+    pub message_encoding: String,
+    /// Messages read.
+    pub message_count: u64,
+    /// Messages per second over the channel's span (sensor stamps where decoded, else
+    /// log times).
+    pub rate_hz: Option<f64>,
+}
+
+/// Why a dataset cannot be used for training (it can still be inspected).
+#[derive(Debug, thiserror::Error)]
+pub enum IngestError {
+    /// No input files.
+    #[error("no MCAP files given")]
+    NoFiles,
+    /// A file could not be opened or is not MCAP.
+    #[error(transparent)]
+    Source(#[from] SourceError),
+    /// Listing a directory failed.
+    #[error("{path}: {source}")]
+    Io {
+        /// The directory.
+        path: PathBuf,
+        /// The error.
+        source: std::io::Error,
+    },
+    /// Sensors that training needs are missing.
+    #[error("{files}: {problems}")]
+    Missing {
+        /// The files of the dataset.
+        files: String,
+        /// What is missing, `; `-separated.
+        problems: String,
+    },
+}
+
+#[derive(Debug)]
+struct TopicData {
+    channel: ChannelInfo,
+    kind: Option<(SchemaKind, Dialect)>,
+    count: u64,
+    frame_id: Option<String>,
+    frames: Vec<FrameRef>,
+    calibrations: Vec<CameraCalibration>,
+    first_log: u64,
+    last_log: u64,
+}
+
+// Just the stamp and frame of Foxglove sensor messages: prost skips the other fields
+// (the point or pixel data) without copying them.
+macro_rules! stamp_and_frame {
+    ($name:ident, $frame_tag:literal) => {
+        #[derive(Clone, PartialEq, prost::Message)]
+        struct $name {
+            #[prost(message, optional, tag = "1")]
+            timestamp: Option<foxglove::Timestamp>,
+            #[prost(string, tag = $frame_tag)]
+            frame_id: String,
+        }
+    };
+}
+stamp_and_frame!(PointCloudHead, "2");
+stamp_and_frame!(CompressedImageHead, "4");
+stamp_and_frame!(RawImageHead, "7");
+
+/// Just the header of a ROS 2 sensor message (CDR decoding stops after it).
+#[derive(Debug, Deserialize)]
+struct Ros2Head {
+    header: ros2::Header,
+}
+
+fn stamp_and_frame(
+    kind: SchemaKind,
+    dialect: Dialect,
+    data: &[u8],
+) -> Result<(Stamp, String), String> {
+    fn fox<T: prost::Message + Default>(schema: &'static str, data: &[u8]) -> Result<T, String> {
+        foxglove::decode::<T>(schema, data).map_err(|e| e.to_string())
+    }
+    match dialect {
+        Dialect::Ros2 => {
+            let head: Ros2Head = ros2::decode(data).map_err(|e| e.to_string())?;
+            Ok((head.header.stamp.stamp(), head.header.frame_id))
+        }
+        Dialect::FoxgloveProtobuf => {
+            let (schema, timestamp, frame_id) = match kind {
+                SchemaKind::PointCloud => {
+                    let m: PointCloudHead = fox("foxglove.PointCloud", data)?;
+                    ("foxglove.PointCloud", m.timestamp, m.frame_id)
+                }
+                SchemaKind::CompressedImage => {
+                    let m: CompressedImageHead = fox("foxglove.CompressedImage", data)?;
+                    ("foxglove.CompressedImage", m.timestamp, m.frame_id)
+                }
+                SchemaKind::RawImage => {
+                    let m: RawImageHead = fox("foxglove.RawImage", data)?;
+                    ("foxglove.RawImage", m.timestamp, m.frame_id)
+                }
+                _ => return Err("not a sensor message".into()),
+            };
+            let stamp = foxglove::stamp(schema, timestamp.as_ref()).map_err(|e| e.to_string())?;
+            Ok((stamp, frame_id))
+        }
+    }
+}
+
+/// All `.mcap` files named or inside the named directories, sorted per directory.
+pub fn mcap_files(inputs: &[PathBuf]) -> Result<Vec<PathBuf>, IngestError> {
+    let mut files = Vec::new();
+    for input in inputs {
+        if input.is_dir() {
+            let io = |source| IngestError::Io {
+                path: input.clone(),
+                source,
+            };
+            let mut found: Vec<PathBuf> = std::fs::read_dir(input)
+                .map_err(io)?
+                .filter_map(|e| e.ok().map(|e| e.path()))
+                .filter(|p| p.extension().is_some_and(|e| e == "mcap"))
+                .collect();
+            found.sort();
+            files.extend(found);
+        } else {
+            files.push(input.clone());
+        }
+    }
+    if files.is_empty() {
+        return Err(IngestError::NoFiles);
+    }
+    Ok(files)
+}
+
+/// One or more MCAP files indexed as one dataset.
+#[derive(Debug)]
+pub struct Dataset {
+    /// The files, in the order given.
+    pub files: Vec<McapFile>,
+    /// Every channel with its role, sorted by topic.
+    pub channels: Vec<ChannelSummary>,
+    /// The LiDAR, if one was found.
+    pub lidar: Option<LidarStream>,
+    /// Cameras, sorted by name.
+    pub cameras: Vec<CameraStream>,
+    /// Every transform.
+    pub tf: TransformTree,
+    /// Stamped edges that never change, treated as static (re-published extrinsics).
+    pub frozen_edges: Vec<(String, String)>,
+    /// The map frame, if determined.
+    pub map_frame: Option<String>,
+    /// The ego frame, if determined.
+    pub ego_frame: Option<String>,
+    /// Messages skipped during indexing, by kind.
+    pub skipped: SkipReport,
+    /// The configuration used.
+    pub config: IngestConfig,
+}
+
+impl Dataset {
+    /// Indexes `paths` (files or directories) in one pass per file.
+    pub fn open(paths: &[PathBuf], config: &IngestConfig) -> Result<Dataset, IngestError> {
+        let files = mcap_files(paths)?;
+        let mut topics: BTreeMap<String, TopicData> = BTreeMap::new();
+        let mut tf = TransformTree::new((config.tf_tolerance_ms * 1e6) as i64);
+        let mut skipped = SkipReport::default();
+        let mut opened = Vec::with_capacity(files.len());
+        for (file_index, path) in files.iter().enumerate() {
+            let mut visit = |m: MessageRef<'_>| {
+                index_message(
+                    file_index as u32,
+                    path,
+                    m,
+                    &mut topics,
+                    &mut tf,
+                    &mut skipped,
+                )
+            };
+            let file = McapFile::scan(path, &mut visit)?;
+            for damage in &file.damage {
+                let kind = match damage {
+                    Damage::Truncated { .. } => "file truncated",
+                    Damage::NoSummary { .. } => "file without summary",
+                    Damage::BadChunk { .. } => "unreadable chunk",
+                    Damage::BadRecord { .. } => "corrupt record",
+                    Damage::MissingMessages { .. } => "messages lost to damage",
+                };
+                skipped.add(kind, || format!("{}: {damage}", path.display()));
+            }
+            opened.push(file);
+        }
+        let frozen_edges = tf.freeze_constant_edges();
+        for t in topics.values_mut() {
+            let repeated = sort_frames(&mut t.frames);
+            for _ in 0..repeated {
+                skipped.add(format!("repeated stamp: {}", t.channel.topic), || {
+                    format!(
+                        "{}: a message repeats the stamp of another; the first is kept",
+                        t.channel.topic
+                    )
+                });
+            }
+        }
+
+        let channels: Vec<&ChannelInfo> = topics.values().map(|t| &t.channel).collect();
+        let counts = |topic: &str| topics.get(topic).map_or(0, |t| t.count);
+        let roles = discover::assign_roles(&channels, &counts, config);
+        let role_of = |topic: &str| {
+            roles
+                .iter()
+                .find(|(t, _)| t == topic)
+                .map_or(Role::Ignored("unknown".into()), |(_, r)| r.clone())
+        };
+
+        let channel_summaries = topics
+            .values()
+            .map(|t| {
+                let span_nanos = match (t.frames.first(), t.frames.last()) {
+                    (Some(a), Some(b)) if t.frames.len() > 1 => b.stamp.nanos_since(a.stamp),
+                    _ => t.last_log.saturating_sub(t.first_log) as i64,
+                };
+                ChannelSummary {
+                    topic: t.channel.topic.clone(),
+                    role: role_of(&t.channel.topic),
+                    schema: t.channel.schema_name().to_string(),
+                    schema_encoding: t
+                        .channel
+                        .schema
+                        .as_ref()
+                        .map_or(String::new(), |s| s.encoding.clone()),
+                    message_encoding: t.channel.message_encoding.clone(),
+                    message_count: t.count,
+                    rate_hz: (span_nanos > 0 && t.count > 1)
+                        .then(|| (t.count - 1) as f64 / (span_nanos as f64 * 1e-9)),
+                }
+            })
+            .collect();
+
+        let mut lidar = None;
+        for t in topics.values() {
+            if role_of(&t.channel.topic) == Role::Lidar
+                && let Some((_, dialect)) = t.kind
+            {
+                lidar = Some(LidarStream {
+                    topic: t.channel.topic.clone(),
+                    frame_id: t.frame_id.clone().unwrap_or_default(),
+                    dialect,
+                    sweeps: t.frames.clone(),
+                });
+            }
+        }
+
+        let mut cameras = Vec::new();
+        for t in topics.values() {
+            if role_of(&t.channel.topic) != Role::Image {
+                continue;
+            }
+            let Some((image_kind, dialect)) = t.kind else {
+                continue;
+            };
+            let namespace = discover::camera_namespace(&t.channel.topic);
+            let frame_id = t.frame_id.clone().unwrap_or_default();
+            let calibration = topics
+                .values()
+                .filter(|c| role_of(&c.channel.topic) == Role::Calibration)
+                .find(|c| discover::camera_namespace(&c.channel.topic) == namespace)
+                .or_else(|| {
+                    topics
+                        .values()
+                        .filter(|c| role_of(&c.channel.topic) == Role::Calibration)
+                        .find(|c| {
+                            c.calibrations
+                                .first()
+                                .is_some_and(|k| k.frame_id == frame_id)
+                        })
+                });
+            let superpixels = topics
+                .values()
+                .filter(|c| role_of(&c.channel.topic) == Role::Superpixels)
+                .find(|c| discover::camera_namespace(&c.channel.topic) == namespace);
+            cameras.push(CameraStream {
+                name: namespace
+                    .rsplit('/')
+                    .next()
+                    .unwrap_or(namespace)
+                    .to_string(),
+                image_topic: t.channel.topic.clone(),
+                image_kind,
+                dialect,
+                frame_id,
+                calibration_topic: calibration.map(|c| c.channel.topic.clone()),
+                calibrations: calibration
+                    .map(|c| c.calibrations.clone())
+                    .unwrap_or_default(),
+                frames: t.frames.clone(),
+                superpixel_topic: superpixels.map(|s| s.channel.topic.clone()),
+                superpixel_kind: superpixels.and_then(|s| s.kind.map(|k| k.0)),
+                superpixels: superpixels.map(|s| s.frames.clone()).unwrap_or_default(),
+            });
+        }
+        cameras.sort_by(|a, b| a.name.cmp(&b.name));
+
+        let ego_frame = config.ego_frame.clone().or_else(|| {
+            [
+                "base_link",
+                "ego",
+                "ego_vehicle",
+                "vehicle",
+                "base_footprint",
+            ]
+            .iter()
+            .find(|f| tf.contains(f))
+            .map(|f| f.to_string())
+        });
+        let map_frame = config
+            .map_frame
+            .clone()
+            .or_else(|| ego_frame.as_deref().and_then(|e| tf.root_of(e).ok()));
+
+        Ok(Dataset {
+            files: opened,
+            channels: channel_summaries,
+            lidar,
+            cameras,
+            tf,
+            frozen_edges,
+            map_frame,
+            ego_frame,
+            skipped,
+            config: config.clone(),
+        })
+    }
+
+    /// The files' paths, comma-separated (for messages).
+    pub fn file_list(&self) -> String {
+        self.files
+            .iter()
+            .map(|f| f.path().display().to_string())
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
+
+    /// Checks that the dataset has what training needs: a LiDAR, at least one camera,
+    /// a calibration for every camera, ego and map frames, and the LiDAR and camera
+    /// frames in the transform tree.
+    pub fn check_sensors(&self) -> Result<(), IngestError> {
+        let mut problems = Vec::new();
+        match &self.lidar {
+            None => problems.push(
+                "no LiDAR channel (foxglove.PointCloud or sensor_msgs/msg/PointCloud2)".to_string(),
+            ),
+            Some(l) if l.sweeps.is_empty() => {
+                problems.push(format!("LiDAR {} has no readable sweep", l.topic))
+            }
+            Some(_) => {}
+        }
+        if self.cameras.is_empty() {
+            problems.push("no camera image channel".into());
+        }
+        for camera in &self.cameras {
+            if camera.calibrations.is_empty() {
+                problems.push(format!(
+                    "camera {} ({}) has no calibration (no CameraInfo / CameraCalibration in its namespace or frame `{}`)",
+                    camera.name, camera.image_topic, camera.frame_id
+                ));
+            }
+        }
+        match (&self.ego_frame, &self.map_frame) {
+            (Some(ego), Some(_)) => {
+                let sensors = self
+                    .lidar
+                    .iter()
+                    .map(|l| (&l.topic, &l.frame_id))
+                    .chain(self.cameras.iter().map(|c| (&c.image_topic, &c.frame_id)));
+                for (topic, frame) in sensors {
+                    if !self.tf.contains(frame) {
+                        problems.push(format!("{topic}: frame `{frame}` has no transform to `{ego}`"));
+                    }
+                }
+            }
+            _ => problems.push(format!(
+                "no ego frame (tried base_link, ego, ego_vehicle, vehicle, base_footprint) in the transforms; frames: {}",
+                self.tf.frames().join(", ")
+            )),
+        }
+        if problems.is_empty() {
+            Ok(())
+        } else {
+            Err(IngestError::Missing {
+                files: self.file_list(),
+                problems: problems.join("; "),
+            })
+        }
+    }
+
+    /// First and last LiDAR stamps.
+    pub fn time_span(&self) -> Option<(Stamp, Stamp)> {
+        let sweeps = &self.lidar.as_ref()?.sweeps;
+        Some((sweeps.first()?.stamp, sweeps.last()?.stamp))
+    }
+
+    /// LiDAR sweeps usable as keyframes, at least `interval_nanos` apart: every camera
+    /// has an image within half its period, and the ego pose is known at the sweep and
+    /// at those images. Returns sweep indices.
+    pub fn keyframes(&self, interval_nanos: i64) -> Vec<usize> {
+        let (Some(lidar), Some(map), Some(ego)) = (&self.lidar, &self.map_frame, &self.ego_frame)
+        else {
+            return Vec::new();
+        };
+        let mut out = Vec::new();
+        let mut last: Option<Stamp> = None;
+        for (i, sweep) in lidar.sweeps.iter().enumerate() {
+            if last.is_some_and(|l| sweep.stamp.nanos_since(l) < interval_nanos) {
+                continue;
+            }
+            let pose_ok = |s: Stamp| self.tf.lookup(map, ego, s).is_ok();
+            let cameras_ok = !self.cameras.is_empty()
+                && self.cameras.iter().all(|camera| {
+                    let half = camera.period_nanos().unwrap_or(0) / 2;
+                    !camera.calibrations.is_empty()
+                        && nearest(&camera.frames, sweep.stamp).is_some_and(|f| {
+                            f.stamp.nanos_since(sweep.stamp).abs() <= half && pose_ok(f.stamp)
+                        })
+                });
+            if cameras_ok && pose_ok(sweep.stamp) {
+                out.push(i);
+                last = Some(sweep.stamp);
+            }
+        }
+        out
+    }
+}
+
+/// The frame nearest to `stamp` in a sorted list.
+pub fn nearest(frames: &[FrameRef], stamp: Stamp) -> Option<&FrameRef> {
+    let at = frames.partition_point(|f| f.stamp < stamp);
+    let before = at.checked_sub(1).and_then(|i| frames.get(i));
+    let after = frames.get(at);
+    match (before, after) {
+        (Some(b), Some(a)) => Some(
+            if stamp.nanos_since(b.stamp) <= a.stamp.nanos_since(stamp) {
+                b
+            } else {
+                a
+            },
+        ),
+        (b, a) => b.or(a),
+    }
+}
+
+fn index_message(
+    file: u32,
+    path: &Path,
+    m: MessageRef<'_>,
+    topics: &mut BTreeMap<String, TopicData>,
+    tf: &mut TransformTree,
+    skipped: &mut SkipReport,
+) {
+    let topic = topics
+        .entry(m.channel.topic.clone())
+        .or_insert_with(|| TopicData {
+            channel: m.channel.clone(),
+            kind: discover::schema_kind(m.channel),
+            count: 0,
+            frame_id: None,
+            frames: Vec::new(),
+            calibrations: Vec::new(),
+            first_log: m.log_time,
+            last_log: m.log_time,
+        });
+    topic.count += 1;
+    topic.first_log = topic.first_log.min(m.log_time);
+    topic.last_log = topic.last_log.max(m.log_time);
+    let Some((kind, dialect)) = topic.kind else {
+        return;
+    };
+    let where_ = |stamp: Option<Stamp>| match stamp {
+        Some(s) => format!("{}: {} at {s}", path.display(), m.channel.topic),
+        None => format!(
+            "{}: {} (log time {})",
+            path.display(),
+            m.channel.topic,
+            m.log_time
+        ),
+    };
+    match kind {
+        SchemaKind::PointCloud | SchemaKind::CompressedImage | SchemaKind::RawImage => {
+            match stamp_and_frame(kind, dialect, m.data) {
+                Ok((stamp, frame_id)) if stamp.nanos() > 0 => {
+                    topic.frame_id.get_or_insert(frame_id);
+                    topic.frames.push(FrameRef {
+                        stamp,
+                        file,
+                        loc: m.loc,
+                    });
+                }
+                Ok(_) => skipped.add(format!("zero stamp: {}", m.channel.topic), || where_(None)),
+                Err(e) => skipped.add(format!("undecodable: {}", m.channel.topic), || {
+                    format!("{}: {e}", where_(None))
+                }),
+            }
+        }
+        SchemaKind::Calibration => {
+            let decoded = match dialect {
+                Dialect::Ros2 => ros2::decode(m.data)
+                    .map_err(crate::decode::DecodeError::from)
+                    .and_then(|c| ros2::camera_info(&c)),
+                Dialect::FoxgloveProtobuf => foxglove::decode("foxglove.CameraCalibration", m.data)
+                    .and_then(|c| foxglove::camera_calibration(&c)),
+            };
+            match decoded {
+                Ok(calibration) => {
+                    topic.frame_id.get_or_insert(calibration.frame_id.clone());
+                    let same = topic.calibrations.last().is_some_and(|last| {
+                        last.k == calibration.k
+                            && last.distortion == calibration.distortion
+                            && (last.width, last.height) == (calibration.width, calibration.height)
+                    });
+                    if !same {
+                        topic.calibrations.push(calibration);
+                    }
+                }
+                Err(e) => skipped.add(format!("bad calibration: {}", m.channel.topic), || {
+                    format!("{}: {e}", where_(None))
+                }),
+            }
+        }
+        SchemaKind::FrameTransform | SchemaKind::FrameTransforms | SchemaKind::TfMessage => {
+            let is_static = m.channel.topic.ends_with("tf_static");
+            let transforms = match kind {
+                SchemaKind::TfMessage => match ros2::decode::<ros2::TfMessage>(m.data) {
+                    Ok(msg) => ros2::transforms(&msg, is_static),
+                    Err(e) => vec![Err(e.into())],
+                },
+                SchemaKind::FrameTransform => {
+                    vec![
+                        foxglove::decode::<foxglove::FrameTransform>(
+                            "foxglove.FrameTransform",
+                            m.data,
+                        )
+                        .and_then(|t| foxglove::frame_transform(&t, is_static)),
+                    ]
+                }
+                _ => match foxglove::decode::<foxglove::FrameTransforms>(
+                    "foxglove.FrameTransforms",
+                    m.data,
+                ) {
+                    Ok(msg) => msg
+                        .transforms
+                        .iter()
+                        .map(|t| foxglove::frame_transform(t, is_static))
+                        .collect(),
+                    Err(e) => vec![Err(e)],
+                },
+            };
+            for transform in transforms {
+                match transform {
+                    Ok(t) => {
+                        let stamp = t.stamp;
+                        if let Err(e) = tf.insert(t) {
+                            skipped.add(format!("rejected transform: {}", m.channel.topic), || {
+                                format!("{}: {e}", where_(Some(stamp)))
+                            });
+                        }
+                    }
+                    Err(e) => skipped.add(format!("bad transform: {}", m.channel.topic), || {
+                        format!("{}: {e}", where_(None))
+                    }),
+                }
+            }
+        }
+    }
+}
+
+/// Sorts a topic's frames by stamp and drops repeated stamps (counted).
+fn sort_frames(frames: &mut Vec<FrameRef>) -> usize {
+    frames.sort_by_key(|f| (f.stamp, f.file, f.loc));
+    let before = frames.len();
+    frames.dedup_by_key(|f| f.stamp);
+    before - frames.len()
+}

@@ -1,0 +1,269 @@
+//! Channel discovery: which channel is the LiDAR, which are cameras (images paired with
+//! their calibration and, when recorded, a per-pixel class map), where the transforms
+//! are — decided from schema names, encodings and topic structure, never from fixed
+//! topic names. [`IngestConfig`] overrides any choice by topic.
+
+use crate::decode::ros2;
+use crate::source::ChannelInfo;
+use serde::{Deserialize, Serialize};
+
+/// Overrides of the automatic choices (the `[ingest]` section of `pipeline.toml`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct IngestConfig {
+    /// The LiDAR topic; by default the point-cloud channel with the most messages whose
+    /// topic does not mention radar.
+    pub lidar_topic: Option<String>,
+    /// Image topics to use as cameras; by default every colour image channel.
+    pub camera_topics: Vec<String>,
+    /// Map (world) frame; by default the root of the ego frame's chain.
+    pub map_frame: Option<String>,
+    /// Ego frame; by default the first of `base_link`, `ego`, `ego_vehicle`, `vehicle`,
+    /// `base_footprint` that the transforms mention.
+    pub ego_frame: Option<String>,
+    /// How far a transform lookup may extrapolate past the recorded samples, ms.
+    pub tf_tolerance_ms: f64,
+}
+
+impl Default for IngestConfig {
+    fn default() -> Self {
+        Self {
+            lidar_topic: None,
+            camera_topics: Vec::new(),
+            map_frame: None,
+            ego_frame: None,
+            tf_tolerance_ms: 60.0,
+        }
+    }
+}
+
+/// What a channel is used for.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Role {
+    /// The LiDAR sweeps.
+    Lidar,
+    /// A camera's images.
+    Image,
+    /// A camera's calibration.
+    Calibration,
+    /// A camera's per-pixel class map (superpixels).
+    Superpixels,
+    /// Time-varying transforms (`/tf`).
+    Transforms,
+    /// Static transforms (`/tf_static`).
+    StaticTransforms,
+    /// Not used; the string says why.
+    Ignored(String),
+}
+
+impl Role {
+    /// The role's name as the JSON report spells it (`lidar`, `static_transforms`, ...).
+    pub fn name(&self) -> &'static str {
+        match self {
+            Role::Lidar => "lidar",
+            Role::Image => "image",
+            Role::Calibration => "calibration",
+            Role::Superpixels => "superpixels",
+            Role::Transforms => "transforms",
+            Role::StaticTransforms => "static_transforms",
+            Role::Ignored(_) => "ignored",
+        }
+    }
+}
+
+/// The sensor kind a schema carries.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum SchemaKind {
+    /// `foxglove.PointCloud` or `sensor_msgs/msg/PointCloud2`.
+    PointCloud,
+    /// `foxglove.CompressedImage` or `sensor_msgs/msg/CompressedImage`.
+    CompressedImage,
+    /// `foxglove.RawImage` or `sensor_msgs/msg/Image`.
+    RawImage,
+    /// `foxglove.CameraCalibration` or `sensor_msgs/msg/CameraInfo`.
+    Calibration,
+    /// `foxglove.FrameTransform`.
+    FrameTransform,
+    /// `foxglove.FrameTransforms`.
+    FrameTransforms,
+    /// `tf2_msgs/msg/TFMessage`.
+    TfMessage,
+}
+
+/// The dialect of a channel's encoding.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Dialect {
+    /// Foxglove protobuf schemas.
+    FoxgloveProtobuf,
+    /// ROS 2 (`ros2msg` + CDR).
+    Ros2,
+}
+
+/// Recognizes a channel's schema (name and encodings); `None` for anything else.
+pub fn schema_kind(channel: &ChannelInfo) -> Option<(SchemaKind, Dialect)> {
+    let name = channel.schema_name();
+    let protobuf = channel.message_encoding == "protobuf";
+    let cdr = channel.message_encoding == ros2::MESSAGE_ENCODING;
+    let kind = match name {
+        "foxglove.PointCloud" if protobuf => (SchemaKind::PointCloud, Dialect::FoxgloveProtobuf),
+        "foxglove.CompressedImage" if protobuf => {
+            (SchemaKind::CompressedImage, Dialect::FoxgloveProtobuf)
+        }
+        "foxglove.RawImage" if protobuf => (SchemaKind::RawImage, Dialect::FoxgloveProtobuf),
+        "foxglove.CameraCalibration" if protobuf => {
+            (SchemaKind::Calibration, Dialect::FoxgloveProtobuf)
+        }
+        "foxglove.FrameTransform" if protobuf => {
+            (SchemaKind::FrameTransform, Dialect::FoxgloveProtobuf)
+        }
+        "foxglove.FrameTransforms" if protobuf => {
+            (SchemaKind::FrameTransforms, Dialect::FoxgloveProtobuf)
+        }
+        ros2::POINT_CLOUD2 if cdr => (SchemaKind::PointCloud, Dialect::Ros2),
+        ros2::COMPRESSED_IMAGE if cdr => (SchemaKind::CompressedImage, Dialect::Ros2),
+        ros2::IMAGE if cdr => (SchemaKind::RawImage, Dialect::Ros2),
+        ros2::CAMERA_INFO if cdr => (SchemaKind::Calibration, Dialect::Ros2),
+        ros2::TF_MESSAGE if cdr => (SchemaKind::TfMessage, Dialect::Ros2),
+        _ => return None,
+    };
+    Some(kind)
+}
+
+/// Trailing topic segments that name an image stream rather than a camera.
+const IMAGE_SUFFIXES: [&str; 12] = [
+    "compressed",
+    "image_raw",
+    "image_rect",
+    "image_rect_color",
+    "image_color",
+    "image_rect_compressed",
+    "image",
+    "camera_info",
+    "superpixels",
+    "semantic",
+    "segmentation",
+    "labels",
+];
+
+/// The camera namespace of an image, calibration or class-map topic:
+/// `/CAM_FRONT/image_rect_compressed` and `/CAM_FRONT/camera_info` → `/CAM_FRONT`,
+/// `/cam_front/image_raw/compressed` → `/cam_front`.
+pub fn camera_namespace(topic: &str) -> &str {
+    let mut ns = topic.trim_end_matches('/');
+    while let Some((head, last)) = ns.rsplit_once('/') {
+        if IMAGE_SUFFIXES.contains(&last.to_ascii_lowercase().as_str()) && !head.is_empty() {
+            ns = head;
+        } else {
+            break;
+        }
+    }
+    ns
+}
+
+/// Whether an image topic carries class ids rather than colour.
+pub fn is_class_map_topic(topic: &str) -> bool {
+    let t = topic.to_ascii_lowercase();
+    ["superpixel", "semantic", "segment", "label", "class"]
+        .iter()
+        .any(|k| t.contains(k))
+}
+
+/// Assigns a role to every channel of a dataset. `message_counts` gives each topic's
+/// message count (to choose the main LiDAR among several point clouds).
+pub fn assign_roles(
+    channels: &[&ChannelInfo],
+    message_counts: &dyn Fn(&str) -> u64,
+    config: &IngestConfig,
+) -> Vec<(String, Role)> {
+    let lidar = match &config.lidar_topic {
+        Some(topic) => Some(topic.clone()),
+        None => channels
+            .iter()
+            .filter(|c| matches!(schema_kind(c), Some((SchemaKind::PointCloud, _))))
+            .filter(|c| !c.topic.to_ascii_lowercase().contains("radar"))
+            .max_by(|a, b| {
+                message_counts(&a.topic)
+                    .cmp(&message_counts(&b.topic))
+                    .then_with(|| b.topic.cmp(&a.topic))
+            })
+            .map(|c| c.topic.clone()),
+    };
+    let mut roles: Vec<(String, Role)> = channels
+        .iter()
+        .map(|c| {
+            let role = match schema_kind(c) {
+                None => Role::Ignored(format!(
+                    "schema `{}` ({}) is not a sensor superflow reads",
+                    c.schema_name(),
+                    c.message_encoding
+                )),
+                Some((SchemaKind::PointCloud, _)) => {
+                    if lidar.as_deref() == Some(c.topic.as_str()) {
+                        Role::Lidar
+                    } else {
+                        Role::Ignored("a point cloud other than the chosen LiDAR".into())
+                    }
+                }
+                Some((SchemaKind::CompressedImage | SchemaKind::RawImage, _)) => {
+                    if is_class_map_topic(&c.topic) {
+                        Role::Superpixels
+                    } else if c.topic.to_ascii_lowercase().contains("depth") {
+                        Role::Ignored("a depth image".into())
+                    } else if !config.camera_topics.is_empty()
+                        && !config.camera_topics.contains(&c.topic)
+                    {
+                        Role::Ignored("not among the configured camera topics".into())
+                    } else {
+                        Role::Image
+                    }
+                }
+                Some((SchemaKind::Calibration, _)) => Role::Calibration,
+                Some((
+                    SchemaKind::FrameTransform
+                    | SchemaKind::FrameTransforms
+                    | SchemaKind::TfMessage,
+                    _,
+                )) => {
+                    if c.topic == "/tf_static" || c.topic.ends_with("/tf_static") {
+                        Role::StaticTransforms
+                    } else {
+                        Role::Transforms
+                    }
+                }
+            };
+            (c.topic.clone(), role)
+        })
+        .collect();
+    roles.sort_by(|a, b| a.0.cmp(&b.0));
+    roles.dedup_by(|a, b| a.0 == b.0);
+    roles
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn camera_namespaces_pair_images_with_calibrations() {
+        assert_eq!(
+            camera_namespace("/CAM_FRONT/image_rect_compressed"),
+            "/CAM_FRONT"
+        );
+        assert_eq!(camera_namespace("/CAM_FRONT/camera_info"), "/CAM_FRONT");
+        assert_eq!(
+            camera_namespace("/cam_front/image_raw/compressed"),
+            "/cam_front"
+        );
+        assert_eq!(camera_namespace("/cam_front/camera_info"), "/cam_front");
+        assert_eq!(
+            camera_namespace("/kitti/camera_color_left/image_raw"),
+            "/kitti/camera_color_left"
+        );
+        assert_eq!(camera_namespace("/cam_front/superpixels"), "/cam_front");
+        assert_eq!(camera_namespace("/image"), "/image");
+        assert!(is_class_map_topic("/CAM_FRONT/superpixels"));
+        assert!(!is_class_map_topic("/cam_front/image_raw/compressed"));
+    }
+}

@@ -1,0 +1,283 @@
+//! `superflow-pipeline inspect`: what a dataset holds, as text or as stable JSON.
+//!
+//! The JSON form ([`InspectReport`], `"format": "superflow.inspect/1"`) is a contract:
+//! fields are only ever added, and a change of meaning bumps the format string.
+
+use crate::drive::dataset::{ChannelSummary, SkipReport};
+use crate::drive::{Dataset, Role};
+use serde::{Deserialize, Serialize};
+use std::fmt::Write as _;
+
+/// The format identifier of the JSON report.
+pub const INSPECT_FORMAT: &str = "superflow.inspect/1";
+
+/// One file of the dataset.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FileReport {
+    /// Path as given.
+    pub path: String,
+    /// Size in bytes.
+    pub bytes: u64,
+    /// MCAP header profile.
+    pub profile: String,
+    /// MCAP header library.
+    pub library: String,
+    /// Damage the reader worked around, in words (empty for a healthy file).
+    pub damage: Vec<String>,
+}
+
+/// One camera.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CameraReport {
+    /// Camera name.
+    pub name: String,
+    /// Image topic.
+    pub image_topic: String,
+    /// Calibration topic, if found.
+    pub calibration_topic: Option<String>,
+    /// Class-map topic, if recorded.
+    pub superpixel_topic: Option<String>,
+    /// Optical frame.
+    pub frame_id: String,
+    /// Images.
+    pub images: usize,
+    /// Width from the calibration.
+    pub width: Option<u32>,
+    /// Height from the calibration.
+    pub height: Option<u32>,
+    /// Distortion model (`none`, `plumb_bob`, ...), if calibrated.
+    pub distortion_model: Option<String>,
+    /// Distinct calibrations recorded.
+    pub calibrations: usize,
+    /// Image rate.
+    pub rate_hz: Option<f64>,
+}
+
+/// One edge of the frame tree.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FrameEdge {
+    /// Parent frame.
+    pub parent: String,
+    /// Child frame.
+    pub child: String,
+    /// `static` (from `/tf_static` or frozen) or `dynamic`.
+    pub kind: String,
+    /// Stamped samples.
+    pub samples: usize,
+}
+
+/// The whole report.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct InspectReport {
+    /// [`INSPECT_FORMAT`].
+    pub format: String,
+    /// The files.
+    pub files: Vec<FileReport>,
+    /// `foxglove_protobuf`, `ros2` or `mixed`.
+    pub dialect: String,
+    /// Every channel with its role.
+    pub channels: Vec<ChannelSummary>,
+    /// LiDAR topic.
+    pub lidar_topic: Option<String>,
+    /// LiDAR frame.
+    pub lidar_frame: Option<String>,
+    /// LiDAR sweeps.
+    pub lidar_sweeps: usize,
+    /// Cameras.
+    pub cameras: Vec<CameraReport>,
+    /// Map frame.
+    pub map_frame: Option<String>,
+    /// Ego frame.
+    pub ego_frame: Option<String>,
+    /// The frame tree.
+    pub frame_tree: Vec<FrameEdge>,
+    /// First LiDAR stamp, ns.
+    pub start_stamp_nanos: Option<i64>,
+    /// Last LiDAR stamp, ns.
+    pub end_stamp_nanos: Option<i64>,
+    /// Duration, s.
+    pub duration_secs: Option<f64>,
+    /// Keyframes usable at the default 0.5 s interval.
+    pub usable_keyframes: usize,
+    /// Skipped messages by kind.
+    pub skipped: SkipReport,
+    /// Why the dataset cannot be trained on, if it cannot.
+    pub problems: Option<String>,
+}
+
+/// Keyframe spacing of the paper and the official code.
+pub const DEFAULT_KEYFRAME_INTERVAL_NANOS: i64 = 500_000_000;
+
+impl InspectReport {
+    /// Builds the report of an indexed dataset.
+    pub fn new(dataset: &Dataset) -> Self {
+        let dialects: std::collections::BTreeSet<String> = dataset
+            .channels
+            .iter()
+            .filter(|c| !matches!(c.role, Role::Ignored(_)))
+            .map(|c| {
+                if c.message_encoding == "cdr" {
+                    "ros2".to_string()
+                } else {
+                    "foxglove_protobuf".to_string()
+                }
+            })
+            .collect();
+        let dialect = match dialects.len() {
+            0 => "unknown".to_string(),
+            1 => dialects.into_iter().next().unwrap_or_default(),
+            _ => "mixed".to_string(),
+        };
+        let span = dataset.time_span();
+        let frozen = &dataset.frozen_edges;
+        InspectReport {
+            format: INSPECT_FORMAT.to_string(),
+            files: dataset
+                .files
+                .iter()
+                .map(|f| FileReport {
+                    path: f.path().display().to_string(),
+                    bytes: f.len(),
+                    profile: f.profile.clone(),
+                    library: f.library.clone(),
+                    damage: f.damage.iter().map(|d| d.to_string()).collect(),
+                })
+                .collect(),
+            dialect,
+            channels: dataset.channels.clone(),
+            lidar_topic: dataset.lidar.as_ref().map(|l| l.topic.clone()),
+            lidar_frame: dataset.lidar.as_ref().map(|l| l.frame_id.clone()),
+            lidar_sweeps: dataset.lidar.as_ref().map_or(0, |l| l.sweeps.len()),
+            cameras: dataset
+                .cameras
+                .iter()
+                .map(|c| {
+                    let calibration = c.calibrations.first();
+                    CameraReport {
+                        name: c.name.clone(),
+                        image_topic: c.image_topic.clone(),
+                        calibration_topic: c.calibration_topic.clone(),
+                        superpixel_topic: c.superpixel_topic.clone(),
+                        frame_id: c.frame_id.clone(),
+                        images: c.frames.len(),
+                        width: calibration.map(|k| k.width),
+                        height: calibration.map(|k| k.height),
+                        distortion_model: calibration.map(|k| match k.distortion.model_name() {
+                            "" => "none".to_string(),
+                            name => name.to_string(),
+                        }),
+                        calibrations: c.calibrations.len(),
+                        rate_hz: c.period_nanos().filter(|p| *p > 0).map(|p| 1e9 / p as f64),
+                    }
+                })
+                .collect(),
+            map_frame: dataset.map_frame.clone(),
+            ego_frame: dataset.ego_frame.clone(),
+            frame_tree: dataset
+                .tf
+                .edges()
+                .into_iter()
+                .map(|(parent, child, is_static, samples)| {
+                    let frozen = frozen.iter().any(|(p, c)| *p == parent && *c == child);
+                    FrameEdge {
+                        kind: if is_static || frozen {
+                            "static"
+                        } else {
+                            "dynamic"
+                        }
+                        .to_string(),
+                        parent,
+                        child,
+                        samples,
+                    }
+                })
+                .collect(),
+            start_stamp_nanos: span.map(|s| s.0.nanos()),
+            end_stamp_nanos: span.map(|s| s.1.nanos()),
+            duration_secs: span.map(|(a, b)| b.secs_since(a)),
+            usable_keyframes: dataset.keyframes(DEFAULT_KEYFRAME_INTERVAL_NANOS).len(),
+            skipped: dataset.skipped.clone(),
+            problems: dataset.check_sensors().err().map(|e| e.to_string()),
+        }
+    }
+
+    /// The report for people.
+    pub fn to_text(&self) -> String {
+        let mut out = String::new();
+        for f in &self.files {
+            let _ = writeln!(
+                out,
+                "file {} ({} bytes, profile {:?}, {})",
+                f.path, f.bytes, f.profile, f.library
+            );
+            for d in &f.damage {
+                let _ = writeln!(out, "  damage: {d}");
+            }
+        }
+        let _ = writeln!(out, "dialect {}", self.dialect);
+        let _ = writeln!(out, "\nchannels");
+        for c in &self.channels {
+            let role = match &c.role {
+                Role::Ignored(why) => format!("ignored ({why})"),
+                other => other.name().to_string(),
+            };
+            let rate = c.rate_hz.map_or("-".to_string(), |r| format!("{r:.1} Hz"));
+            let _ = writeln!(
+                out,
+                "  {:<40} {:<28} {:>6} msgs {:>9}  {}",
+                c.topic, c.schema, c.message_count, rate, role
+            );
+        }
+        let _ = writeln!(
+            out,
+            "\nlidar {} in frame {} ({} sweeps)",
+            self.lidar_topic.as_deref().unwrap_or("-"),
+            self.lidar_frame.as_deref().unwrap_or("-"),
+            self.lidar_sweeps
+        );
+        let _ = writeln!(out, "\ncameras");
+        for c in &self.cameras {
+            let _ = writeln!(
+                out,
+                "  {:<16} {}x{} {:<20} {:>4} images {:>6}  frame {}  calibration {}  superpixels {}",
+                c.name,
+                c.width.unwrap_or(0),
+                c.height.unwrap_or(0),
+                c.distortion_model.as_deref().unwrap_or("uncalibrated"),
+                c.images,
+                c.rate_hz.map_or("-".to_string(), |r| format!("{r:.1} Hz")),
+                c.frame_id,
+                c.calibration_topic.as_deref().unwrap_or("-"),
+                c.superpixel_topic.as_deref().unwrap_or("-"),
+            );
+        }
+        let _ = writeln!(
+            out,
+            "\nframe tree (map {}, ego {})",
+            self.map_frame.as_deref().unwrap_or("?"),
+            self.ego_frame.as_deref().unwrap_or("?")
+        );
+        for e in &self.frame_tree {
+            let _ = writeln!(
+                out,
+                "  {} -> {} ({}, {} samples)",
+                e.parent, e.child, e.kind, e.samples
+            );
+        }
+        if let Some(d) = self.duration_secs {
+            let _ = writeln!(
+                out,
+                "\ntime span {d:.3} s; usable keyframes (0.5 s): {}",
+                self.usable_keyframes
+            );
+        }
+        let _ = writeln!(out, "skipped {} messages", self.skipped.total());
+        for (kind, e) in &self.skipped.entries {
+            let _ = writeln!(out, "  {kind}: {} (first: {})", e.count, e.first);
+        }
+        if let Some(p) = &self.problems {
+            let _ = writeln!(out, "\nnot trainable: {p}");
+        }
+        out
+    }
+}

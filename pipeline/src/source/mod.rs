@@ -1,0 +1,759 @@
+//! Reading MCAP files with bounded memory.
+//!
+//! [`McapFile::scan`] makes one pass over a file, record by record, holding at most one
+//! chunk in memory: it registers schemas and channels, hands every message to a visitor
+//! together with its [`MessageLoc`], and notes damage (truncation, bad chunk CRCs,
+//! undecodable records) instead of failing: a damaged region costs only the messages in
+//! it. When the file has a summary, its chunk index is used to resynchronize after a
+//! corrupt record and its statistics to count what was lost.
+//!
+//! [`McapFile::read_message`] later fetches one message by location through a
+//! [`ChunkCache`] of a few decompressed chunks.
+
+use mcap::records::{self, ChunkHeader, op};
+use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::fs::File;
+use std::os::unix::fs::FileExt;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+/// The 8 magic bytes at both ends of an MCAP file.
+pub const MAGIC: &[u8; 8] = b"\x89MCAP0\r\n";
+/// Largest chunk (uncompressed) or record accepted; a larger size is taken for corruption.
+pub const MAX_RECORD_BYTES: u64 = 1 << 30;
+
+/// A file that cannot be read at all.
+#[derive(Debug, thiserror::Error)]
+pub enum SourceError {
+    /// Opening or reading failed.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+    /// The file does not start with the MCAP magic.
+    #[error("{path}: not an MCAP file (bad magic bytes)")]
+    NotMcap {
+        /// The file.
+        path: PathBuf,
+    },
+    /// A message location that this file does not have.
+    #[error("{path}: no message at {loc:?}")]
+    NoSuchMessage {
+        /// The file.
+        path: PathBuf,
+        /// The location asked for.
+        loc: MessageLoc,
+    },
+    /// A chunk that read fine during the scan fails now (file changed?).
+    #[error("{path}: chunk at byte {offset}: {reason}")]
+    Chunk {
+        /// The file.
+        path: PathBuf,
+        /// Offset of the chunk record.
+        offset: u64,
+        /// What failed.
+        reason: String,
+    },
+}
+
+/// Where a message lives in its file.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum MessageLoc {
+    /// The `index`-th message record of chunk number `chunk` (in file order).
+    Chunk {
+        /// Chunk number.
+        chunk: u32,
+        /// Message number inside the chunk.
+        index: u32,
+    },
+    /// A message record outside any chunk, at this byte offset.
+    Direct {
+        /// Offset of the record's opcode.
+        offset: u64,
+    },
+}
+
+/// A schema record.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SchemaInfo {
+    /// Schema id in the file.
+    pub id: u16,
+    /// Name (`sensor_msgs/msg/PointCloud2`, `foxglove.PointCloud`, ...).
+    pub name: String,
+    /// Encoding (`ros2msg`, `protobuf`, ...).
+    pub encoding: String,
+    /// The schema text or descriptor.
+    pub data: Vec<u8>,
+}
+
+/// A channel record with its schema.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ChannelInfo {
+    /// Channel id in the file.
+    pub id: u16,
+    /// Topic.
+    pub topic: String,
+    /// The schema, if the channel has one.
+    pub schema: Option<Arc<SchemaInfo>>,
+    /// Message encoding (`cdr`, `protobuf`, `json`, ...).
+    pub message_encoding: String,
+    /// Channel metadata (rosbag2 QoS profiles, ...).
+    pub metadata: BTreeMap<String, String>,
+}
+
+impl ChannelInfo {
+    /// The schema name, or `""`.
+    pub fn schema_name(&self) -> &str {
+        self.schema.as_ref().map_or("", |s| s.name.as_str())
+    }
+}
+
+/// One message handed out by a scan or a read.
+#[derive(Debug, Clone, Copy)]
+pub struct MessageRef<'a> {
+    /// Its channel.
+    pub channel: &'a ChannelInfo,
+    /// Publisher sequence number.
+    pub sequence: u32,
+    /// Recorder log time (not the sensor stamp).
+    pub log_time: u64,
+    /// Publish time.
+    pub publish_time: u64,
+    /// The serialized message.
+    pub data: &'a [u8],
+    /// Where it lives.
+    pub loc: MessageLoc,
+}
+
+/// Something wrong with a file that the scan worked around.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Damage {
+    /// The file ends early (no footer, or a record that runs past the end).
+    Truncated {
+        /// Byte offset where reading stopped.
+        offset: u64,
+        /// What was found there.
+        reason: String,
+    },
+    /// The file has no summary section (or it is unreadable): no index to cross-check.
+    NoSummary {
+        /// Why.
+        reason: String,
+    },
+    /// A chunk whose content could not be used (CRC mismatch, decompression failure).
+    BadChunk {
+        /// Offset of the chunk record.
+        offset: u64,
+        /// What failed.
+        reason: String,
+        /// Messages the chunk held, when the chunk index says.
+        lost_messages: Option<u64>,
+    },
+    /// A record that could not be parsed; the scan resumed at `resumed_at` if possible.
+    BadRecord {
+        /// Offset of the record.
+        offset: u64,
+        /// What failed.
+        reason: String,
+        /// Where the scan resumed (the next indexed chunk), if anywhere.
+        resumed_at: Option<u64>,
+    },
+    /// Fewer messages on a channel than the summary's statistics state.
+    MissingMessages {
+        /// The topic.
+        topic: String,
+        /// Per the statistics.
+        expected: u64,
+        /// Actually read.
+        found: u64,
+    },
+}
+
+impl std::fmt::Display for Damage {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Damage::Truncated { offset, reason } => {
+                write!(f, "truncated at byte {offset}: {reason}")
+            }
+            Damage::NoSummary { reason } => write!(f, "no usable summary: {reason}"),
+            Damage::BadChunk {
+                offset,
+                reason,
+                lost_messages,
+            } => {
+                write!(f, "chunk at byte {offset} skipped: {reason}")?;
+                match lost_messages {
+                    Some(n) => write!(f, " ({n} messages lost)"),
+                    None => Ok(()),
+                }
+            }
+            Damage::BadRecord {
+                offset,
+                reason,
+                resumed_at,
+            } => {
+                write!(f, "corrupt record at byte {offset}: {reason}")?;
+                match resumed_at {
+                    Some(at) => write!(f, "; resumed at the next indexed chunk, byte {at}"),
+                    None => write!(f, "; nothing after it could be read"),
+                }
+            }
+            Damage::MissingMessages {
+                topic,
+                expected,
+                found,
+            } => write!(f, "{topic}: {found} of {expected} messages readable"),
+        }
+    }
+}
+
+#[derive(Debug, Clone)]
+struct ChunkLoc {
+    offset: u64,
+    record_len: u64,
+}
+
+/// An MCAP file after its scan: header, channels, chunk locations and damage.
+#[derive(Debug)]
+pub struct McapFile {
+    path: PathBuf,
+    file: File,
+    len: u64,
+    /// Header profile (`ros2`, `""`, ...).
+    pub profile: String,
+    /// Header library.
+    pub library: String,
+    schemas: HashMap<u16, Arc<SchemaInfo>>,
+    channels: BTreeMap<u16, Arc<ChannelInfo>>,
+    chunks: Vec<ChunkLoc>,
+    /// What the scan had to work around.
+    pub damage: Vec<Damage>,
+    /// Messages read per channel id.
+    pub message_counts: BTreeMap<u16, u64>,
+}
+
+/// The messages of one decompressed chunk: channel id, header, payload.
+type ChunkMessages = Vec<(u16, records::MessageHeader, Vec<u8>)>;
+
+struct Decoded {
+    messages: ChunkMessages,
+}
+
+/// A few decompressed chunks, most recent last, for random access.
+#[derive(Debug)]
+pub struct ChunkCache {
+    capacity: usize,
+    entries: VecDeque<(PathBuf, u32, Arc<ChunkMessages>)>,
+}
+
+impl ChunkCache {
+    /// A cache holding at most `capacity` decompressed chunks (at least 1).
+    pub fn new(capacity: usize) -> Self {
+        Self {
+            capacity: capacity.max(1),
+            entries: VecDeque::new(),
+        }
+    }
+}
+
+impl std::fmt::Debug for Decoded {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{} messages", self.messages.len())
+    }
+}
+
+impl McapFile {
+    /// The file's path.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// File size in bytes.
+    pub fn len(&self) -> u64 {
+        self.len
+    }
+
+    /// Whether the file is empty.
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    /// Every channel, by id.
+    pub fn channels(&self) -> impl Iterator<Item = &Arc<ChannelInfo>> {
+        self.channels.values()
+    }
+
+    /// One channel.
+    pub fn channel(&self, id: u16) -> Option<&Arc<ChannelInfo>> {
+        self.channels.get(&id)
+    }
+
+    fn io(&self, source: std::io::Error) -> SourceError {
+        SourceError::Io {
+            path: self.path.clone(),
+            source,
+        }
+    }
+
+    fn read_exact_at(&self, offset: u64, len: u64) -> Result<Vec<u8>, SourceError> {
+        let mut buf = vec![
+            0u8;
+            usize::try_from(len)
+                .unwrap_or(usize::MAX)
+                .min(MAX_RECORD_BYTES as usize)
+        ];
+        self.file
+            .read_exact_at(&mut buf, offset)
+            .map_err(|e| self.io(e))?;
+        Ok(buf)
+    }
+
+    /// Scans `path` once, calling `visit` for every readable message in file order.
+    pub fn scan(
+        path: &Path,
+        mut visit: impl FnMut(MessageRef<'_>),
+    ) -> Result<McapFile, SourceError> {
+        let io = |source| SourceError::Io {
+            path: path.to_path_buf(),
+            source,
+        };
+        let file = File::open(path).map_err(io)?;
+        let len = file.metadata().map_err(io)?.len();
+        let mut magic = [0u8; 8];
+        if len < 8 || file.read_exact_at(&mut magic, 0).is_err() || &magic != MAGIC {
+            return Err(SourceError::NotMcap {
+                path: path.to_path_buf(),
+            });
+        }
+        let mut this = McapFile {
+            path: path.to_path_buf(),
+            file,
+            len,
+            profile: String::new(),
+            library: String::new(),
+            schemas: HashMap::new(),
+            channels: BTreeMap::new(),
+            chunks: Vec::new(),
+            damage: Vec::new(),
+            message_counts: BTreeMap::new(),
+        };
+        let summary = this.read_summary();
+        // Chunk offsets from the summary's index: where to resume after a corrupt record.
+        let mut indexed_chunks: Vec<u64> = summary
+            .as_ref()
+            .map(|s| {
+                s.chunk_indexes
+                    .iter()
+                    .map(|c| c.chunk_start_offset)
+                    .collect()
+            })
+            .unwrap_or_default();
+        indexed_chunks.sort_unstable();
+        if let Some(summary) = &summary {
+            for schema in summary.schemas.values() {
+                this.add_schema(schema.id, &schema.name, &schema.encoding, &schema.data);
+            }
+            for channel in summary.channels.values() {
+                this.add_channel(
+                    channel.id,
+                    channel.schema.as_ref().map_or(0, |s| s.id),
+                    &channel.topic,
+                    &channel.message_encoding,
+                    &channel.metadata,
+                );
+            }
+        }
+
+        let mut pos = 8u64;
+        loop {
+            if pos == len {
+                this.damage.push(Damage::Truncated {
+                    offset: pos,
+                    reason: "no footer".into(),
+                });
+                break;
+            }
+            if pos + 9 > len {
+                this.damage.push(Damage::Truncated {
+                    offset: pos,
+                    reason: format!(
+                        "{} stray bytes where a record header was expected",
+                        len - pos
+                    ),
+                });
+                break;
+            }
+            let mut head = [0u8; 9];
+            this.file.read_exact_at(&mut head, pos).map_err(io)?;
+            let opcode = head[0];
+            let body_len = u64::from_le_bytes([
+                head[1], head[2], head[3], head[4], head[5], head[6], head[7], head[8],
+            ]);
+            let body_start = pos + 9;
+            let plausible =
+                (op::HEADER..=op::DATA_END).contains(&opcode) && body_len <= MAX_RECORD_BYTES;
+            if !plausible || body_start + body_len > len {
+                let reason = if plausible {
+                    format!(
+                        "record of {body_len} bytes runs past the end of the file ({len} bytes)"
+                    )
+                } else {
+                    format!("opcode {opcode:#04x} with length {body_len}")
+                };
+                let resume = indexed_chunks.iter().copied().find(|o| *o > pos);
+                if plausible && resume.is_none() {
+                    this.damage.push(Damage::Truncated {
+                        offset: pos,
+                        reason,
+                    });
+                    break;
+                }
+                this.damage.push(Damage::BadRecord {
+                    offset: pos,
+                    reason,
+                    resumed_at: resume,
+                });
+                match resume {
+                    Some(next) => {
+                        pos = next;
+                        continue;
+                    }
+                    None => break,
+                }
+            }
+            let next = body_start + body_len;
+            match opcode {
+                op::FOOTER | op::DATA_END => break,
+                op::HEADER | op::SCHEMA | op::CHANNEL | op::MESSAGE | op::CHUNK => {
+                    let body = this.read_exact_at(body_start, body_len)?;
+                    match mcap::parse_record(opcode, &body) {
+                        Ok(records::Record::Header(h)) => {
+                            this.profile = h.profile;
+                            this.library = h.library;
+                        }
+                        Ok(records::Record::Schema { header, data }) => {
+                            this.add_schema(header.id, &header.name, &header.encoding, &data)
+                        }
+                        Ok(records::Record::Channel(c)) => this.add_channel(
+                            c.id,
+                            c.schema_id,
+                            &c.topic,
+                            &c.message_encoding,
+                            &c.metadata,
+                        ),
+                        Ok(records::Record::Message { header, data }) => {
+                            this.deliver(
+                                header,
+                                &data,
+                                MessageLoc::Direct { offset: pos },
+                                &mut visit,
+                            );
+                        }
+                        Ok(records::Record::Chunk { header, data }) => {
+                            let chunk = this.chunks.len() as u32;
+                            this.chunks.push(ChunkLoc {
+                                offset: pos,
+                                record_len: 9 + body_len,
+                            });
+                            match decode_chunk(header, &data) {
+                                Ok((decoded, schemas, channels)) => {
+                                    for (id, name, encoding, data) in schemas {
+                                        this.add_schema(id, &name, &encoding, &data);
+                                    }
+                                    for c in channels {
+                                        this.add_channel(
+                                            c.id,
+                                            c.schema_id,
+                                            &c.topic,
+                                            &c.message_encoding,
+                                            &c.metadata,
+                                        );
+                                    }
+                                    for (index, (_, header, data)) in
+                                        decoded.messages.into_iter().enumerate()
+                                    {
+                                        this.deliver(
+                                            header,
+                                            &data,
+                                            MessageLoc::Chunk {
+                                                chunk,
+                                                index: index as u32,
+                                            },
+                                            &mut visit,
+                                        );
+                                    }
+                                }
+                                Err(reason) => this.damage.push(Damage::BadChunk {
+                                    offset: pos,
+                                    reason,
+                                    lost_messages: None,
+                                }),
+                            }
+                        }
+                        Ok(_) => {}
+                        Err(e) => this.damage.push(Damage::BadRecord {
+                            offset: pos,
+                            reason: e.to_string(),
+                            resumed_at: Some(next),
+                        }),
+                    }
+                }
+                _ => {} // indexes, attachments, metadata, statistics: not needed here
+            }
+            pos = next;
+        }
+
+        match &summary {
+            Some(summary) => {
+                if let Some(stats) = &summary.stats {
+                    for (id, expected) in &stats.channel_message_counts {
+                        let found = this.message_counts.get(id).copied().unwrap_or(0);
+                        if found < *expected {
+                            let topic = this
+                                .channels
+                                .get(id)
+                                .map_or_else(|| format!("channel {id}"), |c| c.topic.clone());
+                            this.damage.push(Damage::MissingMessages {
+                                topic,
+                                expected: *expected,
+                                found,
+                            });
+                        }
+                    }
+                }
+            }
+            None => this.damage.push(Damage::NoSummary {
+                reason: "the summary section is missing or unreadable".into(),
+            }),
+        }
+        Ok(this)
+    }
+
+    fn read_summary(&self) -> Option<mcap::Summary> {
+        use mcap::sans_io::summary_reader::{
+            SummaryReadEvent, SummaryReader, SummaryReaderOptions,
+        };
+        let mut reader = SummaryReader::new_with_options(
+            SummaryReaderOptions::default()
+                .with_file_size(self.len)
+                .with_record_length_limit(MAX_RECORD_BYTES as usize),
+        );
+        let mut pos = 0u64;
+        while let Some(event) = reader.next_event() {
+            match event.ok()? {
+                SummaryReadEvent::ReadRequest(need) => {
+                    let buf = reader.insert(need);
+                    let n = self.file.read_at(buf, pos).ok()?;
+                    pos += n as u64;
+                    reader.notify_read(n);
+                }
+                SummaryReadEvent::SeekRequest(to) => {
+                    pos = match to {
+                        std::io::SeekFrom::Start(p) => p,
+                        std::io::SeekFrom::End(d) => self.len.checked_add_signed(d)?,
+                        std::io::SeekFrom::Current(d) => pos.checked_add_signed(d)?,
+                    };
+                    reader.notify_seeked(pos);
+                }
+            }
+        }
+        reader.finish()
+    }
+
+    fn add_schema(&mut self, id: u16, name: &str, encoding: &str, data: &[u8]) {
+        if id == 0 {
+            return;
+        }
+        self.schemas.entry(id).or_insert_with(|| {
+            Arc::new(SchemaInfo {
+                id,
+                name: name.to_string(),
+                encoding: encoding.to_string(),
+                data: data.to_vec(),
+            })
+        });
+    }
+
+    fn add_channel(
+        &mut self,
+        id: u16,
+        schema_id: u16,
+        topic: &str,
+        message_encoding: &str,
+        metadata: &BTreeMap<String, String>,
+    ) {
+        let schema = self.schemas.get(&schema_id).cloned();
+        self.channels.entry(id).or_insert_with(|| {
+            Arc::new(ChannelInfo {
+                id,
+                topic: topic.to_string(),
+                schema,
+                message_encoding: message_encoding.to_string(),
+                metadata: metadata.clone(),
+            })
+        });
+    }
+
+    fn deliver(
+        &mut self,
+        header: records::MessageHeader,
+        data: &[u8],
+        loc: MessageLoc,
+        visit: &mut impl FnMut(MessageRef<'_>),
+    ) {
+        let Some(channel) = self.channels.get(&header.channel_id) else {
+            self.damage.push(Damage::BadRecord {
+                offset: match loc {
+                    MessageLoc::Direct { offset } => offset,
+                    MessageLoc::Chunk { chunk, .. } => self.chunks[chunk as usize].offset,
+                },
+                reason: format!("message on unknown channel id {}", header.channel_id),
+                resumed_at: None,
+            });
+            return;
+        };
+        *self.message_counts.entry(header.channel_id).or_default() += 1;
+        visit(MessageRef {
+            channel,
+            sequence: header.sequence,
+            log_time: header.log_time,
+            publish_time: header.publish_time,
+            data,
+            loc,
+        });
+    }
+
+    /// Reads the message at `loc` (decompressing its chunk through `cache`).
+    pub fn read_message<'c>(
+        &'c self,
+        loc: MessageLoc,
+        cache: &'c mut ChunkCache,
+    ) -> Result<MessageRef<'c>, SourceError> {
+        let missing = || SourceError::NoSuchMessage {
+            path: self.path.clone(),
+            loc,
+        };
+        match loc {
+            MessageLoc::Direct { offset } => {
+                let mut head = [0u8; 9];
+                self.file
+                    .read_exact_at(&mut head, offset)
+                    .map_err(|e| self.io(e))?;
+                let body_len = u64::from_le_bytes([
+                    head[1], head[2], head[3], head[4], head[5], head[6], head[7], head[8],
+                ]);
+                if head[0] != op::MESSAGE || body_len > MAX_RECORD_BYTES {
+                    return Err(missing());
+                }
+                let body = self.read_exact_at(offset + 9, body_len)?;
+                let Ok(records::Record::Message { header, data }) =
+                    mcap::parse_record(op::MESSAGE, &body)
+                else {
+                    return Err(missing());
+                };
+                let channel = self.channels.get(&header.channel_id).ok_or_else(missing)?;
+                let entry = Arc::new(vec![(header.channel_id, header, data.into_owned())]);
+                cache
+                    .entries
+                    .push_back((self.path.clone(), u32::MAX, entry));
+                if cache.entries.len() > cache.capacity {
+                    cache.entries.pop_front();
+                }
+                let (_, _, messages) = cache.entries.back().ok_or_else(missing)?;
+                let (_, header, data) = &messages[0];
+                Ok(MessageRef {
+                    channel,
+                    sequence: header.sequence,
+                    log_time: header.log_time,
+                    publish_time: header.publish_time,
+                    data,
+                    loc,
+                })
+            }
+            MessageLoc::Chunk { chunk, index } => {
+                let position = cache
+                    .entries
+                    .iter()
+                    .position(|(p, c, _)| *c == chunk && p == &self.path);
+                let entry = match position {
+                    Some(i) => {
+                        let entry = cache.entries.remove(i).ok_or_else(missing)?;
+                        cache.entries.push_back(entry);
+                        cache.entries.back().ok_or_else(missing)?
+                    }
+                    None => {
+                        let loc = self.chunks.get(chunk as usize).ok_or_else(missing)?;
+                        let body = self.read_exact_at(loc.offset + 9, loc.record_len - 9)?;
+                        let chunk_error = |reason: String| SourceError::Chunk {
+                            path: self.path.clone(),
+                            offset: loc.offset,
+                            reason,
+                        };
+                        let Ok(records::Record::Chunk { header, data }) =
+                            mcap::parse_record(op::CHUNK, &body)
+                        else {
+                            return Err(chunk_error("not a chunk record".into()));
+                        };
+                        let (decoded, _, _) = decode_chunk(header, &data).map_err(chunk_error)?;
+                        cache.entries.push_back((
+                            self.path.clone(),
+                            chunk,
+                            Arc::new(decoded.messages),
+                        ));
+                        if cache.entries.len() > cache.capacity {
+                            cache.entries.pop_front();
+                        }
+                        cache.entries.back().ok_or_else(missing)?
+                    }
+                };
+                let (channel_id, header, data) = entry.2.get(index as usize).ok_or_else(missing)?;
+                let channel = self.channels.get(channel_id).ok_or_else(missing)?;
+                Ok(MessageRef {
+                    channel,
+                    sequence: header.sequence,
+                    log_time: header.log_time,
+                    publish_time: header.publish_time,
+                    data,
+                    loc,
+                })
+            }
+        }
+    }
+}
+
+type SchemaRecord = (u16, String, String, Vec<u8>);
+
+/// Decompresses a chunk and splits it into records; the whole chunk is rejected if
+/// anything in it fails (CRC, decompression, a record), so corrupt bytes never reach a
+/// decoder.
+fn decode_chunk(
+    header: ChunkHeader,
+    data: &[u8],
+) -> Result<(Decoded, Vec<SchemaRecord>, Vec<records::Channel>), String> {
+    if header.uncompressed_size > MAX_RECORD_BYTES {
+        return Err(format!(
+            "declared uncompressed size {} is implausible",
+            header.uncompressed_size
+        ));
+    }
+    let reader = mcap::read::ChunkReader::new(header, data).map_err(|e| e.to_string())?;
+    let mut messages = Vec::new();
+    let mut schemas = Vec::new();
+    let mut channels = Vec::new();
+    for record in reader {
+        match record.map_err(|e| e.to_string())? {
+            records::Record::Message { header, data } => {
+                messages.push((header.channel_id, header, data.into_owned()))
+            }
+            records::Record::Schema { header, data } => {
+                schemas.push((header.id, header.name, header.encoding, data.into_owned()))
+            }
+            records::Record::Channel(c) => channels.push(c),
+            _ => {}
+        }
+    }
+    Ok((Decoded { messages }, schemas, channels))
+}
