@@ -4,7 +4,7 @@
 //! fields are only ever added, and a change of meaning bumps the format string.
 
 use crate::drive::dataset::{ChannelSummary, SkipReport};
-use crate::drive::{Dataset, Role};
+use crate::drive::{Dataset, Drive, Role};
 use serde::{Deserialize, Serialize};
 use std::fmt::Write as _;
 
@@ -66,11 +66,45 @@ pub struct FrameEdge {
     pub samples: usize,
 }
 
-/// The whole report.
+/// The whole report: one entry per drive.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct InspectReport {
     /// [`INSPECT_FORMAT`].
     pub format: String,
+    /// Every drive of the dataset.
+    pub drives: Vec<DriveReport>,
+}
+
+impl InspectReport {
+    /// Builds the report of an indexed dataset.
+    pub fn new(dataset: &Dataset) -> Self {
+        InspectReport {
+            format: INSPECT_FORMAT.to_string(),
+            drives: dataset.drives.iter().map(DriveReport::new).collect(),
+        }
+    }
+
+    /// The report for people.
+    pub fn to_text(&self) -> String {
+        self.drives
+            .iter()
+            .enumerate()
+            .map(|(i, d)| {
+                format!(
+                    "== drive {} of {}\n{}",
+                    i + 1,
+                    self.drives.len(),
+                    d.to_text()
+                )
+            })
+            .collect::<Vec<_>>()
+            .join("\n")
+    }
+}
+
+/// What one drive holds.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DriveReport {
     /// The files.
     pub files: Vec<FileReport>,
     /// `foxglove_protobuf`, `ros2` or `mixed`.
@@ -108,9 +142,9 @@ pub struct InspectReport {
 /// Keyframe spacing of the paper and the official code.
 pub const DEFAULT_KEYFRAME_INTERVAL_NANOS: i64 = 500_000_000;
 
-impl InspectReport {
-    /// Builds the report of an indexed dataset.
-    pub fn new(dataset: &Dataset) -> Self {
+impl DriveReport {
+    /// Builds the report of an indexed drive.
+    pub fn new(dataset: &Drive) -> Self {
         let dialects: std::collections::BTreeSet<String> = dataset
             .channels
             .iter()
@@ -130,8 +164,7 @@ impl InspectReport {
         };
         let span = dataset.time_span();
         let frozen = &dataset.frozen_edges;
-        InspectReport {
-            format: INSPECT_FORMAT.to_string(),
+        DriveReport {
             files: dataset
                 .files
                 .iter()

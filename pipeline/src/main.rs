@@ -70,15 +70,16 @@ fn run(args: &Args) -> anyhow::Result<()> {
             dataset
                 .check_sensors()
                 .context("the drives cannot be trained on")?;
-            let report = InspectReport::new(&dataset);
-            tracing::info!(
-                files = report.files.len(),
-                sweeps = report.lidar_sweeps,
-                cameras = report.cameras.len(),
-                keyframes = report.usable_keyframes,
-                skipped = report.skipped.total(),
-                "dataset indexed"
-            );
+            for drive in InspectReport::new(&dataset).drives {
+                tracing::info!(
+                    files = drive.files.len(),
+                    sweeps = drive.lidar_sweeps,
+                    cameras = drive.cameras.len(),
+                    keyframes = drive.usable_keyframes,
+                    skipped = drive.skipped.total(),
+                    "drive indexed"
+                );
+            }
             bail!(
                 "not yet built: building samples and streaming batches on superflow/{}/batches \
                  arrive with the sample-builder and service issues",

@@ -19,7 +19,7 @@
 //! ```
 
 pub mod foxglove;
-mod out;
+pub mod out;
 pub mod ros2;
 pub mod scene;
 pub mod sim;

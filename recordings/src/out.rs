@@ -1,4 +1,5 @@
 //! Collects messages of every channel, then writes them in log-time order into an MCAP.
+//! The dialect writers use it, and so do tests that build small files of their own.
 
 use crate::truth::ChannelTruth;
 use std::collections::BTreeMap;
@@ -23,7 +24,7 @@ struct ChannelSpec {
 
 /// Messages and channels of one file, written at [`McapOut::finish`].
 #[derive(Debug, Default)]
-pub(crate) struct McapOut {
+pub struct McapOut {
     channels: Vec<ChannelSpec>,
     messages: Vec<Pending>,
     metadata: Vec<mcap::records::Metadata>,
@@ -31,7 +32,7 @@ pub(crate) struct McapOut {
 
 impl McapOut {
     /// Declares a channel; returns its handle.
-    pub(crate) fn channel(
+    pub fn channel(
         &mut self,
         topic: &str,
         role: &str,
@@ -56,7 +57,7 @@ impl McapOut {
     }
 
     /// Queues a message.
-    pub(crate) fn message(
+    pub fn message(
         &mut self,
         channel: usize,
         log_time: i64,
@@ -73,7 +74,7 @@ impl McapOut {
     }
 
     /// Queues a metadata record.
-    pub(crate) fn metadata(&mut self, name: &str, entries: &[(&str, &str)]) {
+    pub fn metadata(&mut self, name: &str, entries: &[(&str, &str)]) {
         self.metadata.push(mcap::records::Metadata {
             name: name.to_string(),
             metadata: entries
@@ -84,7 +85,7 @@ impl McapOut {
     }
 
     /// Writes everything, messages sorted by log time (ties in the order queued).
-    pub(crate) fn finish(
+    pub fn finish(
         mut self,
         profile: &str,
         compression: Option<mcap::Compression>,

@@ -4,7 +4,7 @@
 use anyhow::{Context as _, bail};
 use std::collections::BTreeMap;
 use std::path::PathBuf;
-use superflow_pipeline::drive::{Dataset, IngestConfig, TransformTree};
+use superflow_pipeline::drive::{Drive, IngestConfig, TransformTree};
 use superflow_recordings::Dialect;
 use superflow_recordings::truth::GroundTruth;
 use superflow_schemas::sensor::CameraCalibration;
@@ -52,8 +52,8 @@ pub fn sample_drive(dialect: Dialect) -> anyhow::Result<SampleDrive> {
 }
 
 /// The drive indexed by the pipeline's ingest (one pass over the file).
-pub fn dataset(drive: &SampleDrive) -> anyhow::Result<Dataset> {
-    Ok(Dataset::open(
+pub fn dataset(drive: &SampleDrive) -> anyhow::Result<Drive> {
+    Ok(Drive::open(
         &[drive.path.clone()],
         &IngestConfig::default(),
     )?)

@@ -1,5 +1,5 @@
-//! A dataset: one or more MCAP files (a drive split in parts, or many drives) indexed in
-//! one pass each — every LiDAR sweep and camera frame with its sensor stamp and location,
+//! A dataset: many drives, each one or more MCAP files (a recording split in parts),
+//! indexed in one pass per file — every LiDAR sweep and camera frame with its sensor stamp and location,
 //! every transform in a [`TransformTree`], every calibration — plus a report of what was
 //! skipped and why.
 
@@ -243,6 +243,22 @@ fn stamp_and_frame(
     }
 }
 
+/// Groups the inputs into drives: a rosbag2 directory (it holds `metadata.yaml`) is one
+/// drive made of its `.mcap` files in name order; any other directory contributes each
+/// of its `.mcap` files as a drive of its own; a file is a drive.
+pub fn drive_groups(inputs: &[PathBuf]) -> Result<Vec<Vec<PathBuf>>, IngestError> {
+    let mut groups = Vec::new();
+    for input in inputs {
+        let files = mcap_files(std::slice::from_ref(input))?;
+        if input.is_dir() && input.join("metadata.yaml").is_file() {
+            groups.push(files);
+        } else {
+            groups.extend(files.into_iter().map(|f| vec![f]));
+        }
+    }
+    Ok(groups)
+}
+
 /// All `.mcap` files named or inside the named directories, sorted per directory.
 pub fn mcap_files(inputs: &[PathBuf]) -> Result<Vec<PathBuf>, IngestError> {
     let mut files = Vec::new();
@@ -269,9 +285,32 @@ pub fn mcap_files(inputs: &[PathBuf]) -> Result<Vec<PathBuf>, IngestError> {
     Ok(files)
 }
 
-/// One or more MCAP files indexed as one dataset.
+/// Every drive of a dataset.
 #[derive(Debug)]
 pub struct Dataset {
+    /// The drives, in input order.
+    pub drives: Vec<Drive>,
+}
+
+impl Dataset {
+    /// Indexes every drive of `inputs` (files, directories, rosbag2 directories).
+    pub fn open(inputs: &[PathBuf], config: &IngestConfig) -> Result<Dataset, IngestError> {
+        let drives = drive_groups(inputs)?
+            .iter()
+            .map(|files| Drive::open(files, config))
+            .collect::<Result<Vec<_>, _>>()?;
+        Ok(Dataset { drives })
+    }
+
+    /// Checks every drive ([`Drive::check_sensors`]).
+    pub fn check_sensors(&self) -> Result<(), IngestError> {
+        self.drives.iter().try_for_each(Drive::check_sensors)
+    }
+}
+
+/// One drive: one or more MCAP files of the same recording, indexed together.
+#[derive(Debug)]
+pub struct Drive {
     /// The files, in the order given.
     pub files: Vec<McapFile>,
     /// Every channel with its role, sorted by topic.
@@ -294,10 +333,12 @@ pub struct Dataset {
     pub config: IngestConfig,
 }
 
-impl Dataset {
-    /// Indexes `paths` (files or directories) in one pass per file.
-    pub fn open(paths: &[PathBuf], config: &IngestConfig) -> Result<Dataset, IngestError> {
-        let files = mcap_files(paths)?;
+impl Drive {
+    /// Indexes the files of one drive, in one pass per file.
+    pub fn open(files: &[PathBuf], config: &IngestConfig) -> Result<Drive, IngestError> {
+        if files.is_empty() {
+            return Err(IngestError::NoFiles);
+        }
         let mut topics: BTreeMap<String, TopicData> = BTreeMap::new();
         let mut tf = TransformTree::new((config.tf_tolerance_ms * 1e6) as i64);
         let mut skipped = SkipReport::default();
@@ -454,7 +495,7 @@ impl Dataset {
             .clone()
             .or_else(|| ego_frame.as_deref().and_then(|e| tf.root_of(e).ok()));
 
-        Ok(Dataset {
+        Ok(Drive {
             files: opened,
             channels: channel_summaries,
             lidar,

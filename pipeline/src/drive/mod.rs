@@ -5,6 +5,6 @@ pub mod dataset;
 pub mod discover;
 pub mod tf;
 
-pub use dataset::{CameraStream, Dataset, FrameRef, IngestError, LidarStream, SkipReport};
+pub use dataset::{CameraStream, Dataset, Drive, FrameRef, IngestError, LidarStream, SkipReport};
 pub use discover::{IngestConfig, Role};
 pub use tf::{TfError, TransformTree};
