@@ -757,3 +757,22 @@ fn sort_frames(frames: &mut Vec<FrameRef>) -> usize {
     frames.dedup_by_key(|f| f.stamp);
     before - frames.len()
 }
+
+impl Drive {
+    /// The raw message of a sensor frame (through `cache`, which holds a few
+    /// decompressed chunks: memory stays bounded whatever the file size).
+    pub fn read_raw<'c>(
+        &'c self,
+        frame: &FrameRef,
+        cache: &'c mut crate::source::ChunkCache,
+    ) -> Result<MessageRef<'c>, SourceError> {
+        let file =
+            self.files
+                .get(frame.file as usize)
+                .ok_or_else(|| SourceError::NoSuchMessage {
+                    path: PathBuf::from(self.file_list()),
+                    loc: frame.loc,
+                })?;
+        file.read_message(frame.loc, cache)
+    }
+}
