@@ -37,11 +37,17 @@ fn main() -> anyhow::Result<()> {
         let mut drive = None;
         for _ in 0..runs {
             let started = Instant::now();
-            drive = Some(Drive::open(std::slice::from_ref(&path), &IngestConfig::default())?);
+            drive = Some(Drive::open(
+                std::slice::from_ref(&path),
+                &IngestConfig::default(),
+            )?);
             index_times.push(started.elapsed());
         }
         let drive = drive.ok_or_else(|| anyhow::anyhow!("no run"))?;
-        let lidar = drive.lidar.as_ref().ok_or_else(|| anyhow::anyhow!("{name}: no LiDAR"))?;
+        let lidar = drive
+            .lidar
+            .as_ref()
+            .ok_or_else(|| anyhow::anyhow!("{name}: no LiDAR"))?;
         let mut decode_times = Vec::new();
         let mut total_points = 0usize;
         for _ in 0..runs {

@@ -57,13 +57,7 @@ impl McapOut {
     }
 
     /// Queues a message.
-    pub fn message(
-        &mut self,
-        channel: usize,
-        log_time: i64,
-        publish_time: i64,
-        data: Vec<u8>,
-    ) {
+    pub fn message(&mut self, channel: usize, log_time: i64, publish_time: i64, data: Vec<u8>) {
         self.channels[channel].truth.message_count += 1;
         self.messages.push(Pending {
             channel,

@@ -462,29 +462,53 @@ fn lower_case_nuscenes_converter_topics_are_discovered() {
 fn rosbag2_split_directory_is_one_drive() {
     let dir = std::env::temp_dir().join(format!("superflow-split-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
-    std::fs::write(dir.join("metadata.yaml"), "rosbag2_bagfile_information:\n  version: 8\n").unwrap();
+    std::fs::write(
+        dir.join("metadata.yaml"),
+        "rosbag2_bagfile_information:\n  version: 8\n",
+    )
+    .unwrap();
     for part in 0..2i64 {
         let mut out = McapOut::default();
         let none = BTreeMap::new;
         let cdr = ros2::MESSAGE_ENCODING;
         let tf = out.channel("/tf", "tf", ros_schema::<ros2::TfMessage>(), cdr, none());
-        let velo = out.channel("/points", "lidar", ros_schema::<ros2::PointCloud2>(), cdr, none());
+        let velo = out.channel(
+            "/points",
+            "lidar",
+            ros_schema::<ros2::PointCloud2>(),
+            cdr,
+            none(),
+        );
         if part == 0 {
-            let statics = out.channel("/tf_static", "static", ros_schema::<ros2::TfMessage>(), cdr, none());
-            let msg = ros2::TfMessage { transforms: vec![ros_tf(T0, "base_link", "lidar", &Isometry3::identity())] };
+            let statics = out.channel(
+                "/tf_static",
+                "static",
+                ros_schema::<ros2::TfMessage>(),
+                cdr,
+                none(),
+            );
+            let msg = ros2::TfMessage {
+                transforms: vec![ros_tf(T0, "base_link", "lidar", &Isometry3::identity())],
+            };
             out.message(statics, T0, T0, ros2::encode(&msg).unwrap());
         }
         for n in part * 5..part * 5 + 5 {
             let stamp = T0 + n * 100_000_000;
-            let msg = ros2::TfMessage { transforms: vec![ros_tf(stamp, "map", "base_link", &map_from_base(stamp))] };
+            let msg = ros2::TfMessage {
+                transforms: vec![ros_tf(stamp, "map", "base_link", &map_from_base(stamp))],
+            };
             out.message(tf, stamp, stamp, ros2::encode(&msg).unwrap());
-            let cloud = ros2::PointCloud2 { header: header(stamp + 50_000_000, "lidar"), ..Default::default() };
+            let cloud = ros2::PointCloud2 {
+                header: header(stamp + 50_000_000, "lidar"),
+                ..Default::default()
+            };
             out.message(velo, stamp, stamp, ros2::encode(&cloud).unwrap());
         }
         let (bytes, _) = out.finish("ros2", Some(mcap::Compression::Zstd)).unwrap();
         std::fs::write(dir.join(format!("drive_{part}.mcap")), bytes).unwrap();
     }
-    let dataset = superflow_pipeline::drive::Dataset::open(&[dir.clone()], &IngestConfig::default()).unwrap();
+    let dataset =
+        superflow_pipeline::drive::Dataset::open(&[dir.clone()], &IngestConfig::default()).unwrap();
     assert_eq!(dataset.drives.len(), 1);
     let drive = &dataset.drives[0];
     assert_eq!(drive.files.len(), 2);
@@ -496,9 +520,16 @@ fn rosbag2_split_directory_is_one_drive() {
     let stamp = sweeps[4].stamp;
     assert_eq!(stamp, Stamp::from_nanos(T0 + 450_000_000));
     let got = drive.tf.lookup("map", "lidar", stamp).unwrap();
-    assert!((got.translation.vector - map_from_base(stamp.nanos()).translation.vector).norm() < 1e-9);
+    assert!(
+        (got.translation.vector - map_from_base(stamp.nanos()).translation.vector).norm() < 1e-9
+    );
 
     std::fs::remove_file(dir.join("metadata.yaml")).unwrap();
-    let dataset = superflow_pipeline::drive::Dataset::open(&[dir], &IngestConfig::default()).unwrap();
-    assert_eq!(dataset.drives.len(), 2, "without metadata.yaml each file is a drive");
+    let dataset =
+        superflow_pipeline::drive::Dataset::open(&[dir], &IngestConfig::default()).unwrap();
+    assert_eq!(
+        dataset.drives.len(),
+        2,
+        "without metadata.yaml each file is a drive"
+    );
 }
