@@ -4,8 +4,8 @@
 //! keyframe, plus `/CAM_*/superpixels` class maps and an unrelated JSON `/odom` channel.
 
 use crate::out::McapOut;
-use crate::truth::{CameraTruth, FramesTruth, GroundTruth, LidarTruth, PoseTruth, SweepTruth};
-use crate::{GENERATOR_VERSION, GeneratedDrive, SCENE_SEED, Simulation, encode_jpeg};
+use crate::truth::{CameraTruth, FramesTruth, PoseTruth, SweepTruth};
+use crate::{Dialect, GeneratedDrive, Simulation, WrittenDrive, encode_jpeg};
 use anyhow::Context as _;
 use foxglove::Encode;
 use foxglove::messages::{
@@ -330,39 +330,22 @@ pub fn write(sim: &Simulation) -> anyhow::Result<GeneratedDrive> {
     );
 
     let (mcap, channels) = out.finish("", Some(mcap::Compression::Lz4))?;
-    let truth = GroundTruth {
-        drive: "street_foxglove".into(),
-        dialect: "foxglove".into(),
-        profile: String::new(),
-        compression: "lz4".into(),
-        generator_version: GENERATOR_VERSION,
-        seed: SCENE_SEED,
-        start_stamp_nanos: sim.timing.start.nanos(),
-        end_stamp_nanos: end.nanos(),
-        classes: crate::scene::CLASSES
-            .iter()
-            .map(|c| c.to_string())
-            .collect(),
+    let truth = sim.ground_truth(WrittenDrive {
+        dialect: Dialect::Foxglove,
+        profile: "",
+        compression: "lz4",
         frames: FramesTruth {
             map: MAP_FRAME.into(),
             ego: EGO_FRAME.into(),
             lidar: LIDAR.into(),
         },
+        lidar_topic: format!("/{LIDAR}"),
+        motion_compensated: true,
+        stamp_at: "sweep_end",
         channels,
-        lidar: LidarTruth {
-            topic: format!("/{LIDAR}"),
-            frame_id: LIDAR.into(),
-            rate_hz: 1e9 / sim.timing.sweep_nanos as f64,
-            beams: sim.rig.beam_elevations.len() as u32,
-            columns: sim.rig.columns as u32,
-            motion_compensated: true,
-            stamp_at: "sweep_end".into(),
-            ego_from_lidar: PoseTruth::from(&sim.rig.ego_from_lidar),
-            sweeps,
-        },
+        sweeps,
+        lidar_stamps,
         cameras,
-        ego_poses: sim.pose_samples(&lidar_stamps),
-        landmarks: sim.landmarks.clone(),
-    };
+    });
     Ok(GeneratedDrive { mcap, truth })
 }

@@ -155,6 +155,59 @@ impl Simulation {
     }
 }
 
+/// The facts a dialect writer decides: names, layout and what it wrote.
+#[derive(Debug)]
+pub(crate) struct WrittenDrive {
+    pub(crate) dialect: Dialect,
+    pub(crate) profile: &'static str,
+    pub(crate) compression: &'static str,
+    pub(crate) frames: truth::FramesTruth,
+    pub(crate) lidar_topic: String,
+    pub(crate) motion_compensated: bool,
+    pub(crate) stamp_at: &'static str,
+    pub(crate) channels: Vec<truth::ChannelTruth>,
+    pub(crate) sweeps: Vec<truth::SweepTruth>,
+    pub(crate) lidar_stamps: Vec<Stamp>,
+    pub(crate) cameras: Vec<truth::CameraTruth>,
+}
+
+impl Simulation {
+    /// The ground truth of a drive written from this simulation.
+    pub(crate) fn ground_truth(&self, written: WrittenDrive) -> GroundTruth {
+        GroundTruth {
+            drive: written.dialect.drive_name(),
+            dialect: written.dialect.name().into(),
+            profile: written.profile.into(),
+            compression: written.compression.into(),
+            generator_version: GENERATOR_VERSION,
+            seed: SCENE_SEED,
+            start_stamp_nanos: self.timing.start.nanos(),
+            end_stamp_nanos: self
+                .timing
+                .start
+                .add_nanos(self.timing.duration_nanos)
+                .nanos(),
+            classes: scene::CLASSES.iter().map(|c| c.to_string()).collect(),
+            lidar: truth::LidarTruth {
+                topic: written.lidar_topic,
+                frame_id: written.frames.lidar.clone(),
+                rate_hz: 1e9 / self.timing.sweep_nanos as f64,
+                beams: self.rig.beam_elevations.len() as u32,
+                columns: self.rig.columns as u32,
+                motion_compensated: written.motion_compensated,
+                stamp_at: written.stamp_at.into(),
+                ego_from_lidar: PoseTruth::from(&self.rig.ego_from_lidar),
+                sweeps: written.sweeps,
+            },
+            frames: written.frames,
+            channels: written.channels,
+            cameras: written.cameras,
+            ego_poses: self.pose_samples(&written.lidar_stamps),
+            landmarks: self.landmarks.clone(),
+        }
+    }
+}
+
 /// Simulates the drive as `dialect` records it (timing resolution, lens distortion).
 pub fn simulate(dialect: Dialect) -> Simulation {
     let scene = Scene::street(SCENE_SEED);

@@ -6,8 +6,8 @@
 
 use crate::out::McapOut;
 use crate::sim::body_from_optical;
-use crate::truth::{CameraTruth, FramesTruth, GroundTruth, LidarTruth, PoseTruth, SweepTruth};
-use crate::{GENERATOR_VERSION, GeneratedDrive, SCENE_SEED, Simulation, encode_jpeg};
+use crate::truth::{CameraTruth, FramesTruth, PoseTruth, SweepTruth};
+use crate::{Dialect, GeneratedDrive, Simulation, WrittenDrive, encode_jpeg};
 use anyhow::Context as _;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 use std::collections::BTreeMap;
@@ -366,39 +366,22 @@ pub fn write(sim: &Simulation) -> anyhow::Result<GeneratedDrive> {
         )],
     );
     let (mcap, channels) = out.finish("ros2", Some(mcap::Compression::Zstd))?;
-    let truth = GroundTruth {
-        drive: "street_ros2".into(),
-        dialect: "ros2".into(),
-        profile: "ros2".into(),
-        compression: "zstd".into(),
-        generator_version: GENERATOR_VERSION,
-        seed: SCENE_SEED,
-        start_stamp_nanos: start.nanos(),
-        end_stamp_nanos: end.nanos(),
-        classes: crate::scene::CLASSES
-            .iter()
-            .map(|c| c.to_string())
-            .collect(),
+    let truth = sim.ground_truth(WrittenDrive {
+        dialect: Dialect::Ros2,
+        profile: "ros2",
+        compression: "zstd",
         frames: FramesTruth {
             map: MAP_FRAME.into(),
             ego: EGO_FRAME.into(),
             lidar: LIDAR_FRAME.into(),
         },
+        lidar_topic: LIDAR_TOPIC.into(),
+        motion_compensated: false,
+        stamp_at: "sweep_start",
         channels,
-        lidar: LidarTruth {
-            topic: LIDAR_TOPIC.into(),
-            frame_id: LIDAR_FRAME.into(),
-            rate_hz: 1e9 / sim.timing.sweep_nanos as f64,
-            beams: sim.rig.beam_elevations.len() as u32,
-            columns: sim.rig.columns as u32,
-            motion_compensated: false,
-            stamp_at: "sweep_start".into(),
-            ego_from_lidar: PoseTruth::from(&sim.rig.ego_from_lidar),
-            sweeps,
-        },
+        sweeps,
+        lidar_stamps,
         cameras,
-        ego_poses: sim.pose_samples(&lidar_stamps),
-        landmarks: sim.landmarks.clone(),
-    };
+    });
     Ok(GeneratedDrive { mcap, truth })
 }

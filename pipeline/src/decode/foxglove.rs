@@ -7,9 +7,8 @@ pub use foxglove::messages::{
     CameraCalibration, CompressedImage, FrameTransform, FrameTransforms, PointCloud, RawImage,
     Timestamp,
 };
-use nalgebra::Matrix3;
 use superflow_schemas::Stamp;
-use superflow_schemas::sensor::{self, Distortion, StampedTransform};
+use superflow_schemas::sensor::{self, StampedTransform};
 
 /// Decodes a protobuf payload as message type `T`.
 pub fn decode<T: prost::Message + Default>(
@@ -64,29 +63,14 @@ pub fn camera_calibration(
 ) -> Result<sensor::CameraCalibration, DecodeError> {
     const SCHEMA: &str = "foxglove.CameraCalibration";
     let stamp = stamp(SCHEMA, msg.timestamp.as_ref())?;
-    let sensor_error = |source| DecodeError::Sensor {
-        frame_id: msg.frame_id.clone(),
+    super::calibration(
         stamp,
-        source,
-    };
-    if msg.k.len() != 9 {
-        return Err(DecodeError::BadIntrinsics {
-            frame_id: msg.frame_id.clone(),
-            stamp,
-            len: msg.k.len(),
-        });
-    }
-    let calibration = sensor::CameraCalibration {
-        stamp,
-        frame_id: msg.frame_id.clone(),
-        width: msg.width,
-        height: msg.height,
-        k: Matrix3::from_row_slice(&msg.k),
-        distortion: Distortion::from_recorded(&msg.distortion_model, &msg.d)
-            .map_err(sensor_error)?,
-    };
-    calibration.validate().map_err(sensor_error)?;
-    Ok(calibration)
+        &msg.frame_id,
+        (msg.width, msg.height),
+        &msg.k,
+        &msg.distortion_model,
+        &msg.d,
+    )
 }
 
 #[cfg(test)]

@@ -828,24 +828,14 @@ pub fn transforms(
 pub fn camera_info(
     msg: &CameraInfo,
 ) -> Result<superflow_schemas::sensor::CameraCalibration, super::DecodeError> {
-    use superflow_schemas::sensor::{CameraCalibration, Distortion};
-    let stamp = msg.header.stamp.stamp();
-    let sensor_error = |source| super::DecodeError::Sensor {
-        frame_id: msg.header.frame_id.clone(),
-        stamp,
-        source,
-    };
-    let calibration = CameraCalibration {
-        stamp,
-        frame_id: msg.header.frame_id.clone(),
-        width: msg.width,
-        height: msg.height,
-        k: nalgebra::Matrix3::from_row_slice(&msg.k),
-        distortion: Distortion::from_recorded(&msg.distortion_model, &msg.d)
-            .map_err(sensor_error)?,
-    };
-    calibration.validate().map_err(sensor_error)?;
-    Ok(calibration)
+    super::calibration(
+        msg.header.stamp.stamp(),
+        &msg.header.frame_id,
+        (msg.width, msg.height),
+        &msg.k,
+        &msg.distortion_model,
+        &msg.d,
+    )
 }
 
 #[cfg(test)]

@@ -246,7 +246,7 @@ struct Decoded {
 #[derive(Debug)]
 pub struct ChunkCache {
     capacity: usize,
-    entries: VecDeque<(PathBuf, u32, Arc<ChunkMessages>)>,
+    entries: VecDeque<(PathBuf, CacheKey, Arc<ChunkMessages>)>,
 }
 
 impl ChunkCache {
@@ -389,9 +389,7 @@ impl McapFile {
             let mut head = [0u8; 9];
             this.file.read_exact_at(&mut head, pos).map_err(io)?;
             let opcode = head[0];
-            let body_len = u64::from_le_bytes([
-                head[1], head[2], head[3], head[4], head[5], head[6], head[7], head[8],
-            ]);
+            let body_len = record_len(&head);
             let body_start = pos + 9;
             let plausible =
                 (op::HEADER..=op::DATA_END).contains(&opcode) && body_len <= MAX_RECORD_BYTES;
@@ -636,92 +634,108 @@ impl McapFile {
             path: self.path.clone(),
             loc,
         };
-        match loc {
-            MessageLoc::Direct { offset } => {
-                let mut head = [0u8; 9];
-                self.file
-                    .read_exact_at(&mut head, offset)
-                    .map_err(|e| self.io(e))?;
-                let body_len = u64::from_le_bytes([
-                    head[1], head[2], head[3], head[4], head[5], head[6], head[7], head[8],
-                ]);
-                if head[0] != op::MESSAGE || body_len > MAX_RECORD_BYTES {
-                    return Err(missing());
-                }
-                let body = self.read_exact_at(offset + 9, body_len)?;
-                let Ok(records::Record::Message { header, data }) =
-                    mcap::parse_record(op::MESSAGE, &body)
-                else {
-                    return Err(missing());
-                };
-                let channel = self.channels.get(&header.channel_id).ok_or_else(missing)?;
-                let entry = Arc::new(vec![(header.channel_id, header, data.into_owned())]);
+        let (key, index) = match loc {
+            MessageLoc::Direct { offset } => (CacheKey::Direct(offset), 0),
+            MessageLoc::Chunk { chunk, index } => (CacheKey::Chunk(chunk), index as usize),
+        };
+        match cache
+            .entries
+            .iter()
+            .position(|(p, k, _)| *k == key && p == &self.path)
+        {
+            Some(i) => {
+                let entry = cache.entries.remove(i).ok_or_else(missing)?;
+                cache.entries.push_back(entry);
+            }
+            None => {
+                let messages = self.load(key).map_err(|reason| match reason {
+                    LoadError::Source(e) => e,
+                    LoadError::Missing => missing(),
+                })?;
                 cache
                     .entries
-                    .push_back((self.path.clone(), u32::MAX, entry));
+                    .push_back((self.path.clone(), key, Arc::new(messages)));
                 if cache.entries.len() > cache.capacity {
                     cache.entries.pop_front();
                 }
-                let (_, _, messages) = cache.entries.back().ok_or_else(missing)?;
-                let (_, header, data) = &messages[0];
-                Ok(MessageRef {
-                    channel,
-                    sequence: header.sequence,
-                    log_time: header.log_time,
-                    publish_time: header.publish_time,
-                    data,
-                    loc,
-                })
             }
-            MessageLoc::Chunk { chunk, index } => {
-                let position = cache
-                    .entries
-                    .iter()
-                    .position(|(p, c, _)| *c == chunk && p == &self.path);
-                let entry = match position {
-                    Some(i) => {
-                        let entry = cache.entries.remove(i).ok_or_else(missing)?;
-                        cache.entries.push_back(entry);
-                        cache.entries.back().ok_or_else(missing)?
+        }
+        let (_, _, messages) = cache.entries.back().ok_or_else(missing)?;
+        let (channel_id, header, data) = messages.get(index).ok_or_else(missing)?;
+        let channel = self.channels.get(channel_id).ok_or_else(missing)?;
+        Ok(MessageRef {
+            channel,
+            sequence: header.sequence,
+            log_time: header.log_time,
+            publish_time: header.publish_time,
+            data,
+            loc,
+        })
+    }
+
+    /// The messages of a chunk, or the one message of a record outside chunks.
+    fn load(&self, key: CacheKey) -> Result<ChunkMessages, LoadError> {
+        match key {
+            CacheKey::Direct(offset) => {
+                let mut head = [0u8; 9];
+                self.file
+                    .read_exact_at(&mut head, offset)
+                    .map_err(|e| LoadError::Source(self.io(e)))?;
+                let body_len = record_len(&head);
+                if head[0] != op::MESSAGE || body_len > MAX_RECORD_BYTES {
+                    return Err(LoadError::Missing);
+                }
+                let body = self
+                    .read_exact_at(offset + 9, body_len)
+                    .map_err(LoadError::Source)?;
+                match mcap::parse_record(op::MESSAGE, &body) {
+                    Ok(records::Record::Message { header, data }) => {
+                        Ok(vec![(header.channel_id, header, data.into_owned())])
                     }
-                    None => {
-                        let loc = self.chunks.get(chunk as usize).ok_or_else(missing)?;
-                        let body = self.read_exact_at(loc.offset + 9, loc.record_len - 9)?;
-                        let chunk_error = |reason: String| SourceError::Chunk {
-                            path: self.path.clone(),
-                            offset: loc.offset,
-                            reason,
-                        };
-                        let Ok(records::Record::Chunk { header, data }) =
-                            mcap::parse_record(op::CHUNK, &body)
-                        else {
-                            return Err(chunk_error("not a chunk record".into()));
-                        };
-                        let (decoded, _, _) = decode_chunk(header, &data).map_err(chunk_error)?;
-                        cache.entries.push_back((
-                            self.path.clone(),
-                            chunk,
-                            Arc::new(decoded.messages),
-                        ));
-                        if cache.entries.len() > cache.capacity {
-                            cache.entries.pop_front();
-                        }
-                        cache.entries.back().ok_or_else(missing)?
-                    }
+                    _ => Err(LoadError::Missing),
+                }
+            }
+            CacheKey::Chunk(chunk) => {
+                let loc = self.chunks.get(chunk as usize).ok_or(LoadError::Missing)?;
+                let body = self
+                    .read_exact_at(loc.offset + 9, loc.record_len - 9)
+                    .map_err(LoadError::Source)?;
+                let chunk_error = |reason: String| {
+                    LoadError::Source(SourceError::Chunk {
+                        path: self.path.clone(),
+                        offset: loc.offset,
+                        reason,
+                    })
                 };
-                let (channel_id, header, data) = entry.2.get(index as usize).ok_or_else(missing)?;
-                let channel = self.channels.get(channel_id).ok_or_else(missing)?;
-                Ok(MessageRef {
-                    channel,
-                    sequence: header.sequence,
-                    log_time: header.log_time,
-                    publish_time: header.publish_time,
-                    data,
-                    loc,
-                })
+                let Ok(records::Record::Chunk { header, data }) =
+                    mcap::parse_record(op::CHUNK, &body)
+                else {
+                    return Err(chunk_error("not a chunk record".into()));
+                };
+                let (decoded, _, _) = decode_chunk(header, &data).map_err(chunk_error)?;
+                Ok(decoded.messages)
             }
         }
     }
+}
+
+/// What a cache entry holds: a chunk by number, or one message outside chunks by offset.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum CacheKey {
+    Chunk(u32),
+    Direct(u64),
+}
+
+enum LoadError {
+    Source(SourceError),
+    Missing,
+}
+
+/// The body length in a record's 9-byte opcode + length prefix.
+fn record_len(head: &[u8; 9]) -> u64 {
+    u64::from_le_bytes([
+        head[1], head[2], head[3], head[4], head[5], head[6], head[7], head[8],
+    ])
 }
 
 type SchemaRecord = (u16, String, String, Vec<u8>);
