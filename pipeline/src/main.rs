@@ -49,7 +49,18 @@ fn open(args: &Args) -> anyhow::Result<Dataset> {
         Some(path) => PipelineConfig::load(path)?,
         None => PipelineConfig::default(),
     };
-    Ok(Dataset::open(&args.mcap, &config.ingest)?)
+    let bar = indicatif::ProgressBar::new(0).with_style(
+        indicatif::ProgressStyle::with_template(
+            "indexing {bar:40} {bytes}/{total_bytes} ({bytes_per_sec})",
+        )
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+    );
+    let dataset = Dataset::open_with_progress(&args.mcap, &config.ingest, |done, total| {
+        bar.set_length(total);
+        bar.set_position(done);
+    });
+    bar.finish_and_clear();
+    Ok(dataset?)
 }
 
 fn run(args: &Args) -> anyhow::Result<()> {

@@ -295,10 +295,28 @@ pub struct Dataset {
 impl Dataset {
     /// Indexes every drive of `inputs` (files, directories, rosbag2 directories).
     pub fn open(inputs: &[PathBuf], config: &IngestConfig) -> Result<Dataset, IngestError> {
-        let drives = drive_groups(inputs)?
+        Self::open_with_progress(inputs, config, |_, _| {})
+    }
+
+    /// [`Dataset::open`], reporting `(bytes indexed, total bytes)` as it goes.
+    pub fn open_with_progress(
+        inputs: &[PathBuf],
+        config: &IngestConfig,
+        mut progress: impl FnMut(u64, u64),
+    ) -> Result<Dataset, IngestError> {
+        let groups = drive_groups(inputs)?;
+        let total: u64 = groups
             .iter()
-            .map(|files| Drive::open(files, config))
-            .collect::<Result<Vec<_>, _>>()?;
+            .flatten()
+            .map(|f| std::fs::metadata(f).map_or(0, |m| m.len()))
+            .sum();
+        let mut done = 0u64;
+        let mut drives = Vec::with_capacity(groups.len());
+        for files in &groups {
+            let drive = Drive::open_with_progress(files, config, |d, _| progress(done + d, total))?;
+            done += drive.files.iter().map(McapFile::len).sum::<u64>();
+            drives.push(drive);
+        }
         Ok(Dataset { drives })
     }
 
@@ -336,13 +354,26 @@ pub struct Drive {
 impl Drive {
     /// Indexes the files of one drive, in one pass per file.
     pub fn open(files: &[PathBuf], config: &IngestConfig) -> Result<Drive, IngestError> {
+        Self::open_with_progress(files, config, |_, _| {})
+    }
+
+    /// [`Drive::open`], reporting `(bytes indexed, bytes of this drive)` as it goes.
+    pub fn open_with_progress(
+        files: &[PathBuf],
+        config: &IngestConfig,
+        mut progress: impl FnMut(u64, u64),
+    ) -> Result<Drive, IngestError> {
         if files.is_empty() {
             return Err(IngestError::NoFiles);
         }
         let mut topics: BTreeMap<String, TopicData> = BTreeMap::new();
         let mut tf = TransformTree::new((config.tf_tolerance_ms * 1e6) as i64);
         let mut skipped = SkipReport::default();
-        let mut opened = Vec::with_capacity(files.len());
+        let mut opened: Vec<McapFile> = Vec::with_capacity(files.len());
+        let total_bytes: u64 = files
+            .iter()
+            .map(|f| std::fs::metadata(f).map_or(0, |m| m.len()))
+            .sum();
         for (file_index, path) in files.iter().enumerate() {
             let mut visit = |m: MessageRef<'_>| {
                 index_message(
@@ -354,7 +385,17 @@ impl Drive {
                     &mut skipped,
                 )
             };
-            let file = McapFile::scan(path, &mut visit)?;
+            let _span = tracing::info_span!("index", file = %path.display()).entered();
+            let before: u64 = opened.iter().map(McapFile::len).sum();
+            let drive_bytes = total_bytes;
+            let file = McapFile::scan_with_progress(path, &mut visit, |d, _| {
+                progress(before + d, drive_bytes)
+            })?;
+            tracing::debug!(
+                bytes = file.len(),
+                chunks_damaged = file.damage.len(),
+                "indexed"
+            );
             for damage in &file.damage {
                 let kind = match damage {
                     Damage::Truncated { .. } => "file truncated",
@@ -380,6 +421,20 @@ impl Drive {
             }
         }
 
+        for (kind, entry) in &skipped.entries {
+            let lost = [
+                "file truncated",
+                "unreadable chunk",
+                "corrupt record",
+                "messages lost to damage",
+            ]
+            .contains(&kind.as_str());
+            if lost {
+                tracing::error!(kind = %kind, count = entry.count, first = %entry.first, "data lost");
+            } else {
+                tracing::warn!(kind = %kind, count = entry.count, first = %entry.first, "messages skipped");
+            }
+        }
         let channels: Vec<&ChannelInfo> = topics.values().map(|t| &t.channel).collect();
         let counts = |topic: &str| topics.get(topic).map_or(0, |t| t.count);
         let roles = discover::assign_roles(&channels, &counts, config);

@@ -312,9 +312,15 @@ impl McapFile {
     }
 
     /// Scans `path` once, calling `visit` for every readable message in file order.
-    pub fn scan(
+    pub fn scan(path: &Path, visit: impl FnMut(MessageRef<'_>)) -> Result<McapFile, SourceError> {
+        Self::scan_with_progress(path, visit, |_, _| {})
+    }
+
+    /// [`McapFile::scan`], reporting `(bytes read, file size)` after every record.
+    pub fn scan_with_progress(
         path: &Path,
         mut visit: impl FnMut(MessageRef<'_>),
+        mut progress: impl FnMut(u64, u64),
     ) -> Result<McapFile, SourceError> {
         let io = |source| SourceError::Io {
             path: path.to_path_buf(),
@@ -423,6 +429,7 @@ impl McapFile {
                 }
             }
             let next = body_start + body_len;
+            progress(next, len);
             match opcode {
                 op::FOOTER | op::DATA_END => break,
                 op::HEADER | op::SCHEMA | op::CHANNEL | op::MESSAGE | op::CHUNK => {
