@@ -831,3 +831,84 @@ impl Drive {
         file.read_message(frame.loc, cache)
     }
 }
+
+/// A sensor message that could not be read or decoded, with where it is.
+#[derive(Debug, thiserror::Error)]
+pub enum ReadError {
+    /// The file could not deliver the message.
+    #[error(transparent)]
+    Source(#[from] SourceError),
+    /// The message did not decode.
+    #[error("{file}: {topic} at {stamp}: {reason}")]
+    Decode {
+        /// The file.
+        file: String,
+        /// The topic.
+        topic: String,
+        /// The frame's stamp.
+        stamp: Stamp,
+        /// What failed.
+        reason: String,
+    },
+}
+
+impl Drive {
+    fn decode_error(
+        &self,
+        frame: &FrameRef,
+        topic: &str,
+        reason: impl std::fmt::Display,
+    ) -> ReadError {
+        ReadError::Decode {
+            file: self
+                .files
+                .get(frame.file as usize)
+                .map_or_else(|| self.file_list(), |f| f.path().display().to_string()),
+            topic: topic.to_string(),
+            stamp: frame.stamp,
+            reason: reason.to_string(),
+        }
+    }
+
+    /// Decodes image `frame` of `camera` (its colour image with `Target::Rgb`; pass a
+    /// frame of `camera.superpixels` with `Target::Mono` for its class map).
+    pub fn read_image(
+        &self,
+        camera: &CameraStream,
+        frame: &FrameRef,
+        target: crate::decode::image::Target,
+        cache: &mut crate::source::ChunkCache,
+    ) -> Result<superflow_schemas::sensor::Image, ReadError> {
+        use crate::decode::image;
+        let message = self.read_raw(frame, cache)?;
+        let topic = message.channel.topic.clone();
+        let kind = discover::schema_kind(message.channel);
+        let decoded = match kind {
+            Some((SchemaKind::CompressedImage, Dialect::Ros2)) => ros2::decode(message.data)
+                .map_err(|e| e.to_string())
+                .and_then(|m| image::decode_ros2_compressed(&m, target).map_err(|e| e.to_string())),
+            Some((SchemaKind::RawImage, Dialect::Ros2)) => ros2::decode(message.data)
+                .map_err(|e| e.to_string())
+                .and_then(|m| image::decode_ros2_raw(&m, target).map_err(|e| e.to_string())),
+            Some((SchemaKind::CompressedImage, Dialect::FoxgloveProtobuf)) => {
+                foxglove::decode("foxglove.CompressedImage", message.data)
+                    .map_err(|e| e.to_string())
+                    .and_then(|m| {
+                        image::decode_foxglove_compressed(&m, target).map_err(|e| e.to_string())
+                    })
+            }
+            Some((SchemaKind::RawImage, Dialect::FoxgloveProtobuf)) => {
+                foxglove::decode("foxglove.RawImage", message.data)
+                    .map_err(|e| e.to_string())
+                    .and_then(|m| image::decode_foxglove_raw(&m, target).map_err(|e| e.to_string()))
+            }
+            _ => Err(format!(
+                "schema `{}` is not an image",
+                message.channel.schema_name()
+            )),
+        };
+        decoded.map_err(|reason| {
+            self.decode_error(frame, &topic, format!("{} ({reason})", camera.name))
+        })
+    }
+}

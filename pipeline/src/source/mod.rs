@@ -814,7 +814,10 @@ mod tests {
         writer.into_inner().into_inner()
     }
 
-    fn scan_bytes(name: &str, bytes: &[u8]) -> (McapFile, Vec<(String, u64, Vec<u8>, MessageLoc)>) {
+    /// Topic, log time, payload and location of a scanned message.
+    type Seen = (String, u64, Vec<u8>, MessageLoc);
+
+    fn scan_bytes(name: &str, bytes: &[u8]) -> (McapFile, Vec<Seen>) {
         let dir = std::env::temp_dir().join(format!("superflow-source-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let path = dir.join(name);
