@@ -263,3 +263,62 @@ fn landmarks_project_to_their_truth_pixels() {
         );
     }
 }
+
+/// Every camera's images and class maps decode to the calibrated size; class ids are
+/// below the class count; the front camera sees road at the bottom centre.
+#[test]
+fn images_and_class_maps_decode_to_the_truth_sizes() {
+    use superflow_pipeline::decode::image::Target;
+    use superflow_pipeline::source::ChunkCache;
+    use superflow_schemas::sensor::PixelFormat;
+    for drive in drives() {
+        let dataset = superflow_tests::dataset(&drive).unwrap();
+        let classes = drive.truth.classes.len() as u8;
+        let mut cache = ChunkCache::new(4);
+        assert_eq!(dataset.cameras.len(), drive.truth.cameras.len());
+        for camera in &dataset.cameras {
+            let truth = drive
+                .truth
+                .cameras
+                .iter()
+                .find(|c| c.image_topic == camera.image_topic)
+                .unwrap();
+            assert_eq!(camera.frames.len(), truth.stamps_nanos.len());
+            assert_eq!(camera.superpixels.len(), truth.stamps_nanos.len());
+            for i in [0, camera.frames.len() / 2, camera.frames.len() - 1] {
+                let image = dataset
+                    .read_image(camera, &camera.frames[i], Target::Rgb, &mut cache)
+                    .unwrap();
+                assert_eq!(
+                    (image.width, image.height, image.format),
+                    (truth.width, truth.height, PixelFormat::Rgb8)
+                );
+                assert_eq!(image.stamp.nanos(), truth.stamps_nanos[i]);
+                assert_eq!(image.frame_id, truth.frame_id);
+                let map = dataset
+                    .read_image(camera, &camera.superpixels[i], Target::Mono, &mut cache)
+                    .unwrap();
+                assert_eq!(
+                    (map.width, map.height, map.format),
+                    (truth.width, truth.height, PixelFormat::Mono8)
+                );
+                assert_eq!(
+                    map.stamp, image.stamp,
+                    "class map and image share the stamp"
+                );
+                assert!(map.data.iter().all(|c| *c < classes));
+                if truth.name == "CAM_FRONT" {
+                    let bottom_centre = map.pixel(truth.width / 2, truth.height - 2).unwrap()[0];
+                    assert_eq!(
+                        drive.truth.classes[bottom_centre as usize],
+                        "driveable_surface"
+                    );
+                    // Road is grey in the image: the three channels are close.
+                    let rgb = image.pixel(truth.width / 2, truth.height - 2).unwrap();
+                    let spread = rgb.iter().max().unwrap() - rgb.iter().min().unwrap();
+                    assert!(spread < 20, "{rgb:?}");
+                }
+            }
+        }
+    }
+}

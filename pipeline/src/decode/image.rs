@@ -14,7 +14,7 @@
 //!
 //! | `format` | decoded as |
 //! |---|---|
-//! | `jpeg`, `jpg`, `image/jpeg` | JPEG (zune-jpeg): YCbCr, grey, CMYK/YCCK → RGB; a grey JPEG → `Mono8` for [`Target::Mono`] |
+//! | `jpeg`, `jpg`, `image/jpeg` | JPEG (jpeg-decoder, libjpeg-exact): YCbCr and grey → RGB; a grey JPEG → `Mono8` for [`Target::Mono`]; CMYK is an error |
 //! | `png`, `image/png` | PNG (`png` crate): grey 1/2/4/8/16-bit, grey+alpha, RGB, RGBA (8/16-bit), palette 1/2/4/8-bit; alpha and `tRNS` are dropped |
 //! | `<src>; jpeg compressed bgr8`, `<src>; png compressed bgr8` / `bgr16` / `bgra8` / `bgra16` (image_transport) | as JPEG/PNG, channel order as stored (see below) |
 //! | `<src>; jpeg compressed rgb8`, `<src>; png compressed rgb8` (any target starting with `rgb`) | as JPEG/PNG, then red and blue swapped (see below) |
@@ -89,10 +89,6 @@ use std::panic::{AssertUnwindSafe, catch_unwind};
 
 use superflow_schemas::Stamp;
 use superflow_schemas::sensor::{Image, PixelFormat, SensorError};
-use zune_jpeg::JpegDecoder;
-use zune_jpeg::zune_core::bytestream::ZCursor;
-use zune_jpeg::zune_core::colorspace::ColorSpace;
-use zune_jpeg::zune_core::options::DecoderOptions;
 
 use super::{DecodeError, foxglove, ros2};
 
@@ -685,57 +681,48 @@ fn jpeg_has_end(data: &[u8]) -> bool {
 }
 
 fn decode_jpeg(data: &[u8], target: Target, ctx: Ctx<'_>) -> Result<Decoded, ImageError> {
+    use jpeg_decoder::PixelFormat as Jpeg;
     let corrupt = |reason: String| ctx.corrupt(Codec::Jpeg, reason);
-    let options = DecoderOptions::default()
-        .set_strict_mode(true)
-        .set_max_width(usize::from(u16::MAX))
-        .set_max_height(usize::from(u16::MAX))
-        .jpeg_set_out_colorspace(ColorSpace::RGB);
-    let mut decoder = JpegDecoder::new_with_options(ZCursor::new(data), options);
-    decoder
-        .decode_headers()
-        .map_err(|e| corrupt(e.to_string()))?;
-    let (width, height) = decoder
-        .dimensions()
+    let mut decoder = jpeg_decoder::Decoder::new(data);
+    decoder.read_info().map_err(|e| corrupt(e.to_string()))?;
+    let info = decoder
+        .info()
         .ok_or_else(|| corrupt("no frame header".into()))?;
-    let input = decoder.input_colorspace();
-    let format = match target {
-        Target::Rgb => PixelFormat::Rgb8,
-        Target::Mono if input == Some(ColorSpace::Luma) => PixelFormat::Mono8,
-        Target::Mono => {
-            let found = match input {
-                Some(cs) => format!("a colour JPEG ({cs:?})"),
-                None => "a colour JPEG".to_string(),
-            };
-            return Err(ctx.not_mono(found));
+    let (width, height) = (u64::from(info.width), u64::from(info.height));
+    let format = match (target, info.pixel_format) {
+        (Target::Rgb, Jpeg::RGB24 | Jpeg::L8 | Jpeg::L16) => PixelFormat::Rgb8,
+        (Target::Mono, Jpeg::L8) => PixelFormat::Mono8,
+        (Target::Mono, Jpeg::L16) => {
+            return Err(ctx.not_mono("a 16-bit grey JPEG (the ids would lose their low byte)"));
+        }
+        (Target::Mono, other) => return Err(ctx.not_mono(format!("a colour JPEG ({other:?})"))),
+        (Target::Rgb, Jpeg::CMYK32) => {
+            return Err(corrupt(
+                "CMYK JPEGs are not camera images; not supported".into(),
+            ));
         }
     };
-    let len = ctx.checked_size(width as u64, height as u64, format.channels() as u64)?;
+    let len = ctx.checked_size(width, height, format.channels() as u64)?;
     if !jpeg_has_end(data) {
         return Err(corrupt(
             "truncated: no end-of-image marker after the scan data".into(),
         ));
     }
-    if format == PixelFormat::Mono8 {
-        decoder = JpegDecoder::new_with_options(
-            ZCursor::new(data),
-            options.jpeg_set_out_colorspace(ColorSpace::Luma),
-        );
-        decoder
-            .decode_headers()
-            .map_err(|e| corrupt(e.to_string()))?;
-    }
-    if decoder.output_buffer_size() != Some(len) {
+    decoder.set_max_decoding_buffer_size(usize::try_from(MAX_IMAGE_BYTES).unwrap_or(usize::MAX));
+    let samples = decoder.decode().map_err(|e| corrupt(e.to_string()))?;
+    let pixels: Vec<u8> = match (info.pixel_format, format) {
+        (Jpeg::L8, PixelFormat::Rgb8) => samples.iter().flat_map(|g| [*g; 3]).collect(),
+        // 16-bit grey arrives big-endian; keep the high byte for a colour image.
+        (Jpeg::L16, _) => samples.chunks_exact(2).flat_map(|g| [g[0]; 3]).collect(),
+        _ => samples,
+    };
+    if pixels.len() != len {
         return Err(corrupt(format!(
-            "decoder output of {:?} bytes for {width}x{height} {format:?}",
-            decoder.output_buffer_size()
+            "decoder output of {} bytes for {width}x{height} {format:?}",
+            pixels.len()
         )));
     }
-    let mut pixels = vec![0u8; len];
-    decoder
-        .decode_into(&mut pixels)
-        .map_err(|e| corrupt(e.to_string()))?;
-    let dim = |v: usize| u32::try_from(v).map_err(|_| corrupt(format!("dimension {v}")));
+    let dim = |v: u64| u32::try_from(v).map_err(|_| corrupt(format!("dimension {v}")));
     Ok(Decoded {
         width: dim(width)?,
         height: dim(height)?,
@@ -1174,6 +1161,48 @@ mod tests {
 
     fn solid(width: u32, height: u32, px: [u8; 3]) -> Vec<u8> {
         px.repeat((width * height) as usize)
+    }
+
+    /// Camera JPEGs are chroma-subsampled (4:2:0) with optimized Huffman tables, as the
+    /// sample drives' are; zune-jpeg 0.5.15 decoded those to green, which this catches.
+    #[test]
+    fn subsampled_camera_jpegs_keep_their_colours() {
+        let (w, h) = (64usize, 48usize);
+        let mut rgb = Vec::with_capacity(w * h * 3);
+        for y in 0..h {
+            for x in 0..w {
+                let (r, g, b) = if x < w / 2 {
+                    (140u8, 140u8, 145u8)
+                } else {
+                    (200, 40, 30)
+                };
+                let _ = y;
+                rgb.extend_from_slice(&[r, g, b]);
+            }
+        }
+        let mut bytes = Vec::new();
+        let mut encoder = jpeg_encoder::Encoder::new(&mut bytes, 80);
+        encoder.set_optimized_huffman_tables(true);
+        encoder.set_sampling_factor(jpeg_encoder::SamplingFactor::F_2_2);
+        encoder
+            .encode(&rgb, w as u16, h as u16, jpeg_encoder::ColorType::Rgb)
+            .unwrap();
+        let msg = foxglove::CompressedImage {
+            timestamp: Some(Timestamp::new(1, 0)),
+            frame_id: "cam".into(),
+            data: bytes.into(),
+            format: "jpeg".into(),
+        };
+        let image = decode_foxglove_compressed(&msg, Target::Rgb).unwrap();
+        for (x, expected) in [(8u32, [140i32, 140, 145]), (56, [200, 40, 30])] {
+            let got = image.pixel(x, 20).unwrap();
+            for c in 0..3 {
+                assert!(
+                    (i32::from(got[c]) - expected[c]).abs() <= 6,
+                    "pixel {x}: {got:?} vs {expected:?}"
+                );
+            }
+        }
     }
 
     fn jpeg(data: &[u8], width: u16, height: u16, color: jpeg_encoder::ColorType) -> Vec<u8> {
