@@ -6,7 +6,6 @@
 
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
-use superflow_pipeline::decode::points;
 use superflow_pipeline::drive::{Drive, IngestConfig};
 use superflow_pipeline::source::ChunkCache;
 
@@ -55,7 +54,7 @@ fn main() -> anyhow::Result<()> {
             total_points = 0;
             let started = Instant::now();
             for sweep in &lidar.sweeps {
-                let cloud = points::decode_message(&drive.read_raw(sweep, &mut cache)?, None)?;
+                let cloud = drive.read_sweep(sweep, &mut cache)?;
                 total_points += cloud.cloud.len();
             }
             decode_times.push(started.elapsed());

@@ -322,3 +322,44 @@ fn images_and_class_maps_decode_to_the_truth_sizes() {
         }
     }
 }
+
+/// Every sweep decodes (through the pipeline's field-layout decoder) to the truth's point
+/// count; the Foxglove sweeps are in LIDAR_TOP at the sweep end, the ROS 2 ones carry the
+/// per-point time over one 50 ms revolution.
+#[test]
+fn sweeps_decode_to_the_truth_point_counts() {
+    use superflow_pipeline::source::ChunkCache;
+    for drive in drives() {
+        let dataset = superflow_tests::dataset(&drive).unwrap();
+        let lidar = dataset.lidar.as_ref().unwrap();
+        let mut cache = ChunkCache::new(2);
+        for (sweep, truth) in lidar.sweeps.iter().zip(&drive.truth.lidar.sweeps) {
+            let decoded = dataset.read_sweep(sweep, &mut cache).unwrap();
+            assert_eq!(decoded.cloud.len() as u64, truth.points);
+            assert_eq!(decoded.dropped_non_finite, 0);
+            assert!(decoded.has_intensity);
+            assert_eq!(decoded.cloud.stamp.nanos(), truth.stamp_nanos);
+            assert_eq!(decoded.cloud.frame_id, drive.truth.lidar.frame_id);
+            let rings = decoded.cloud.ring.as_ref().unwrap();
+            assert!(rings.iter().all(|r| *r < drive.truth.lidar.beams as u16));
+            // Everything the 70 m LiDAR returns lies within range of the sensor.
+            assert!(
+                decoded
+                    .cloud
+                    .xyz
+                    .iter()
+                    .all(|p| (p[0] * p[0] + p[1] * p[1] + p[2] * p[2]).sqrt() < 71.0)
+            );
+            match drive.dialect {
+                Dialect::Foxglove => assert!(decoded.cloud.time_offset_secs.is_none()),
+                Dialect::Ros2 => {
+                    let time = decoded.cloud.time_offset_secs.as_ref().unwrap();
+                    let (lo, hi) = time
+                        .iter()
+                        .fold((f32::MAX, f32::MIN), |(a, b), t| (a.min(*t), b.max(*t)));
+                    assert!(lo >= 0.0 && hi < 0.05 && hi > 0.045, "{lo}..{hi}");
+                }
+            }
+        }
+    }
+}

@@ -912,3 +912,18 @@ impl Drive {
         })
     }
 }
+
+impl Drive {
+    /// Decodes LiDAR sweep `frame` (non-finite points are dropped and counted in the
+    /// result).
+    pub fn read_sweep(
+        &self,
+        frame: &FrameRef,
+        cache: &mut crate::source::ChunkCache,
+    ) -> Result<crate::decode::points::DecodedCloud, ReadError> {
+        let message = self.read_raw(frame, cache)?;
+        let topic = message.channel.topic.clone();
+        crate::decode::points::decode_message(&message, None)
+            .map_err(|e| self.decode_error(frame, &topic, e))
+    }
+}
