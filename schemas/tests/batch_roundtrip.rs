@@ -204,17 +204,21 @@ fn malformed_batches_are_rejected_with_clear_errors() {
         "overflows",
     );
     check(
-        &|h| h.sections[4].offset = h.payload_len - 8,
+        &|h| h.sections[4].offset = h.payload_len,
         payload,
         "outside the payload",
     );
     check(
-        &|h| h.sections[4].offset = u64::MAX - 4,
+        &|h| h.sections[4].offset = u64::MAX - 63,
         payload,
         "outside the payload",
     );
-    check(&|h| h.sections[1].offset = 4, payload, "overlap");
-    check(&|h| h.sections[0].offset = 2, payload, "aligned");
+    check(&|h| h.sections[1].offset = 0, payload, "overlap");
+    check(
+        &|h| h.sections[0].offset = 2,
+        payload,
+        "not a multiple of 64",
+    );
     check(
         &|h| h.sections[2].name = h.sections[1].name,
         payload,
@@ -232,6 +236,26 @@ fn malformed_batches_are_rejected_with_clear_errors() {
         "not NUL-padded UTF-8",
     );
     check(&|_| {}, &payload[..payload.len() - 1], "payload has");
+    // A payload that starts 4 bytes into aligned storage: the i64 section is misaligned.
+    let mut shifted = vec![0u64; payload.len().div_ceil(8) + 1];
+    let shifted: &mut [u8] = bytemuck::cast_slice_mut(&mut shifted);
+    shifted[4..4 + payload.len()].copy_from_slice(payload);
+    check(&|_| {}, &shifted[4..], "aligned to 4 bytes; 8 needed");
+    check(&|h| h.flags = 1, payload, "flags 0x1");
+    check(&|h| h.run[0] = b'/', payload, "run name");
+    check(&|h| h.run = [0; 64], payload, "empty");
+    check(
+        &|h| h.sections[100].dtype = 7,
+        payload,
+        "`#100`: an unused table entry is not zero",
+    );
+    check(
+        &|h| {
+            h.sections[5].offset += 8; // the empty section, misaligned
+        },
+        payload,
+        "not a multiple of 64",
+    );
 }
 
 /// Random corruption of header bytes never panics; it is either rejected or still

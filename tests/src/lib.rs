@@ -54,7 +54,7 @@ pub fn sample_drive(dialect: Dialect) -> anyhow::Result<SampleDrive> {
 /// The drive indexed by the pipeline's ingest (one pass over the file).
 pub fn dataset(drive: &SampleDrive) -> anyhow::Result<Drive> {
     Ok(Drive::open(
-        &[drive.path.clone()],
+        std::slice::from_ref(&drive.path),
         &IngestConfig::default(),
     )?)
 }

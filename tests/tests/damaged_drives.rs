@@ -37,7 +37,7 @@ fn truncated_drive_reports_where_and_keeps_what_came_before() {
             &format!("{}_truncated.mcap", dialect.name()),
             &drive.bytes[..cut],
         );
-        let dataset = Drive::open(&[path.clone()], &IngestConfig::default()).unwrap();
+        let dataset = Drive::open(std::slice::from_ref(&path), &IngestConfig::default()).unwrap();
         let truncated = &dataset.skipped.entries["file truncated"];
         assert!(
             truncated.first.contains(&path.display().to_string()),
@@ -81,7 +81,7 @@ fn byte_flipped_chunk_costs_only_its_messages() {
             *b ^= 0x5A;
         }
         let path = scratch(&format!("{}_flipped.mcap", dialect.name()), &bytes);
-        let dataset = Drive::open(&[path.clone()], &IngestConfig::default()).unwrap();
+        let dataset = Drive::open(std::slice::from_ref(&path), &IngestConfig::default()).unwrap();
         let report: Vec<String> = dataset
             .skipped
             .entries
@@ -130,7 +130,7 @@ fn any_single_corruption_is_reported_not_a_panic() {
             *b = b.wrapping_add(0x3D);
         }
         let path = scratch(&format!("corrupt_{i}.mcap"), &bytes);
-        match Drive::open(&[path.clone()], &IngestConfig::default()) {
+        match Drive::open(std::slice::from_ref(&path), &IngestConfig::default()) {
             Ok(dataset) => {
                 let sweeps = dataset.lidar.as_ref().map_or(0, |l| l.sweeps.len());
                 assert!(sweeps <= 60);
@@ -146,7 +146,7 @@ fn any_single_corruption_is_reported_not_a_panic() {
 #[test]
 fn files_that_are_not_mcap_are_clear_errors() {
     let empty = scratch("empty.mcap", b"");
-    let err = Drive::open(&[empty.clone()], &IngestConfig::default())
+    let err = Drive::open(std::slice::from_ref(&empty), &IngestConfig::default())
         .unwrap_err()
         .to_string();
     assert!(
@@ -171,7 +171,7 @@ fn missing_calibration_and_transforms_are_named() {
         lidar_topic: Some("/lidar_top/points_raw".into()),
         ..IngestConfig::default()
     };
-    let dataset = Drive::open(&[drive.path.clone()], &config).unwrap();
+    let dataset = Drive::open(std::slice::from_ref(&drive.path), &config).unwrap();
     dataset.check_sensors().unwrap();
     let mut broken = dataset;
     broken.cameras[0].calibrations.clear();

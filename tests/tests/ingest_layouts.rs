@@ -225,7 +225,7 @@ fn kitti2mcap_shaped_file_is_discovered_and_poses_interpolate() {
     }
     let path = write(out, "ros2", "kitti.mcap");
 
-    let dataset = Drive::open(&[path.clone()], &IngestConfig::default()).unwrap();
+    let dataset = Drive::open(std::slice::from_ref(&path), &IngestConfig::default()).unwrap();
     let role = |topic: &str| {
         dataset
             .channels
@@ -507,8 +507,11 @@ fn rosbag2_split_directory_is_one_drive() {
         let (bytes, _) = out.finish("ros2", Some(mcap::Compression::Zstd)).unwrap();
         std::fs::write(dir.join(format!("drive_{part}.mcap")), bytes).unwrap();
     }
-    let dataset =
-        superflow_pipeline::drive::Dataset::open(&[dir.clone()], &IngestConfig::default()).unwrap();
+    let dataset = superflow_pipeline::drive::Dataset::open(
+        std::slice::from_ref(&dir),
+        &IngestConfig::default(),
+    )
+    .unwrap();
     assert_eq!(dataset.drives.len(), 1);
     let drive = &dataset.drives[0];
     assert_eq!(drive.files.len(), 2);

@@ -41,6 +41,12 @@ pub enum BatchError {
         /// `size_of::<BatchHeader>()`.
         expected: u32,
     },
+    /// Flags set that this version does not define.
+    #[error("flags {found:#x} set; version {BATCH_FORMAT_VERSION} defines none")]
+    Flags {
+        /// The flags found.
+        found: u32,
+    },
     /// More sections than the table holds.
     #[error("{count} sections, at most {MAX_SECTIONS} fit in the header")]
     TooManySections {

@@ -3,7 +3,7 @@
 use super::BatchError;
 use super::format::{
     BATCH_FORMAT_VERSION, BATCH_MAGIC, BatchHeader, BatchMeta, DType, Element, MAX_DIMS,
-    MAX_SECTIONS, nul_padded_str,
+    MAX_SECTIONS, SECTION_ALIGN, nul_padded_str, validate_run_name,
 };
 
 /// A typed view of one section: its elements and shape, borrowed from the payload.
@@ -66,6 +66,25 @@ impl<'a> BatchView<'a> {
         if count > MAX_SECTIONS {
             return Err(BatchError::TooManySections { count });
         }
+        if header.flags != 0 {
+            return Err(BatchError::Flags {
+                found: header.flags,
+            });
+        }
+        let run = nul_padded_str(&header.run).ok_or_else(|| BatchError::BadRunName {
+            name: String::from_utf8_lossy(&header.run).into_owned(),
+            reason: "not NUL-padded ASCII",
+        })?;
+        validate_run_name(run)?;
+        if let Some(index) = header.sections[count..]
+            .iter()
+            .position(|s| bytemuck::bytes_of(s).iter().any(|b| *b != 0))
+        {
+            return Err(BatchError::BadSection {
+                name: format!("#{}", count + index),
+                reason: "an unused table entry is not zero".into(),
+            });
+        }
         let payload_len = usize::try_from(header.payload_len)
             .ok()
             .filter(|len| *len <= payload.len())
@@ -126,6 +145,12 @@ impl<'a> BatchView<'a> {
                     &dims[..ndim]
                 )));
             }
+            if !desc.offset.is_multiple_of(SECTION_ALIGN as u64) {
+                return Err(bad(format!(
+                    "offset {} is not a multiple of {SECTION_ALIGN}",
+                    desc.offset
+                )));
+            }
             let start = usize::try_from(desc.offset).unwrap_or(usize::MAX);
             let end = start
                 .checked_add(expected)
@@ -153,11 +178,12 @@ impl<'a> BatchView<'a> {
             });
         }
 
-        let mut by_offset: Vec<&Section<'a>> = sections.iter().collect();
+        let mut by_offset: Vec<&Section<'a>> =
+            sections.iter().filter(|s| !s.bytes.is_empty()).collect();
         by_offset.sort_by_key(|s| s.bytes.as_ptr() as usize);
         for pair in by_offset.windows(2) {
             let first_end = pair[0].bytes.as_ptr() as usize + pair[0].bytes.len();
-            if (pair[1].bytes.as_ptr() as usize) < first_end && !pair[0].bytes.is_empty() {
+            if (pair[1].bytes.as_ptr() as usize) < first_end {
                 return Err(BatchError::Overlap {
                     first: pair[0].name.to_string(),
                     second: pair[1].name.to_string(),

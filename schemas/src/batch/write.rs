@@ -126,6 +126,9 @@ impl BatchLayout {
     /// The header describing this layout, stamped with `meta`.
     pub fn header(&self, meta: &BatchMeta) -> Result<BatchHeader, BatchError> {
         validate_run_name(&meta.run)?;
+        if meta.flags != 0 {
+            return Err(BatchError::Flags { found: meta.flags });
+        }
         let mut header = BatchHeader::zeroed();
         header.magic = BATCH_MAGIC;
         header.version = BATCH_FORMAT_VERSION;
