@@ -30,4 +30,5 @@ pub mod config;
 pub mod decode;
 pub mod drive;
 pub mod inspect;
+pub mod sample;
 pub mod source;

@@ -1,0 +1,168 @@
+//! Voxelization: points → unique integer cells, one representative point per cell, and
+//! the map from every point to its cell.
+
+use serde::{Deserialize, Serialize};
+use std::collections::HashMap;
+
+/// How points are binned.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum VoxelGrid {
+    /// Cells of `rho_m` in range, `phi_deg` in azimuth and `z_m` in height (the paper's
+    /// default: 0.1 m, 1°, 0.1 m). Azimuth is `atan2(y, x)` in degrees, in `[-180, 180)`;
+    /// it does not wrap (cells at −180° and 179° are not neighbours), as in the official
+    /// code.
+    Cylindrical {
+        /// Range bin, metres.
+        rho_m: f32,
+        /// Azimuth bin, degrees.
+        phi_deg: f32,
+        /// Height bin, metres.
+        z_m: f32,
+    },
+    /// Cubic-ish cells of the given size along x, y, z, metres.
+    Cartesian {
+        /// Cell size, metres.
+        size_m: [f32; 3],
+    },
+}
+
+impl Default for VoxelGrid {
+    fn default() -> Self {
+        VoxelGrid::Cylindrical {
+            rho_m: 0.1,
+            phi_deg: 1.0,
+            z_m: 0.1,
+        }
+    }
+}
+
+impl VoxelGrid {
+    /// The cell of one point.
+    pub fn cell(&self, p: [f32; 3]) -> [i32; 3] {
+        let [x, y, z] = p;
+        match *self {
+            VoxelGrid::Cylindrical {
+                rho_m,
+                phi_deg,
+                z_m,
+            } => {
+                let rho = x.hypot(y);
+                let phi = y.atan2(x).to_degrees();
+                // atan2 returns 180 for (-x, +0): fold it onto -180 so phi is in [-180, 180).
+                let phi = if phi >= 180.0 { phi - 360.0 } else { phi };
+                [
+                    (rho / rho_m).floor() as i32,
+                    (phi / phi_deg).floor() as i32,
+                    (z / z_m).floor() as i32,
+                ]
+            }
+            VoxelGrid::Cartesian { size_m } => [
+                (x / size_m[0]).floor() as i32,
+                (y / size_m[1]).floor() as i32,
+                (z / size_m[2]).floor() as i32,
+            ],
+        }
+    }
+
+    /// Checks that the cell sizes are finite and positive.
+    pub fn validate(&self) -> Result<(), String> {
+        let sizes = match *self {
+            VoxelGrid::Cylindrical {
+                rho_m,
+                phi_deg,
+                z_m,
+            } => [rho_m, phi_deg, z_m],
+            VoxelGrid::Cartesian { size_m } => size_m,
+        };
+        if sizes.iter().all(|s| s.is_finite() && *s > 0.0) {
+            Ok(())
+        } else {
+            Err(format!("voxel sizes must be finite and positive: {self:?}"))
+        }
+    }
+}
+
+/// The voxels of one cloud.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Voxelized {
+    /// Unique cells, in order of first occurrence.
+    pub coords: Vec<[i32; 3]>,
+    /// For each cell, the index of its representative point (the first point in it).
+    pub representative: Vec<u32>,
+    /// For each point, the index of its cell in `coords`.
+    pub point_to_voxel: Vec<u32>,
+}
+
+/// Bins `xyz` (finite points) into `grid`. Deterministic: cells are numbered in the
+/// order their first point appears, and that point represents the cell.
+pub fn voxelize(xyz: &[[f32; 3]], grid: &VoxelGrid) -> Voxelized {
+    let mut index: HashMap<[i32; 3], u32> = HashMap::with_capacity(xyz.len());
+    let mut coords = Vec::new();
+    let mut representative = Vec::new();
+    let point_to_voxel = xyz
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            let cell = grid.cell(*p);
+            *index.entry(cell).or_insert_with(|| {
+                coords.push(cell);
+                representative.push(i as u32);
+                (coords.len() - 1) as u32
+            })
+        })
+        .collect();
+    Voxelized {
+        coords,
+        representative,
+        point_to_voxel,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn cylindrical_cells_match_hand_computed_values() {
+        let grid = VoxelGrid::default();
+        // rho = sqrt(2) = 1.414 -> 14; phi = 45 deg -> 45; z = 0.25 -> 2.
+        assert_eq!(grid.cell([1.0, 1.0, 0.25]), [14, 45, 2]);
+        // Behind and to the right: phi = -135 deg; z = -1.55 -> -16.
+        assert_eq!(grid.cell([-1.0, -1.0, -1.55]), [14, -135, -16]);
+        // Straight behind: phi folds onto -180.
+        assert_eq!(grid.cell([-5.0, 0.0, 0.0])[1], -180);
+        let cart = VoxelGrid::Cartesian {
+            size_m: [0.5, 0.5, 0.25],
+        };
+        assert_eq!(cart.cell([1.2, -0.1, 0.3]), [2, -1, 1]);
+        assert!(
+            VoxelGrid::Cartesian {
+                size_m: [0.0, 1.0, 1.0]
+            }
+            .validate()
+            .is_err()
+        );
+    }
+
+    #[test]
+    fn voxels_are_unique_with_first_point_representatives() {
+        let points = [
+            [1.0, 1.0, 0.25],
+            [1.0, 1.0, 0.27], // same cell as point 0
+            [5.0, 0.0, 0.0],
+            [1.0, 1.0, 0.25], // duplicate of point 0
+            [-3.0, 2.0, 1.0],
+        ];
+        let v = voxelize(&points, &VoxelGrid::default());
+        assert_eq!(v.coords.len(), 3);
+        assert_eq!(v.representative, [0, 2, 4]);
+        assert_eq!(v.point_to_voxel, [0, 0, 1, 0, 2]);
+        for (i, p) in points.iter().enumerate() {
+            assert_eq!(
+                v.coords[v.point_to_voxel[i] as usize],
+                VoxelGrid::default().cell(*p)
+            );
+        }
+    }
+}
