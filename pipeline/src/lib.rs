@@ -32,3 +32,5 @@ pub mod drive;
 pub mod inspect;
 pub mod sample;
 pub mod source;
+#[cfg(test)]
+mod test_rng;

@@ -2429,21 +2429,7 @@ mod tests {
         }
     }
 
-    /// xorshift64*: a deterministic generator for the fuzz loop.
-    struct Rng(u64);
-
-    impl Rng {
-        fn next(&mut self) -> u64 {
-            self.0 ^= self.0 >> 12;
-            self.0 ^= self.0 << 25;
-            self.0 ^= self.0 >> 27;
-            self.0.wrapping_mul(0x2545_F491_4F6C_DD1D)
-        }
-
-        fn below(&mut self, n: u64) -> u64 {
-            self.next() % n
-        }
-    }
+    use crate::test_rng::TestRng as Rng;
 
     #[test]
     fn random_layouts_never_panic() {

@@ -1174,21 +1174,7 @@ mod tests {
         }
     }
 
-    /// xorshift64*: deterministic pseudo-random bytes without a dependency.
-    struct Rng(u64);
-
-    impl Rng {
-        fn next(&mut self) -> u64 {
-            self.0 ^= self.0 >> 12;
-            self.0 ^= self.0 << 25;
-            self.0 ^= self.0 >> 27;
-            self.0.wrapping_mul(0x2545_f491_4f6c_dd1d)
-        }
-
-        fn below(&mut self, n: usize) -> usize {
-            (self.next() % n as u64) as usize
-        }
-    }
+    use crate::test_rng::TestRng as Rng;
 
     fn decode_all(bytes: &[u8]) {
         let _ = decode::<Header>(bytes);
@@ -1203,7 +1189,7 @@ mod tests {
     fn garbage_never_panics() {
         let mut rng = Rng(0x9e37_79b9_7f4a_7c15);
         for _ in 0..3000 {
-            let len = rng.below(300);
+            let len = rng.index(300);
             let mut bytes: Vec<u8> = (0..len).map(|_| rng.next() as u8).collect();
             if len >= 2 && rng.below(4) != 0 {
                 bytes[0] = 0;
@@ -1220,9 +1206,9 @@ mod tests {
             encode(&sample_tf_message()).unwrap(),
         ];
         for _ in 0..3000 {
-            let mut bytes = valid[rng.below(valid.len())].clone();
+            let mut bytes = valid[rng.index(valid.len())].clone();
             for _ in 0..1 + rng.below(3) {
-                let at = 4 + rng.below(bytes.len() - 4);
+                let at = 4 + rng.index(bytes.len() - 4);
                 bytes[at] = rng.next() as u8;
             }
             decode_all(&bytes);

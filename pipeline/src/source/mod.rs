@@ -149,8 +149,6 @@ pub enum Damage {
         offset: u64,
         /// What failed.
         reason: String,
-        /// Messages the chunk held, when the chunk index says.
-        lost_messages: Option<u64>,
     },
     /// A record that could not be parsed; the scan resumed at `resumed_at` if possible.
     BadRecord {
@@ -179,16 +177,8 @@ impl std::fmt::Display for Damage {
                 write!(f, "truncated at byte {offset}: {reason}")
             }
             Damage::NoSummary { reason } => write!(f, "no usable summary: {reason}"),
-            Damage::BadChunk {
-                offset,
-                reason,
-                lost_messages,
-            } => {
-                write!(f, "chunk at byte {offset} skipped: {reason}")?;
-                match lost_messages {
-                    Some(n) => write!(f, " ({n} messages lost)"),
-                    None => Ok(()),
-                }
+            Damage::BadChunk { offset, reason } => {
+                write!(f, "chunk at byte {offset} skipped: {reason}")
             }
             Damage::BadRecord {
                 offset,
@@ -494,7 +484,6 @@ impl McapFile {
                                 Err(reason) => this.damage.push(Damage::BadChunk {
                                     offset: pos,
                                     reason,
-                                    lost_messages: None,
                                 }),
                             }
                         }
