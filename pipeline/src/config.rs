@@ -2,6 +2,7 @@
 //! before use. Sections arrive with the issues that use them.
 
 use crate::drive::IngestConfig;
+use crate::sample::SampleConfig;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
@@ -11,6 +12,9 @@ use std::path::Path;
 pub struct PipelineConfig {
     /// Channel and frame choices (`[ingest]`).
     pub ingest: IngestConfig,
+    /// The sample recipe (`[sample]`, `[sample.augment]`, `[sample.slic]`,
+    /// `[sample.voxel]`).
+    pub sample: SampleConfig,
 }
 
 /// A configuration file that cannot be used.
@@ -69,7 +73,7 @@ impl PipelineConfig {
                 "ingest.tf_tolerance_ms = {tol} is not in 0..=10000"
             ));
         }
-        Ok(())
+        self.sample.validate()
     }
 }
 
@@ -92,5 +96,19 @@ mod tests {
         let mut bad = PipelineConfig::default();
         bad.ingest.tf_tolerance_ms = -1.0;
         assert!(bad.validate().is_err());
+        let recipe: PipelineConfig = toml::from_str(
+            "[sample]\ndelta_t_secs = 1.0\ntemporal_frames = 2\nedge = \"skip\"\nsuperpixels = \"slic\"\n\
+             [sample.augment]\nshared = true\n[sample.voxel]\nkind = \"cartesian\"\nsize_m = [0.05, 0.05, 0.05]\n",
+        )
+        .unwrap();
+        assert_eq!(recipe.sample.frame_offsets(), [-1, 0]);
+        assert!(recipe.sample.augment.shared && recipe.sample.augment.scale_min == 0.95);
+        assert!(recipe.validate().is_ok());
+        let mut bad = PipelineConfig::default();
+        bad.sample.temporal_frames = 4;
+        assert!(bad.validate().unwrap_err().contains("temporal_frames"));
+        bad.sample.temporal_frames = 3;
+        bad.sample.augment.scale_min = 2.0;
+        assert!(bad.validate().unwrap_err().contains("scale_min"));
     }
 }

@@ -1,0 +1,206 @@
+//! Image resizing for samples: bilinear for colour (half-pixel centres, like
+//! `torch.nn.functional.interpolate(mode="bilinear", align_corners=False)` and OpenCV's
+//! `INTER_LINEAR`, no antialiasing), nearest for label maps, horizontal flips, and the
+//! mapping of a raw-image pixel to its resized (row, col).
+
+/// Where output index `i` samples the input, for `n_in → n_out` with half-pixel
+/// centres: the two input indices and the weight of the second.
+fn linear_taps(n_in: usize, n_out: usize) -> Vec<(usize, usize, f32)> {
+    let scale = n_in as f64 / n_out as f64;
+    (0..n_out)
+        .map(|i| {
+            let src = ((i as f64 + 0.5) * scale - 0.5).max(0.0);
+            let i0 = (src.floor() as usize).min(n_in - 1);
+            let i1 = (i0 + 1).min(n_in - 1);
+            (i0, i1, (src - i0 as f64) as f32)
+        })
+        .collect()
+}
+
+/// Bilinear resize of an interleaved `channels`-channel u8 image (`data.len() ==
+/// channels·width·height`) to `out_width × out_height`, rounding to nearest.
+pub fn resize_bilinear(
+    data: &[u8],
+    width: usize,
+    height: usize,
+    channels: usize,
+    out_width: usize,
+    out_height: usize,
+) -> Vec<u8> {
+    let mut out = vec![0u8; out_width * out_height * channels];
+    if width == 0 || height == 0 || data.len() < width * height * channels {
+        return out;
+    }
+    let xs = linear_taps(width, out_width);
+    let ys = linear_taps(height, out_height);
+    // Horizontal pass into f32 rows, then vertical.
+    let mut rows = vec![0f32; out_width * height * channels];
+    for y in 0..height {
+        let src = &data[y * width * channels..(y + 1) * width * channels];
+        let dst = &mut rows[y * out_width * channels..(y + 1) * out_width * channels];
+        for (x, &(x0, x1, w)) in xs.iter().enumerate() {
+            for c in 0..channels {
+                let a = f32::from(src[x0 * channels + c]);
+                let b = f32::from(src[x1 * channels + c]);
+                dst[x * channels + c] = a + (b - a) * w;
+            }
+        }
+    }
+    let stride = out_width * channels;
+    for (y, &(y0, y1, w)) in ys.iter().enumerate() {
+        let (r0, r1) = (&rows[y0 * stride..][..stride], &rows[y1 * stride..][..stride]);
+        for (o, (a, b)) in out[y * stride..][..stride].iter_mut().zip(r0.iter().zip(r1)) {
+            *o = (a + (b - a) * w).round().clamp(0.0, 255.0) as u8;
+        }
+    }
+    out
+}
+
+/// The input index nearest to the centre of output index `i` (`n_in → n_out`).
+fn nearest_tap(i: usize, n_in: usize, n_out: usize) -> usize {
+    (((i as f64 + 0.5) * n_in as f64 / n_out as f64) as usize).min(n_in - 1)
+}
+
+/// Nearest-neighbour resize of a single-channel map (labels must not be blended).
+pub fn resize_nearest<T: Copy + Default>(
+    data: &[T],
+    width: usize,
+    height: usize,
+    out_width: usize,
+    out_height: usize,
+) -> Vec<T> {
+    if width == 0 || height == 0 || data.len() < width * height {
+        return vec![T::default(); out_width * out_height];
+    }
+    let xs: Vec<usize> = (0..out_width)
+        .map(|x| nearest_tap(x, width, out_width))
+        .collect();
+    let mut out = Vec::with_capacity(out_width * out_height);
+    for y in 0..out_height {
+        let row = &data[nearest_tap(y, height, out_height) * width..][..width];
+        out.extend(xs.iter().map(|&x| row[x]));
+    }
+    out
+}
+
+/// Mirrors an interleaved image left to right, in place.
+pub fn flip_horizontal<T>(data: &mut [T], width: usize, channels: usize) {
+    let stride = width * channels;
+    if stride == 0 {
+        return;
+    }
+    for row in data.chunks_exact_mut(stride) {
+        for x in 0..width / 2 {
+            for c in 0..channels {
+                row.swap(x * channels + c, (width - 1 - x) * channels + c);
+            }
+        }
+    }
+}
+
+/// The resized `(row, col)` of raw pixel `(u, v)` (OpenCV convention: pixel centres at
+/// integers) when a `width × height` image becomes `out_width × out_height`; the
+/// column is mirrored when the resized image is flipped.
+pub fn resized_pixel(
+    u: f32,
+    v: f32,
+    (width, height): (u32, u32),
+    (out_width, out_height): (u32, u32),
+    flipped: bool,
+) -> (u16, u16) {
+    let scale = |p: f32, n_in: u32, n_out: u32| {
+        let x = ((f64::from(p) + 0.5) * f64::from(n_out) / f64::from(n_in)).floor();
+        x.clamp(0.0, f64::from(n_out.max(1) - 1)) as u16
+    };
+    let row = scale(v, height, out_height);
+    let col = scale(u, width, out_width);
+    let col = if flipped {
+        (out_width.max(1) - 1) as u16 - col
+    } else {
+        col
+    };
+    (row, col)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Direct evaluation of the half-pixel bilinear formula, one output pixel at a time.
+    fn reference(data: &[u8], w: usize, h: usize, ow: usize, oh: usize) -> Vec<u8> {
+        let mut out = Vec::new();
+        for y in 0..oh {
+            for x in 0..ow {
+                let sx = ((x as f64 + 0.5) * w as f64 / ow as f64 - 0.5).max(0.0);
+                let sy = ((y as f64 + 0.5) * h as f64 / oh as f64 - 0.5).max(0.0);
+                let (x0, y0) = (sx.floor() as usize, sy.floor() as usize);
+                let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
+                let (fx, fy) = (sx - x0 as f64, sy - y0 as f64);
+                let p = |xx: usize, yy: usize| f64::from(data[yy * w + xx]);
+                let v = p(x0, y0) * (1.0 - fx) * (1.0 - fy)
+                    + p(x1, y0) * fx * (1.0 - fy)
+                    + p(x0, y1) * (1.0 - fx) * fy
+                    + p(x1, y1) * fx * fy;
+                out.push(v.round() as u8);
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn bilinear_matches_the_formula() {
+        let (w, h) = (37, 23);
+        let data: Vec<u8> = (0..w * h).map(|i| ((i * 97 + i / 7) % 251) as u8).collect();
+        for (ow, oh) in [(16, 9), (74, 46), (37, 23), (50, 11)] {
+            let got = resize_bilinear(&data, w, h, 1, ow, oh);
+            let want = reference(&data, w, h, ow, oh);
+            let worst = got
+                .iter()
+                .zip(&want)
+                .map(|(a, b)| (i16::from(*a) - i16::from(*b)).abs())
+                .max()
+                .unwrap();
+            assert!(worst <= 1, "{ow}x{oh}: off by {worst}");
+        }
+        // Same size is the identity; channels stay apart.
+        let rgb: Vec<u8> = (0..6 * 4 * 3).map(|i| i as u8).collect();
+        assert_eq!(resize_bilinear(&rgb, 6, 4, 3, 6, 4), rgb);
+        // Downscaling 2x of a 2-px checker averages.
+        let checker = [0u8, 200, 0, 200];
+        assert_eq!(resize_bilinear(&checker, 4, 1, 1, 2, 1), [100, 100]);
+    }
+
+    #[test]
+    fn nearest_keeps_labels_and_flip_mirrors() {
+        let labels: Vec<u32> = (0..4 * 2).collect();
+        let up = resize_nearest(&labels, 4, 2, 8, 4);
+        assert_eq!(&up[..8], &[0, 0, 1, 1, 2, 2, 3, 3]);
+        assert_eq!(&up[16..24], &[4, 4, 5, 5, 6, 6, 7, 7]);
+        let mut img = vec![1u8, 2, 3, 4, 5, 6, 7, 8, 9];
+        flip_horizontal(&mut img, 3, 1);
+        assert_eq!(img, [3, 2, 1, 6, 5, 4, 9, 8, 7]);
+        let mut rgb = vec![1u8, 1, 1, 2, 2, 2];
+        flip_horizontal(&mut rgb, 2, 3);
+        assert_eq!(rgb, [2, 2, 2, 1, 1, 1]);
+    }
+
+    #[test]
+    fn raw_pixels_map_into_the_resized_grid() {
+        // 480x270 -> 448x224: the centre maps to the centre, corners to corners.
+        let size = (480, 270);
+        let out = (448, 224);
+        assert_eq!(resized_pixel(239.5, 134.5, size, out, false), (112, 224));
+        assert_eq!(resized_pixel(0.2, 0.3, size, out, false), (0, 0));
+        assert_eq!(resized_pixel(478.9, 268.9, size, out, false), (223, 447));
+        assert_eq!(resized_pixel(0.2, 0.3, size, out, true), (0, 447));
+        // A pixel lands in the same place as the nearest-resized label map says.
+        let labels: Vec<u32> = (0..480 * 270).collect();
+        let small = resize_nearest(&labels, 480, 270, 448, 224);
+        for (u, v) in [(10.0f32, 20.0f32), (300.0, 100.0), (479.0, 269.0)] {
+            let (r, c) = resized_pixel(u, v, size, out, false);
+            let src = small[r as usize * 448 + c as usize];
+            let (su, sv) = (src % 480, src / 480);
+            assert!((su as f32 - u).abs() <= 1.5 && (sv as f32 - v).abs() <= 1.5);
+        }
+    }
+}

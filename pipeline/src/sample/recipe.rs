@@ -1,0 +1,216 @@
+//! `[sample]` of `pipeline.toml`: the sample recipe. Every default is the paper's (or its
+//! official code's where the two differ; see `../shared/DESIGN.md` §3).
+
+use super::slic::SlicParams;
+use super::voxel::VoxelGrid;
+use serde::{Deserialize, Serialize};
+
+/// What to do with a keyframe whose t−Δt or t+Δt frame falls outside the drive.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum EdgePolicy {
+    /// Use the keyframe itself in place of the missing frame (the official code).
+    #[default]
+    Reuse,
+    /// Leave the keyframe out of the plan.
+    Skip,
+}
+
+/// Where superpixels come from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SuperpixelSource {
+    /// The recording's class-map channels when every camera has one, else SLIC.
+    #[default]
+    Auto,
+    /// The recording's class-map channels (an error if a camera has none).
+    Channel,
+    /// SLIC computed by the pipeline on each resized image.
+    Slic,
+}
+
+/// 3D augmentation, applied to each cloud after its points are paired with pixels.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct AugmentConfig {
+    /// Off: points stay in their LiDAR frame.
+    pub enabled: bool,
+    /// Probability of mirroring x (x → −x).
+    pub flip_x_probability: f64,
+    /// Probability of mirroring y.
+    pub flip_y_probability: f64,
+    /// Rotation about z, uniform in `[0, rotation_max_rad]`.
+    pub rotation_max_rad: f64,
+    /// Scale, uniform in `[scale_min, scale_max]`.
+    pub scale_min: f64,
+    /// Upper end of the scale range.
+    pub scale_max: f64,
+    /// One draw shared by every cloud of a sample (frames and dense cloud) instead of
+    /// one per cloud.
+    pub shared: bool,
+}
+
+impl Default for AugmentConfig {
+    fn default() -> Self {
+        Self {
+            enabled: true,
+            flip_x_probability: 0.5,
+            flip_y_probability: 0.5,
+            rotation_max_rad: std::f64::consts::PI,
+            scale_min: 0.95,
+            scale_max: 1.05,
+            shared: false,
+        }
+    }
+}
+
+/// The sample recipe.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct SampleConfig {
+    /// Minimum spacing of keyframes, seconds (0.5).
+    pub keyframe_interval_secs: f64,
+    /// Δt between the keyframe and its temporal context, seconds (0.5; 0.5–2.0).
+    pub delta_t_secs: f64,
+    /// 3: (t−Δt, t, t+Δt); 2: (t−Δt, t).
+    pub temporal_frames: u32,
+    /// A context frame outside the drive.
+    pub edge: EdgePolicy,
+    /// Earlier sweeps added to the keyframe for the dense cloud (2; 1, 2, 5, 7 in the paper).
+    pub dense_sweeps: u32,
+    /// De-skew raw sweeps that carry per-point time (motion-compensated clouds are left
+    /// as they are).
+    pub deskew: bool,
+    /// Cameras per sample, the same for every frame of it (3).
+    pub cameras: u32,
+    /// Height of the resized images (224).
+    pub image_height: u32,
+    /// Width of the resized images (448).
+    pub image_width: u32,
+    /// Probability of flipping each image horizontally (0.5).
+    pub image_flip_probability: f64,
+    /// Superpixel source.
+    pub superpixels: SuperpixelSource,
+    /// Number of classes of a class-map channel; a larger id is an error (17, nuScenes
+    /// lidarseg).
+    pub num_classes: u32,
+    /// SLIC parameters.
+    pub slic: SlicParams,
+    /// 3D augmentation.
+    pub augment: AugmentConfig,
+    /// Voxel grid (cylindrical 0.1 m, 1°, 0.1 m).
+    pub voxel: VoxelGrid,
+    /// Resolutions of the 3D UNet (5: strides 1 to 16).
+    pub unet_levels: u32,
+    /// Seed of every random choice: with (epoch, index) it fixes a sample.
+    pub seed: u64,
+}
+
+impl Default for SampleConfig {
+    fn default() -> Self {
+        Self {
+            keyframe_interval_secs: 0.5,
+            delta_t_secs: 0.5,
+            temporal_frames: 3,
+            edge: EdgePolicy::Reuse,
+            dense_sweeps: 2,
+            deskew: true,
+            cameras: 3,
+            image_height: 224,
+            image_width: 448,
+            image_flip_probability: 0.5,
+            superpixels: SuperpixelSource::Auto,
+            num_classes: 17,
+            slic: SlicParams::default(),
+            augment: AugmentConfig::default(),
+            voxel: VoxelGrid::default(),
+            unet_levels: 5,
+            seed: 0,
+        }
+    }
+}
+
+impl SampleConfig {
+    /// Checks ranges; the message names the field.
+    pub fn validate(&self) -> Result<(), String> {
+        let positive = |name: &str, v: f64| {
+            if v.is_finite() && v > 0.0 {
+                Ok(())
+            } else {
+                Err(format!("sample.{name} = {v} must be finite and positive"))
+            }
+        };
+        let probability = |name: &str, v: f64| {
+            if (0.0..=1.0).contains(&v) {
+                Ok(())
+            } else {
+                Err(format!("sample.{name} = {v} is not a probability"))
+            }
+        };
+        positive("keyframe_interval_secs", self.keyframe_interval_secs)?;
+        positive("delta_t_secs", self.delta_t_secs)?;
+        if !(2..=3).contains(&self.temporal_frames) {
+            return Err(format!(
+                "sample.temporal_frames = {} must be 2 or 3",
+                self.temporal_frames
+            ));
+        }
+        if self.dense_sweeps > 32 {
+            return Err(format!(
+                "sample.dense_sweeps = {} is more than 32",
+                self.dense_sweeps
+            ));
+        }
+        if !(1..=255).contains(&self.cameras) {
+            return Err(format!("sample.cameras = {} must be 1..=255", self.cameras));
+        }
+        if !(1..=8192).contains(&self.image_height) || !(1..=8192).contains(&self.image_width) {
+            return Err(format!(
+                "sample image size {}x{} must be 1..=8192 each way",
+                self.image_height, self.image_width
+            ));
+        }
+        probability("image_flip_probability", self.image_flip_probability)?;
+        if self.num_classes == 0 || self.num_classes > 65_536 {
+            return Err(format!(
+                "sample.num_classes = {} must be 1..=65536",
+                self.num_classes
+            ));
+        }
+        self.slic.validate().map_err(|e| format!("sample.slic: {e}"))?;
+        let a = &self.augment;
+        probability("augment.flip_x_probability", a.flip_x_probability)?;
+        probability("augment.flip_y_probability", a.flip_y_probability)?;
+        if !(a.rotation_max_rad.is_finite() && a.rotation_max_rad >= 0.0) {
+            return Err(format!(
+                "sample.augment.rotation_max_rad = {} must be finite and >= 0",
+                a.rotation_max_rad
+            ));
+        }
+        positive("augment.scale_min", a.scale_min)?;
+        positive("augment.scale_max", a.scale_max)?;
+        if a.scale_min > a.scale_max {
+            return Err(format!(
+                "sample.augment.scale_min = {} exceeds scale_max = {}",
+                a.scale_min, a.scale_max
+            ));
+        }
+        self.voxel.validate().map_err(|e| format!("sample.voxel: {e}"))?;
+        if !(1..=8).contains(&self.unet_levels) {
+            return Err(format!(
+                "sample.unet_levels = {} must be 1..=8",
+                self.unet_levels
+            ));
+        }
+        Ok(())
+    }
+
+    /// Offsets of the temporal frames in units of Δt, in time order.
+    pub fn frame_offsets(&self) -> &'static [i32] {
+        if self.temporal_frames == 2 {
+            &[-1, 0]
+        } else {
+            &[-1, 0, 1]
+        }
+    }
+}
