@@ -73,7 +73,8 @@ impl Dialect {
         format!("street_{}", self.name())
     }
 
-    fn timing(self) -> DriveTiming {
+    /// The timing of the drive in this dialect.
+    pub fn timing(self) -> DriveTiming {
         DriveTiming {
             start: Stamp::from_nanos(1_700_000_000_123_456_000),
             duration_nanos: 3_000_000_000,
@@ -86,7 +87,8 @@ impl Dialect {
         }
     }
 
-    fn distortion(self) -> Distortion {
+    /// The lens distortion of the cameras in this dialect.
+    pub fn distortion(self) -> Distortion {
         match self {
             Dialect::Foxglove => Distortion::None,
             Dialect::Ros2 => Distortion::PlumbBob {

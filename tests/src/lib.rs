@@ -88,3 +88,11 @@ pub fn calibrations(drive: &SampleDrive) -> anyhow::Result<BTreeMap<String, Came
     }
     Ok(out)
 }
+
+/// The drive as a one-drive dataset, the input of the sample builder.
+pub fn sample_dataset(drive: &SampleDrive) -> anyhow::Result<superflow_pipeline::drive::Dataset> {
+    Ok(superflow_pipeline::drive::Dataset::open(
+        std::slice::from_ref(&drive.path),
+        &IngestConfig::default(),
+    )?)
+}
