@@ -13,8 +13,8 @@ use super::slic::slic;
 use super::sparse::{Level, build_levels};
 use super::voxel::{Voxelized, voxelize};
 use crate::decode::image::Target;
-use crate::drive::dataset::{CameraStream, Dataset, Drive, FrameRef, ReadError, nearest};
 use crate::drive::TfError;
+use crate::drive::dataset::{CameraStream, Dataset, Drive, FrameRef, ReadError, nearest};
 use crate::source::ChunkCache;
 use nalgebra::{Isometry3, Point3, Rotation3, Vector3};
 use rayon::prelude::*;
@@ -257,8 +257,8 @@ impl Augmentation {
         if *self == Self::IDENTITY {
             return;
         }
-        let r = Rotation3::from_axis_angle(&Vector3::z_axis(), self.yaw_rad).into_inner()
-            * self.scale;
+        let r =
+            Rotation3::from_axis_angle(&Vector3::z_axis(), self.yaw_rad).into_inner() * self.scale;
         let (sx, sy) = (
             if self.flip_x { -1.0 } else { 1.0 },
             if self.flip_y { -1.0 } else { 1.0 },
@@ -569,7 +569,9 @@ impl<'d> SampleBuilder<'d> {
                     dense_stamps.push(sweep.cloud.stamp);
                     source_sweep.extend(std::iter::repeat_n((j + 1) as u8, sweep.cloud.len()));
                     dense_cloud.xyz.extend_from_slice(&sweep.cloud.xyz);
-                    dense_cloud.intensity.extend_from_slice(&sweep.cloud.intensity);
+                    dense_cloud
+                        .intensity
+                        .extend_from_slice(&sweep.cloud.intensity);
                 }
                 Err(e) => {
                     tracing::debug!("dense cloud of keyframe {keyframe}: {e}");
@@ -583,7 +585,14 @@ impl<'d> SampleBuilder<'d> {
         let mut jobs: Vec<(u32, &PointCloud, Vec<u8>, &FrameInputs)> = frames
             .iter()
             .enumerate()
-            .map(|(f, fr)| (f as u32, &fr.sweep.cloud, vec![0u8; fr.sweep.cloud.len()], fr))
+            .map(|(f, fr)| {
+                (
+                    f as u32,
+                    &fr.sweep.cloud,
+                    vec![0u8; fr.sweep.cloud.len()],
+                    fr,
+                )
+            })
             .collect();
         jobs.push((n_frames, &dense_cloud, source_sweep, key_inputs));
         let shared = cfg.augment.shared;
@@ -591,7 +600,8 @@ impl<'d> SampleBuilder<'d> {
             .into_par_iter()
             .map(|(c, cloud, source, inputs)| {
                 let stream = if shared { 0 } else { c };
-                let mut rng = SampleRng::new(seed, epoch, index, Purpose::Augment { cloud: stream });
+                let mut rng =
+                    SampleRng::new(seed, epoch, index, Purpose::Augment { cloud: stream });
                 let augmentation = Augmentation::draw(cfg, &mut rng);
                 self.finish_cloud(cloud, source, inputs, augmentation)
             })
@@ -599,9 +609,9 @@ impl<'d> SampleBuilder<'d> {
         let mut clouds = clouds.into_iter();
         let mut out_frames = Vec::with_capacity(frames.len());
         for (f, inputs) in frames.into_iter().enumerate() {
-            let (cloud, t) = clouds.next().ok_or_else(|| {
-                SampleError::Config("internal: cloud count mismatch".into())
-            })?;
+            let (cloud, t) = clouds
+                .next()
+                .ok_or_else(|| SampleError::Config("internal: cloud count mismatch".into()))?;
             times.add(&t);
             times.add(&inputs.times);
             times.add(&inputs.sweep.times);
@@ -622,7 +632,10 @@ impl<'d> SampleBuilder<'d> {
         Ok(Sample {
             id,
             seed,
-            cameras: chosen.iter().map(|&c| drive.cameras[c].name.clone()).collect(),
+            cameras: chosen
+                .iter()
+                .map(|&c| drive.cameras[c].name.clone())
+                .collect(),
             frames: out_frames,
             key_frame,
             dense,
@@ -720,7 +733,15 @@ impl<'d> SampleBuilder<'d> {
                     .par_iter()
                     .enumerate()
                     .map(|(slot, &c)| {
-                        self.load_image(drive, &drive.cameras[c], lidar_stamp, frame_pos, slot, id, class_superpixels)
+                        self.load_image(
+                            drive,
+                            &drive.cameras[c],
+                            lidar_stamp,
+                            frame_pos,
+                            slot,
+                            id,
+                            class_superpixels,
+                        )
                     })
                     .collect::<Result<Vec<_>, _>>()
             },
@@ -775,7 +796,10 @@ impl<'d> SampleBuilder<'d> {
         let frame = camera_frame_for(camera, lidar_stamp).ok_or_else(|| {
             image_error(
                 lidar_stamp,
-                format!("{}: no image within half a period of the sweep", camera.name),
+                format!(
+                    "{}: no image within half a period of the sweep",
+                    camera.name
+                ),
             )
         })?;
         let calibration = camera
@@ -797,12 +821,22 @@ impl<'d> SampleBuilder<'d> {
             ));
         }
         let map = drive.map_frame.as_deref().unwrap_or_default();
-        let lidar_frame = drive.lidar.as_ref().map(|l| l.frame_id.as_str()).unwrap_or_default();
-        let camera_from_lidar =
-            camera_from_lidar(&drive.tf, map, lidar_frame, lidar_stamp, &camera.frame_id, frame.stamp)
-                .map_err(|e| {
-                    Self::transform_error(drive, format!("{} from LiDAR", camera.name), frame.stamp, e)
-                })?;
+        let lidar_frame = drive
+            .lidar
+            .as_ref()
+            .map(|l| l.frame_id.as_str())
+            .unwrap_or_default();
+        let camera_from_lidar = camera_from_lidar(
+            &drive.tf,
+            map,
+            lidar_frame,
+            lidar_stamp,
+            &camera.frame_id,
+            frame.stamp,
+        )
+        .map_err(|e| {
+            Self::transform_error(drive, format!("{} from LiDAR", camera.name), frame.stamp, e)
+        })?;
         let t = Instant::now();
         let (w, h) = (image.width as usize, image.height as usize);
         let mut rgb = image_ops::resize_bilinear(&image.data, w, h, 3, out_w, out_h);
@@ -833,9 +867,15 @@ impl<'d> SampleBuilder<'d> {
             };
             let class_frame = nearest(&camera.superpixels, frame.stamp)
                 .filter(|f| f.stamp.nanos_since(frame.stamp).abs() <= CLASS_MAP_TOLERANCE_NANOS)
-                .ok_or_else(|| sp_error(format!("no class map within 1 ms of image {}", camera.image_topic)))?;
+                .ok_or_else(|| {
+                    sp_error(format!(
+                        "no class map within 1 ms of image {}",
+                        camera.image_topic
+                    ))
+                })?;
             let t = Instant::now();
-            let classes = with_cache(|cache| drive.read_image(camera, class_frame, Target::Mono, cache))?;
+            let classes =
+                with_cache(|cache| drive.read_image(camera, class_frame, Target::Mono, cache))?;
             class_decode = elapsed(t);
             times.decode += class_decode;
             if (classes.width, classes.height) != (image.width, image.height) {
@@ -844,7 +884,11 @@ impl<'d> SampleBuilder<'d> {
                     classes.width, classes.height, image.width, image.height
                 )));
             }
-            if let Some(bad) = classes.data.iter().find(|&&c| u32::from(c) >= cfg.num_classes) {
+            if let Some(bad) = classes
+                .data
+                .iter()
+                .find(|&&c| u32::from(c) >= cfg.num_classes)
+            {
                 return Err(sp_error(format!(
                     "class id {bad} is outside the configured {} classes",
                     cfg.num_classes

@@ -82,7 +82,11 @@ pub fn ramp(x: f32) -> [u8; 3] {
 pub fn id_colour(id: u32) -> [u8; 3] {
     let mut h = u64::from(id).wrapping_mul(0x9E37_79B9_7F4A_7C15);
     h ^= h >> 29;
-    [(h >> 8) as u8 | 0x30, (h >> 24) as u8 | 0x30, (h >> 40) as u8 | 0x30]
+    [
+        (h >> 8) as u8 | 0x30,
+        (h >> 24) as u8 | 0x30,
+        (h >> 40) as u8 | 0x30,
+    ]
 }
 
 fn dot(img: &mut [u8], width: usize, height: usize, row: usize, col: usize, c: [u8; 3]) {
@@ -107,16 +111,36 @@ fn cloud_arrays(dir: &Path, prefix: &str, cloud: &Cloud) -> Result<(), ExportErr
     )?;
     let p = &cloud.pairings;
     let np = p.len() as u64;
-    npy(dir, &format!("{prefix}_pairing_point"), &[np], p.iter().map(|q| q.point))?;
-    npy(dir, &format!("{prefix}_pairing_camera"), &[np], p.iter().map(|q| q.camera))?;
-    npy(dir, &format!("{prefix}_pairing_uv"), &[np, 2], p.iter().flat_map(|q| [q.u, q.v]))?;
+    npy(
+        dir,
+        &format!("{prefix}_pairing_point"),
+        &[np],
+        p.iter().map(|q| q.point),
+    )?;
+    npy(
+        dir,
+        &format!("{prefix}_pairing_camera"),
+        &[np],
+        p.iter().map(|q| q.camera),
+    )?;
+    npy(
+        dir,
+        &format!("{prefix}_pairing_uv"),
+        &[np, 2],
+        p.iter().flat_map(|q| [q.u, q.v]),
+    )?;
     npy(
         dir,
         &format!("{prefix}_pairing_rowcol"),
         &[np, 2],
         p.iter().flat_map(|q| [q.row, q.col]),
     )?;
-    npy(dir, &format!("{prefix}_pairing_depth"), &[np], p.iter().map(|q| q.depth))?;
+    npy(
+        dir,
+        &format!("{prefix}_pairing_depth"),
+        &[np],
+        p.iter().map(|q| q.depth),
+    )?;
     npy(
         dir,
         &format!("{prefix}_pairing_superpixel"),
@@ -178,7 +202,12 @@ fn overlays(
                 [0, 1, 2].map(|k| ((u16::from(px[k]) + u16::from(c[k])) / 2) as u8)
             })
             .collect();
-        for p in frame.cloud.pairings.iter().filter(|p| p.camera as usize == slot) {
+        for p in frame
+            .cloud
+            .pairings
+            .iter()
+            .filter(|p| p.camera as usize == slot)
+        {
             let depth = (p.depth.max(1.0).ln() / 60f32.ln()).clamp(0.0, 1.0);
             let (r, c) = (p.row as usize, p.col as usize);
             dot(&mut by_depth, w, h, r, c, ramp(depth));
@@ -203,7 +232,10 @@ pub fn write_sample(
     dir: &Path,
 ) -> Result<Vec<PathBuf>, ExportError> {
     std::fs::create_dir_all(dir).map_err(io_error(dir))?;
-    let (w, h) = (u64::from(config.image_width), u64::from(config.image_height));
+    let (w, h) = (
+        u64::from(config.image_width),
+        u64::from(config.image_height),
+    );
     let mut frames_json = Vec::new();
     let mut pngs = Vec::new();
     for (f, frame) in sample.frames.iter().enumerate() {
@@ -220,7 +252,10 @@ pub fn write_sample(
             dir,
             &format!("{prefix}_superpixels"),
             &[k, h, w],
-            frame.images.iter().flat_map(|i| i.superpixels.iter().copied()),
+            frame
+                .images
+                .iter()
+                .flat_map(|i| i.superpixels.iter().copied()),
         )?;
         pngs.extend(overlays(dir, f, frame, config)?);
         let mut cloud = cloud_json(&frame.cloud);
@@ -254,11 +289,22 @@ pub fn write_sample(
         sample.dense.source_sweep.iter().copied(),
     )?;
     let mut dense = cloud_json(&sample.dense);
-    dense["stamps_nanos"] = json!(sample.dense_stamps.iter().map(|s| s.nanos()).collect::<Vec<_>>());
+    dense["stamps_nanos"] = json!(
+        sample
+            .dense_stamps
+            .iter()
+            .map(|s| s.nanos())
+            .collect::<Vec<_>>()
+    );
     dense["missing_sweeps"] = json!(sample.dense_missing);
     dense["points_per_sweep"] = json!(
         (0..sample.dense_stamps.len())
-            .map(|s| sample.dense.source_sweep.iter().filter(|&&x| x as usize == s).count())
+            .map(|s| sample
+                .dense
+                .source_sweep
+                .iter()
+                .filter(|&&x| x as usize == s)
+                .count())
             .collect::<Vec<_>>()
     );
     let doc = json!({

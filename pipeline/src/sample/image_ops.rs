@@ -48,8 +48,14 @@ pub fn resize_bilinear(
     }
     let stride = out_width * channels;
     for (y, &(y0, y1, w)) in ys.iter().enumerate() {
-        let (r0, r1) = (&rows[y0 * stride..][..stride], &rows[y1 * stride..][..stride]);
-        for (o, (a, b)) in out[y * stride..][..stride].iter_mut().zip(r0.iter().zip(r1)) {
+        let (r0, r1) = (
+            &rows[y0 * stride..][..stride],
+            &rows[y1 * stride..][..stride],
+        );
+        for (o, (a, b)) in out[y * stride..][..stride]
+            .iter_mut()
+            .zip(r0.iter().zip(r1))
+        {
             *o = (a + (b - a) * w).round().clamp(0.0, 255.0) as u8;
         }
     }

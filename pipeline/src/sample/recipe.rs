@@ -177,7 +177,9 @@ impl SampleConfig {
                 self.num_classes
             ));
         }
-        self.slic.validate().map_err(|e| format!("sample.slic: {e}"))?;
+        self.slic
+            .validate()
+            .map_err(|e| format!("sample.slic: {e}"))?;
         let a = &self.augment;
         probability("augment.flip_x_probability", a.flip_x_probability)?;
         probability("augment.flip_y_probability", a.flip_y_probability)?;
@@ -195,7 +197,9 @@ impl SampleConfig {
                 a.scale_min, a.scale_max
             ));
         }
-        self.voxel.validate().map_err(|e| format!("sample.voxel: {e}"))?;
+        self.voxel
+            .validate()
+            .map_err(|e| format!("sample.voxel: {e}"))?;
         if !(1..=8).contains(&self.unet_levels) {
             return Err(format!(
                 "sample.unet_levels = {} must be 1..=8",
