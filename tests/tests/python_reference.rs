@@ -137,3 +137,48 @@ fn numpy_reads_a_batch_exactly_as_the_rust_reader() {
         .unwrap_or("");
     assert!(last.ends_with(" 0 failed"), "{text}");
 }
+
+/// A sample written as `.npy` + `sample.json` + PNGs (what `superflow-pipeline sample`
+/// writes) passes the independent numpy checks of `tests/python/check_sample.py`:
+/// shapes, counts, pairings recomputed from (u, v) and flips, superpixel lookups,
+/// voxel cells recomputed from the points.
+#[test]
+fn numpy_checks_an_exported_sample() {
+    use superflow_pipeline::sample::export::write_sample;
+    use superflow_pipeline::sample::{SampleBuilder, SampleConfig};
+    use superflow_recordings::Dialect;
+    for (dialect, augment, keyframe) in [(Dialect::Ros2, false, 1), (Dialect::Foxglove, true, 3)] {
+        let drive = superflow_tests::sample_drive(dialect).unwrap();
+        let ds = superflow_tests::sample_dataset(&drive).unwrap();
+        let mut config = SampleConfig::default();
+        config.augment.enabled = augment;
+        let builder = SampleBuilder::new(&ds, config).unwrap();
+        let sample = builder
+            .build_keyframe(keyframe, 0, keyframe as u64)
+            .unwrap();
+        let dir = std::env::temp_dir().join(format!(
+            "superflow-sample-{}-{}-{augment}",
+            std::process::id(),
+            dialect.name()
+        ));
+        let _ = std::fs::remove_dir_all(&dir);
+        write_sample(
+            &sample,
+            builder.config(),
+            &drive.path.display().to_string(),
+            &dir,
+        )
+        .unwrap();
+        let text = python(&["tests/python/check_sample.py", dir.to_str().unwrap()]);
+        let last = text
+            .lines()
+            .rev()
+            .find(|l| !l.trim().is_empty())
+            .unwrap_or("");
+        assert!(
+            last.ends_with(" 0 failed") && !last.starts_with("0 passed"),
+            "{text}"
+        );
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}

@@ -27,36 +27,46 @@ pub fn resize_bilinear(
     out_width: usize,
     out_height: usize,
 ) -> Vec<u8> {
-    let mut out = vec![0u8; out_width * out_height * channels];
-    if width == 0 || height == 0 || data.len() < width * height * channels {
+    match channels {
+        1 => resize_bilinear_n::<1>(data, width, height, out_width, out_height),
+        3 => resize_bilinear_n::<3>(data, width, height, out_width, out_height),
+        4 => resize_bilinear_n::<4>(data, width, height, out_width, out_height),
+        _ => vec![0u8; out_width * out_height * channels],
+    }
+}
+
+fn resize_bilinear_n<const C: usize>(
+    data: &[u8],
+    width: usize,
+    height: usize,
+    out_width: usize,
+    out_height: usize,
+) -> Vec<u8> {
+    let mut out = vec![0u8; out_width * out_height * C];
+    if width == 0 || height == 0 || data.len() < width * height * C {
         return out;
     }
     let xs = linear_taps(width, out_width);
     let ys = linear_taps(height, out_height);
-    // Horizontal pass into f32 rows, then vertical.
-    let mut rows = vec![0f32; out_width * height * channels];
-    for y in 0..height {
-        let src = &data[y * width * channels..(y + 1) * width * channels];
-        let dst = &mut rows[y * out_width * channels..(y + 1) * out_width * channels];
-        for (x, &(x0, x1, w)) in xs.iter().enumerate() {
-            for c in 0..channels {
-                let a = f32::from(src[x0 * channels + c]);
-                let b = f32::from(src[x1 * channels + c]);
-                dst[x * channels + c] = a + (b - a) * w;
-            }
-        }
-    }
-    let stride = out_width * channels;
-    for (y, &(y0, y1, w)) in ys.iter().enumerate() {
+    // Vertical blend of the two source rows into f32, then horizontal taps.
+    let mut blended = vec![0f32; width * C];
+    let stride = width * C;
+    for (y, &(y0, y1, wy)) in ys.iter().enumerate() {
         let (r0, r1) = (
-            &rows[y0 * stride..][..stride],
-            &rows[y1 * stride..][..stride],
+            &data[y0 * stride..][..stride],
+            &data[y1 * stride..][..stride],
         );
-        for (o, (a, b)) in out[y * stride..][..stride]
-            .iter_mut()
-            .zip(r0.iter().zip(r1))
-        {
-            *o = (a + (b - a) * w).round().clamp(0.0, 255.0) as u8;
+        for ((b, a), c) in blended.iter_mut().zip(r0).zip(r1) {
+            let a = f32::from(*a);
+            *b = a + (f32::from(*c) - a) * wy;
+        }
+        let row = &mut out[y * out_width * C..][..out_width * C];
+        for (px, &(x0, x1, wx)) in row.chunks_exact_mut(C).zip(&xs) {
+            let p0: &[f32; C] = blended[x0 * C..][..C].try_into().unwrap_or(&[0.0; C]);
+            let p1: &[f32; C] = blended[x1 * C..][..C].try_into().unwrap_or(&[0.0; C]);
+            for k in 0..C {
+                px[k] = (p0[k] + (p1[k] - p0[k]) * wx + 0.5) as u8;
+            }
         }
     }
     out

@@ -4,7 +4,7 @@
 //! kernel offset, `(input row, output row)` pairs: the trainer gathers input rows,
 //! multiplies by that offset's weights and scatter-adds into output rows.
 
-use std::collections::HashMap;
+use rustc_hash::FxHashMap as HashMap;
 
 /// `(input row, output row)` pairs grouped by kernel offset.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
@@ -94,7 +94,8 @@ pub fn neighbour_map(coords: &[[i32; 3]]) -> KernelMap {
 /// first occurrence, and the kernel-2 stride-2 map whose offset is the position of the
 /// input cell inside its 2×2×2 block.
 pub fn downsample(coords: &[[i32; 3]]) -> (Vec<[i32; 3]>, KernelMap) {
-    let mut rows: HashMap<[i32; 3], u32> = HashMap::with_capacity(coords.len() / 2);
+    let mut rows: HashMap<[i32; 3], u32> =
+        HashMap::with_capacity_and_hasher(coords.len() / 2, Default::default());
     let mut coarse = Vec::new();
     let parent: Vec<u32> = coords
         .iter()

@@ -1,8 +1,8 @@
 //! Voxelization: points → unique integer cells, one representative point per cell, and
 //! the map from every point to its cell.
 
+use rustc_hash::FxHashMap as HashMap;
 use serde::{Deserialize, Serialize};
-use std::collections::HashMap;
 
 /// How points are binned.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -97,7 +97,8 @@ pub struct Voxelized {
 /// Bins `xyz` (finite points) into `grid`. Deterministic: cells are numbered in the
 /// order their first point appears, and that point represents the cell.
 pub fn voxelize(xyz: &[[f32; 3]], grid: &VoxelGrid) -> Voxelized {
-    let mut index: HashMap<[i32; 3], u32> = HashMap::with_capacity(xyz.len());
+    let mut index: HashMap<[i32; 3], u32> =
+        HashMap::with_capacity_and_hasher(xyz.len(), Default::default());
     let mut coords = Vec::new();
     let mut representative = Vec::new();
     let point_to_voxel = xyz
