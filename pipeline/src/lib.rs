@@ -26,6 +26,7 @@
 //! # Ok::<(), superflow_pipeline::drive::TfError>(())
 //! ```
 
+pub mod batch;
 pub mod config;
 pub mod decode;
 pub mod drive;

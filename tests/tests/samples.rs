@@ -74,8 +74,10 @@ fn plan_has_keyframes_every_half_second_with_their_context() {
         }
         let reused: u32 = plan.keyframes.iter().map(|k| k.reused).sum();
         // Skip instead of reuse drops exactly the keyframes that reused a frame.
-        let mut skip = SampleConfig::default();
-        skip.edge = EdgePolicy::Skip;
+        let skip = SampleConfig {
+            edge: EdgePolicy::Skip,
+            ..SampleConfig::default()
+        };
         let skipping = SampleBuilder::new(&ds, skip).unwrap();
         let with_reuse = plan.keyframes.iter().filter(|k| k.reused > 0).count();
         assert!(with_reuse > 0, "the 3 s drive has edge keyframes");
@@ -86,8 +88,10 @@ fn plan_has_keyframes_every_half_second_with_their_context() {
         );
         assert!(reused as usize >= with_reuse);
         // Two frames: (t - dt, t).
-        let mut two = SampleConfig::default();
-        two.temporal_frames = 2;
+        let two = SampleConfig {
+            temporal_frames: 2,
+            ..SampleConfig::default()
+        };
         let two = SampleBuilder::new(&ds, two).unwrap();
         let s = two.build(0, 0).unwrap();
         assert_eq!(s.frames.len(), 2);

@@ -43,7 +43,7 @@ pub enum SampleError {
         /// The instant.
         stamp: Stamp,
         /// The lookup error.
-        source: TfError,
+        source: Box<TfError>,
     },
     /// A class map that cannot serve as superpixels.
     #[error("{files}: {topic} at {stamp}: {reason}")]
@@ -392,6 +392,8 @@ pub struct Sample {
     pub seed: u64,
     /// Names of the chosen cameras, slot order.
     pub cameras: Vec<String>,
+    /// Indices of the chosen cameras in the drive's camera list, slot order.
+    pub camera_indices: Vec<u32>,
     /// Temporal frames in time order.
     pub frames: Vec<Frame>,
     /// Position of the keyframe (t) in `frames`.
@@ -632,6 +634,7 @@ impl<'d> SampleBuilder<'d> {
         Ok(Sample {
             id,
             seed,
+            camera_indices: chosen.iter().map(|&c| c as u32).collect(),
             cameras: chosen
                 .iter()
                 .map(|&c| drive.cameras[c].name.clone())
@@ -651,7 +654,7 @@ impl<'d> SampleBuilder<'d> {
             files: drive.file_list(),
             what,
             stamp,
-            source,
+            source: Box::new(source),
         }
     }
 

@@ -1,0 +1,162 @@
+//! Samples assembled into one batch (the wire format of `schemas/BATCH_FORMAT.md`) read
+//! back through the batch reader: every section holds what the samples hold, with
+//! global rows that point at the right points, pixels and voxels.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
+
+use superflow_pipeline::batch::{BatchPlan, BatchShape};
+use superflow_pipeline::sample::{SampleBuilder, SampleConfig};
+use superflow_recordings::Dialect;
+use superflow_schemas::batch::{BatchMeta, BatchView};
+use superflow_tests::{sample_dataset, sample_drive};
+
+#[test]
+fn a_batch_holds_its_samples_with_global_rows() {
+    let ds = sample_dataset(&sample_drive(Dialect::Ros2).unwrap()).unwrap();
+    let config = SampleConfig::default();
+    let builder = SampleBuilder::new(&ds, config.clone()).unwrap();
+    let samples: Vec<_> = (0..3).map(|i| builder.build(0, i).unwrap()).collect();
+    let shape = BatchShape {
+        height: 224,
+        width: 448,
+        levels: 5,
+    };
+    let plan = BatchPlan::new(&samples, shape).unwrap();
+    let layout = plan.layout();
+    let mut storage = vec![0u64; layout.payload_len().div_ceil(8)];
+    let payload: &mut [u8] = bytemuck::cast_slice_mut(&mut storage);
+    plan.write(&samples, payload).unwrap();
+    // Bit-identical when written again.
+    let first = payload.to_vec();
+    plan.write(&samples, payload).unwrap();
+    assert!(first == payload);
+    let meta = BatchMeta {
+        run: "batch-test".into(),
+        epoch: 0,
+        step: 0,
+        seed: 0,
+        sequence: 0,
+        created_unix_nanos: 0,
+        sample_count: 3,
+        flags: 0,
+    };
+    let header = layout.header(&meta).unwrap();
+    let view = BatchView::new(&header, payload).unwrap();
+    let (b, f, k, c) = (3usize, 3usize, 3usize, 4usize);
+
+    let ids = view.get::<u64>("sample_ids").unwrap();
+    for (i, s) in samples.iter().enumerate() {
+        assert_eq!(
+            &ids.data[i * 5..i * 5 + 5],
+            &[
+                0,
+                i as u64,
+                u64::from(s.id.keyframe),
+                0,
+                u64::from(s.id.sweep)
+            ]
+        );
+    }
+    let points = view.get::<f32>("points").unwrap();
+    let point_clouds = view.get::<u32>("point_clouds").unwrap();
+    assert_eq!(point_clouds.data.len(), b * c + 1);
+    let images = view.get::<u8>("images").unwrap();
+    assert_eq!(images.shape(), &[b * f * k, 224, 448, 3]);
+    let superpixels = view.get::<u16>("superpixels").unwrap();
+    let pairing_point = view.get::<u32>("pairing_point").unwrap();
+    let pairing_image = view.get::<u32>("pairing_image").unwrap();
+    let pairing_pixel = view.get::<u16>("pairing_pixel").unwrap();
+    let pairing_sp = view.get::<u32>("pairing_superpixel").unwrap();
+    let pairing_clouds = view.get::<u32>("pairing_clouds").unwrap();
+    let p2v = view.get::<u32>("point_to_voxel").unwrap();
+    let l0 = view.get::<i32>("l0_coords").unwrap();
+    for (bi, s) in samples.iter().enumerate() {
+        let clouds: Vec<_> = s
+            .frames
+            .iter()
+            .map(|fr| &fr.cloud)
+            .chain([&s.dense])
+            .collect();
+        for (ci, cloud) in clouds.iter().enumerate() {
+            let g = bi * c + ci;
+            let p0 = point_clouds.data[g] as usize;
+            assert_eq!(point_clouds.data[g + 1] as usize - p0, cloud.xyz.len());
+            for (i, p) in cloud.xyz.iter().enumerate().step_by(53) {
+                assert_eq!(&points.data[(p0 + i) * 4..(p0 + i) * 4 + 3], p);
+                // The point's voxel row holds its cell, tagged with its cloud.
+                let v = p2v.data[p0 + i] as usize;
+                let cell = cloud.voxels.coords[cloud.voxels.point_to_voxel[i] as usize];
+                assert_eq!(
+                    &l0.data[v * 4..v * 4 + 4],
+                    &[g as i32, cell[0], cell[1], cell[2]]
+                );
+            }
+            let q0 = pairing_clouds.data[g] as usize;
+            assert_eq!(
+                pairing_clouds.data[g + 1] as usize - q0,
+                cloud.pairings.len()
+            );
+            let frame = if ci == f { s.key_frame } else { ci };
+            for (j, p) in cloud.pairings.iter().enumerate().step_by(17) {
+                let row = q0 + j;
+                assert_eq!(pairing_point.data[row] as usize, p0 + p.point as usize);
+                let image = pairing_image.data[row] as usize;
+                assert_eq!(image, (bi * f + frame) * k + usize::from(p.camera));
+                let [r, col] = [pairing_pixel.data[row * 2], pairing_pixel.data[row * 2 + 1]];
+                assert_eq!((r, col), (p.row, p.col));
+                // The superpixel of the pairing is the id map's value at its pixel.
+                let id = superpixels.data[(image * 224 + r as usize) * 448 + col as usize];
+                assert_eq!(u32::from(id), pairing_sp.data[row]);
+                let img = &s.frames[frame].images[usize::from(p.camera)];
+                let px = (usize::from(r) * 448 + usize::from(col)) * 3;
+                assert_eq!(
+                    &images.data[image * 224 * 448 * 3 + px..][..3],
+                    &img.rgb[px..px + 3]
+                );
+            }
+        }
+    }
+    // Neighbour maps: every pair joins cells of one cloud that differ by the offset.
+    for l in 0..5 {
+        let coords = view.get::<i32>(&format!("l{l}_coords")).unwrap();
+        let nbr = view.get::<u32>(&format!("l{l}_nbr")).unwrap();
+        let starts = view.get::<u32>(&format!("l{l}_nbr_starts")).unwrap();
+        let cell = |r: u32| &coords.data[r as usize * 4..r as usize * 4 + 4];
+        for kern in 0..27usize {
+            let o = [
+                kern as i32 / 9 - 1,
+                (kern as i32 / 3) % 3 - 1,
+                kern as i32 % 3 - 1,
+            ];
+            for e in starts.data[kern]..starts.data[kern + 1] {
+                let (i, out) = (nbr.data[e as usize * 2], nbr.data[e as usize * 2 + 1]);
+                let (a, z) = (cell(i), cell(out));
+                assert_eq!(a[0], z[0]);
+                assert_eq!([a[1] - z[1], a[2] - z[2], a[3] - z[3]], o);
+            }
+        }
+        // Centre offset: identity on every row.
+        assert_eq!(
+            (starts.data[14] - starts.data[13]) as usize,
+            coords.shape()[0]
+        );
+        if l < 4 {
+            let down = view.get::<u32>(&format!("l{l}_down")).unwrap();
+            let coarse = view.get::<i32>(&format!("l{}_coords", l + 1)).unwrap();
+            assert_eq!(down.shape(), &[coords.shape()[0], 2]);
+            for pair in down.data.chunks_exact(2).step_by(11) {
+                let fine = cell(pair[0]);
+                let parent = &coarse.data[pair[1] as usize * 4..pair[1] as usize * 4 + 4];
+                assert_eq!(fine[0], parent[0]);
+                for d in 1..4 {
+                    assert_eq!(fine[d].div_euclid(2), parent[d]);
+                }
+            }
+        }
+    }
+    eprintln!(
+        "batch of {b} samples: {} sections, {:.1} MB",
+        view.section_names().count(),
+        layout.payload_len() as f64 / 1e6
+    );
+}
