@@ -10,7 +10,7 @@ use nalgebra::Point3;
 use superflow_pipeline::drive::Dataset;
 use superflow_pipeline::sample::builder::Sample;
 use superflow_pipeline::sample::project::{CameraView, camera_from_lidar};
-use superflow_pipeline::sample::recipe::EdgePolicy;
+use superflow_pipeline::sample::recipe::{EdgePolicy, SuperpixelSource};
 use superflow_pipeline::sample::{SampleBuilder, SampleConfig, SampleError};
 use superflow_recordings::sim::{Rig, simulate_sweep};
 use superflow_recordings::{Dialect, IMAGE_SIZE, SCENE_SEED, scene::Scene};
@@ -414,4 +414,71 @@ fn samples_are_deterministic_across_runs_and_threads() {
     let ds2 = open(Dialect::Ros2);
     let restarted = SampleBuilder::new(&ds2, SampleConfig::default()).unwrap();
     assert!(content(restarted.build(0, 1).unwrap()) == one);
+}
+
+/// SLIC superpixels on the rendered camera images: about 150 segments per image, ids
+/// offset per image within a frame, and segments that follow the scene's edges — most
+/// of each segment's pixels are of one class in the recorded class map.
+#[test]
+fn slic_superpixels_follow_the_scene() {
+    use std::collections::HashMap;
+    let ds = open(Dialect::Foxglove);
+    let build = |source| {
+        let config = SampleConfig {
+            superpixels: source,
+            ..no_augment()
+        };
+        SampleBuilder::new(&ds, config)
+            .unwrap()
+            .build_keyframe(2, 0, 2)
+            .unwrap()
+    };
+    let slic = build(SuperpixelSource::Slic);
+    let classes = build(SuperpixelSource::Channel);
+    assert!(!slic.class_superpixels);
+    let (mut pure, mut total) = (0usize, 0usize);
+    for (frame, class_frame) in slic.frames.iter().zip(&classes.frames) {
+        let mut next_id = 0;
+        for (image, class_image) in frame.images.iter().zip(&class_frame.images) {
+            let min = *image.superpixels.iter().min().unwrap();
+            let max = *image.superpixels.iter().max().unwrap();
+            assert_eq!(
+                min, next_id,
+                "ids of image {} start after the previous image",
+                image.camera
+            );
+            let count = max - min + 1;
+            assert!(
+                (100..=200).contains(&count),
+                "{}: {count} segments",
+                image.camera
+            );
+            next_id = max + 1;
+            let mut votes: HashMap<(u32, u32), usize> = HashMap::new();
+            for (s, c) in image.superpixels.iter().zip(&class_image.superpixels) {
+                *votes.entry((*s, *c)).or_default() += 1;
+            }
+            let mut best: HashMap<u32, usize> = HashMap::new();
+            for ((s, _), n) in votes {
+                let b = best.entry(s).or_default();
+                *b = (*b).max(n);
+            }
+            pure += best.values().sum::<usize>();
+            total += image.superpixels.len();
+        }
+        assert_eq!(frame.num_superpixels, next_id);
+        for p in &frame.cloud.pairings {
+            let image = &frame.images[usize::from(p.camera)];
+            assert_eq!(
+                image.superpixels[usize::from(p.row) * 448 + usize::from(p.col)],
+                p.superpixel
+            );
+        }
+    }
+    let purity = pure as f64 / total as f64;
+    eprintln!(
+        "SLIC segments: {:.1} % of pixels in their segment's majority class",
+        purity * 100.0
+    );
+    assert!(purity > 0.85, "{purity}");
 }

@@ -417,8 +417,14 @@ thread_local! {
     static CACHE: RefCell<ChunkCache> = RefCell::new(ChunkCache::new(6));
 }
 
+/// Runs `f` with this thread's chunk cache. Decoders may run rayon jobs (JPEG), so a
+/// thread can come back here while its cache is in use: it then reads through a
+/// temporary cache (the result is the same, only slower).
 fn with_cache<T>(f: impl FnOnce(&mut ChunkCache) -> T) -> T {
-    CACHE.with(|c| f(&mut c.borrow_mut()))
+    CACHE.with(|c| match c.try_borrow_mut() {
+        Ok(mut cache) => f(&mut cache),
+        Err(_) => f(&mut ChunkCache::new(2)),
+    })
 }
 
 fn elapsed(t: Instant) -> u64 {
