@@ -15,6 +15,8 @@ pub struct PipelineConfig {
     /// The sample recipe (`[sample]`, `[sample.augment]`, `[sample.slic]`,
     /// `[sample.voxel]`).
     pub sample: SampleConfig,
+    /// The stream (`[service]`): mode, world size, batch size, prefetch, epochs.
+    pub service: crate::publish::ServiceConfig,
 }
 
 /// A configuration file that cannot be used.
@@ -73,7 +75,8 @@ impl PipelineConfig {
                 "ingest.tf_tolerance_ms = {tol} is not in 0..=10000"
             ));
         }
-        self.sample.validate()
+        self.sample.validate()?;
+        self.service.validate()
     }
 }
 

@@ -1,9 +1,8 @@
 //! `superflow-pipeline`: the producer process.
 //!
 //! * `superflow-pipeline --mcap <drives>... [--run NAME] [--config pipeline.toml]` — the
-//!   service: streams SuperFlow batches over iceoryx2 (the streaming itself arrives with
-//!   the sample-builder and service issues; today it indexes the drives, checks that they
-//!   hold what training needs and says what is not built yet).
+//!   service: streams SuperFlow batches over iceoryx2 (broadcast or shard), with
+//!   backpressure, dead-subscriber cleanup, resume requests and Prometheus metrics.
 //! * `superflow-pipeline inspect --mcap <drives>... [--json]` — what the drives hold.
 //! * `superflow-pipeline sample --mcap <drive> --index K --out DIR [--no-augment]` — one
 //!   sample written as `.npy` arrays, `sample.json` and overlay PNGs.
@@ -11,9 +10,12 @@
 use anyhow::{Context as _, bail};
 use clap::{Parser, Subcommand};
 use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
 use superflow_pipeline::config::PipelineConfig;
 use superflow_pipeline::drive::Dataset;
 use superflow_pipeline::inspect::InspectReport;
+use superflow_pipeline::publish::{Metrics, Mode};
 use superflow_pipeline::sample::SampleBuilder;
 use superflow_pipeline::sample::export::write_sample;
 
@@ -30,6 +32,34 @@ struct Args {
     /// Run name: the services are `superflow/<run>/...`.
     #[arg(long, default_value = "default")]
     run: String,
+    /// Stream mode (overrides `[service] mode`): `broadcast` or `shard`.
+    #[arg(long)]
+    mode: Option<String>,
+    /// Ranks in shard mode (overrides `[service] world_size`).
+    #[arg(long)]
+    world_size: Option<u32>,
+    /// Samples per batch (overrides `[service] batch_size`).
+    #[arg(long)]
+    batch_size: Option<u32>,
+    /// Epochs to stream, 0 = forever (overrides `[service] epochs`).
+    #[arg(long)]
+    epochs: Option<u64>,
+    /// Subscribers to wait for before the first batch of each stream (overrides
+    /// `[service] min_subscribers`).
+    #[arg(long)]
+    subscribers: Option<u32>,
+    /// Start at this epoch ...
+    #[arg(long, default_value_t = 0)]
+    start_epoch: u64,
+    /// ... and this step of it (nothing before it is built).
+    #[arg(long, default_value_t = 0)]
+    start_step: u64,
+    /// Serve Prometheus text metrics on this address (e.g. 127.0.0.1:9464).
+    #[arg(long)]
+    metrics_addr: Option<std::net::SocketAddr>,
+    /// Isolates this deployment's iceoryx2 resources (also `SUPERFLOW_IOX_PREFIX`).
+    #[arg(long, env = "SUPERFLOW_IOX_PREFIX")]
+    iox_prefix: Option<String>,
     #[command(subcommand)]
     command: Option<Command>,
 }
@@ -139,28 +169,125 @@ fn run(args: &Args) -> anyhow::Result<()> {
             println!("wrote {} files to {}", written.len(), out.display());
             Ok(())
         }
-        None => {
-            superflow_schemas::service::batches_service(&args.run)?;
-            let dataset = open(args)?;
-            dataset
-                .check_sensors()
-                .context("the drives cannot be trained on")?;
-            for drive in InspectReport::new(&dataset).drives {
-                tracing::info!(
-                    files = drive.files.len(),
-                    sweeps = drive.lidar_sweeps,
-                    cameras = drive.cameras.len(),
-                    keyframes = drive.usable_keyframes,
-                    skipped = drive.skipped.total(),
-                    "drive indexed"
-                );
-            }
-            bail!(
-                "not yet built: building samples and streaming batches on superflow/{}/batches \
-                 arrive with the sample-builder and service issues",
-                args.run
-            )
+        None => serve(args),
+    }
+}
+
+fn serve(args: &Args) -> anyhow::Result<()> {
+    let mut config = load_config(args)?;
+    if let Some(mode) = &args.mode {
+        config.service.mode = match mode.as_str() {
+            "broadcast" => Mode::Broadcast,
+            "shard" => Mode::Shard,
+            other => bail!("--mode {other}: expected broadcast or shard"),
+        };
+    }
+    if let Some(w) = args.world_size {
+        config.service.world_size = w;
+        if w > 1 && args.mode.is_none() {
+            config.service.mode = Mode::Shard;
         }
+    }
+    if let Some(b) = args.batch_size {
+        config.service.batch_size = b;
+    }
+    if let Some(e) = args.epochs {
+        config.service.epochs = e;
+    }
+    if let Some(n) = args.subscribers {
+        config.service.min_subscribers = n;
+    }
+    config
+        .service
+        .validate()
+        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    superflow_schemas::service::batches_service(&args.run)?;
+    let iox = superflow_schemas::service::iceoryx2_config(args.iox_prefix.as_deref())
+        .map_err(|e| anyhow::anyhow!(e))?;
+    let dataset = open(args)?;
+    dataset
+        .check_sensors()
+        .context("the drives cannot be trained on")?;
+    let metrics = Arc::new(Metrics::default());
+    for drive in InspectReport::new(&dataset).drives {
+        metrics
+            .skipped_messages
+            .fetch_add(drive.skipped.total(), Ordering::Relaxed);
+        tracing::info!(
+            files = drive.files.len(),
+            sweeps = drive.lidar_sweeps,
+            cameras = drive.cameras.len(),
+            skipped = drive.skipped.total(),
+            "drive indexed"
+        );
+    }
+    let builder = SampleBuilder::new(&dataset, config.sample.clone())?;
+    tracing::info!(
+        keyframes = builder.plan().keyframes.len(),
+        skipped_at_edges = builder.plan().skipped_at_edges,
+        "plan"
+    );
+    let stop = Arc::new(AtomicBool::new(false));
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()?;
+    // Signals and the metrics endpoint run on tokio; building and publishing on their
+    // own threads (rayon, and this one).
+    runtime.spawn(wait_for_signals(stop.clone()));
+    if let Some(addr) = args.metrics_addr {
+        let listener = runtime
+            .block_on(tokio::net::TcpListener::bind(addr))
+            .with_context(|| format!("binding the metrics address {addr}"))?;
+        tracing::info!(%addr, "metrics at http://{addr}/metrics");
+        runtime.spawn(serve_metrics(listener, metrics.clone()));
+    }
+    let result = superflow_pipeline::publish::serve(
+        &builder,
+        &args.run,
+        &config.service,
+        &iox,
+        (args.start_epoch, args.start_step),
+        &stop,
+        &metrics,
+    );
+    runtime.shutdown_timeout(std::time::Duration::from_millis(100));
+    Ok(result?)
+}
+
+async fn wait_for_signals(stop: Arc<AtomicBool>) {
+    use tokio::signal::unix::{SignalKind, signal};
+    let (Ok(mut int), Ok(mut term)) = (
+        signal(SignalKind::interrupt()),
+        signal(SignalKind::terminate()),
+    ) else {
+        tracing::error!("cannot install signal handlers");
+        return;
+    };
+    tokio::select! {
+        _ = int.recv() => tracing::info!("SIGINT: finishing the batch in flight, releasing shared memory"),
+        _ = term.recv() => tracing::info!("SIGTERM: finishing the batch in flight, releasing shared memory"),
+    }
+    stop.store(true, Ordering::SeqCst);
+}
+
+async fn serve_metrics(listener: tokio::net::TcpListener, metrics: Arc<Metrics>) {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    loop {
+        let Ok((mut socket, _)) = listener.accept().await else {
+            continue;
+        };
+        let metrics = metrics.clone();
+        tokio::spawn(async move {
+            let mut request = [0u8; 1024];
+            let _ = socket.read(&mut request).await;
+            let body = metrics.prometheus();
+            let response = format!(
+                "HTTP/1.1 200 OK\r\nContent-Type: text/plain; version=0.0.4\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
+                body.len()
+            );
+            let _ = socket.write_all(response.as_bytes()).await;
+        });
     }
 }
 

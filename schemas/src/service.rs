@@ -8,6 +8,156 @@
 //! | `superflow/<run>/ready` | event | wakes subscribers when a batch was published |
 
 use crate::batch::BatchError;
+use iceoryx2::prelude::ZeroCopySend;
+
+/// Asks the pipeline to continue stream `rank` (0 in broadcast mode) at `(epoch, step)`:
+/// the next batch published on that service is that one. Sent on the control service.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, ZeroCopySend)]
+#[type_name("superflow::ResumeRequest")]
+#[repr(C)]
+pub struct ResumeRequest {
+    /// Shard rank (0 for the broadcast stream).
+    pub rank: u32,
+    /// 1 when the request is for the broadcast stream.
+    pub broadcast: u32,
+    /// Epoch to resume at.
+    pub epoch: u64,
+    /// Step within that epoch.
+    pub step: u64,
+}
+
+/// The pipeline's answer to a [`ResumeRequest`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, ZeroCopySend)]
+#[type_name("superflow::ResumeReply")]
+#[repr(C)]
+pub struct ResumeReply {
+    /// 1: the stream continues at the requested position; 0: refused (see `reason`).
+    pub accepted: u32,
+    /// 0 accepted; 1 no such stream (rank out of range or wrong mode); 2 position past
+    /// the end of the configured epochs.
+    pub reason: u32,
+    /// Sequence number of the first batch at the new position (publisher-wide).
+    pub next_sequence: u64,
+}
+
+/// Quality of service of a batch service, the same for every process that opens it
+/// (iceoryx2 refuses to open a service with incompatible settings). Lossless:
+/// no safe overflow, so a full subscriber queue makes the publisher wait.
+pub mod qos {
+    /// Subscribers per batch service (trainers, probes, Python readers).
+    pub const MAX_SUBSCRIBERS: usize = 8;
+    /// Largest receive queue a subscriber may ask for (batches).
+    pub const MAX_BUFFER: usize = 4;
+    /// Batches a subscriber may hold at once.
+    pub const MAX_BORROWED: usize = 2;
+    /// Publishers: the pipeline, plus one restarting while the old one is cleaned up.
+    pub const MAX_PUBLISHERS: usize = 2;
+    /// Nodes attached to one service.
+    pub const MAX_NODES: usize = 16;
+}
+
+/// The batch service type: `[u8]` payload with a [`crate::batch::BatchHeader`] user header.
+pub type BatchService = iceoryx2::service::port_factory::publish_subscribe::PortFactory<
+    iceoryx2::prelude::ipc::Service,
+    [u8],
+    crate::batch::BatchHeader,
+>;
+
+/// Opens (or creates) the batch service `name` with the [`qos`] settings.
+pub fn open_batch_service(
+    node: &iceoryx2::prelude::Node<iceoryx2::prelude::ipc::Service>,
+    name: &str,
+) -> Result<BatchService, String> {
+    let service_name: iceoryx2::prelude::ServiceName = name
+        .try_into()
+        .map_err(|e| format!("service name `{name}`: {e:?}"))?;
+    node.service_builder(&service_name)
+        .publish_subscribe::<[u8]>()
+        .user_header::<crate::batch::BatchHeader>()
+        .enable_safe_overflow(false)
+        .history_size(0)
+        .subscriber_max_buffer_size(qos::MAX_BUFFER)
+        .subscriber_max_borrowed_samples(qos::MAX_BORROWED)
+        .max_subscribers(qos::MAX_SUBSCRIBERS)
+        .max_publishers(qos::MAX_PUBLISHERS)
+        .max_nodes(qos::MAX_NODES)
+        .open_or_create()
+        .map_err(|e| format!("opening service `{name}`: {e:?}"))
+}
+
+/// The event service that wakes subscribers of `batch_service`.
+pub type ReadyService =
+    iceoryx2::service::port_factory::event::PortFactory<iceoryx2::prelude::ipc::Service>;
+
+/// Opens (or creates) the wake-up event service of a batch service.
+pub fn open_ready_service(
+    node: &iceoryx2::prelude::Node<iceoryx2::prelude::ipc::Service>,
+    batch_service: &str,
+) -> Result<ReadyService, String> {
+    let name = ready_event_service(batch_service);
+    let service_name: iceoryx2::prelude::ServiceName = name
+        .as_str()
+        .try_into()
+        .map_err(|e| format!("service name `{name}`: {e:?}"))?;
+    node.service_builder(&service_name)
+        .event()
+        .max_nodes(qos::MAX_NODES)
+        .max_listeners(qos::MAX_SUBSCRIBERS)
+        .max_notifiers(qos::MAX_PUBLISHERS)
+        .open_or_create()
+        .map_err(|e| format!("opening service `{name}`: {e:?}"))
+}
+
+/// The control service type (request-response).
+pub type ControlService = iceoryx2::service::port_factory::request_response::PortFactory<
+    iceoryx2::prelude::ipc::Service,
+    ResumeRequest,
+    (),
+    ResumeReply,
+    (),
+>;
+
+/// Opens (or creates) the control service of a run.
+pub fn open_control_service(
+    node: &iceoryx2::prelude::Node<iceoryx2::prelude::ipc::Service>,
+    run: &str,
+) -> Result<ControlService, String> {
+    let name = control_service(run).map_err(|e| e.to_string())?;
+    let service_name: iceoryx2::prelude::ServiceName = name
+        .as_str()
+        .try_into()
+        .map_err(|e| format!("service name `{name}`: {e:?}"))?;
+    node.service_builder(&service_name)
+        .request_response::<ResumeRequest, ResumeReply>()
+        .max_clients(qos::MAX_SUBSCRIBERS * 4)
+        .max_servers(qos::MAX_PUBLISHERS)
+        .max_nodes(qos::MAX_NODES * 2)
+        .open_or_create()
+        .map_err(|e| format!("opening service `{name}`: {e:?}"))
+}
+
+/// The iceoryx2 configuration of superflow processes. `prefix` (from
+/// `SUPERFLOW_IOX_PREFIX` in the binaries) isolates one deployment's shared-memory
+/// files and service names from another's on the same host (each test uses its own).
+pub fn iceoryx2_config(prefix: Option<&str>) -> Result<iceoryx2::config::Config, String> {
+    let mut config = iceoryx2::config::Config::default();
+    if let Some(prefix) = prefix {
+        let valid = !prefix.is_empty()
+            && prefix.len() <= 32
+            && prefix
+                .bytes()
+                .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-');
+        if !valid {
+            return Err(format!(
+                "iceoryx2 prefix `{prefix}` must be 1..=32 of A-Z a-z 0-9 _ -"
+            ));
+        }
+        use iceoryx2::prelude::SemanticString as _;
+        config.global.prefix = iceoryx2::prelude::FileName::new(format!("{prefix}_").as_bytes())
+            .map_err(|e| format!("iceoryx2 prefix `{prefix}`: {e:?}"))?;
+    }
+    Ok(config)
+}
 
 /// Prefix of every service name.
 pub const SERVICE_PREFIX: &str = "superflow";

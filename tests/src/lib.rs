@@ -96,3 +96,31 @@ pub fn sample_dataset(drive: &SampleDrive) -> anyhow::Result<superflow_pipeline:
         &IngestConfig::default(),
     )?)
 }
+
+/// The `superflow-pipeline` binary next to this package's binaries (built by
+/// `cargo test --workspace`; built here if a narrower command skipped it).
+pub fn pipeline_binary(sibling: &str) -> PathBuf {
+    let dir = PathBuf::from(sibling)
+        .parent()
+        .map(PathBuf::from)
+        .unwrap_or_default();
+    let path = dir.join("superflow-pipeline");
+    if !path.exists() {
+        let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
+        let status = std::process::Command::new(cargo)
+            .args([
+                "build",
+                "-p",
+                "superflow-pipeline",
+                "--bin",
+                "superflow-pipeline",
+            ])
+            .current_dir(workspace_root())
+            .status();
+        assert!(
+            status.is_ok_and(|s| s.success()),
+            "building superflow-pipeline for the end-to-end tests failed"
+        );
+    }
+    path
+}

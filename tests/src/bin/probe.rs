@@ -1,0 +1,117 @@
+//! `superflow-probe`: a test subscriber. Reads batches of a run and prints one JSON line
+//! per batch (sequence, epoch, step, sample ids, a hash of the payload) so end-to-end
+//! tests can account for every sample; can stall (stop reading) or resume at a position.
+
+use clap::Parser;
+use std::io::Write as _;
+use std::time::Duration;
+use superflow_trainer::subscribe::{Subscription, Target};
+
+#[derive(Debug, Parser)]
+struct Args {
+    /// Run name.
+    #[arg(long)]
+    run: String,
+    /// Shard rank; broadcast when absent.
+    #[arg(long)]
+    rank: Option<u32>,
+    /// Batches to read before exiting.
+    #[arg(long)]
+    count: usize,
+    /// Receive queue length.
+    #[arg(long, default_value_t = 2)]
+    buffer: usize,
+    /// Give up (exit 3) when no batch arrives for this long.
+    #[arg(long, default_value_t = 60)]
+    timeout_secs: u64,
+    /// After this many batches stop reading for `stall_secs` (forever when 0).
+    #[arg(long)]
+    stall_after: Option<usize>,
+    /// See `stall_after`.
+    #[arg(long, default_value_t = 0)]
+    stall_secs: u64,
+    /// Before reading, ask the pipeline to resume this stream at EPOCH STEP.
+    #[arg(long, num_args = 2)]
+    resume: Option<Vec<u64>>,
+    /// After this many batches, ask to resume at `resume_to` (EPOCH STEP).
+    #[arg(long)]
+    resume_after: Option<usize>,
+    /// See `resume_after`.
+    #[arg(long, num_args = 2)]
+    resume_to: Option<Vec<u64>>,
+    /// iceoryx2 isolation prefix.
+    #[arg(long, env = "SUPERFLOW_IOX_PREFIX")]
+    iox_prefix: Option<String>,
+}
+
+/// FNV-1a over the bytes the header's sections cover.
+fn fnv(bytes: &[u8]) -> u64 {
+    bytes.iter().fold(0xcbf2_9ce4_8422_2325u64, |h, b| {
+        (h ^ u64::from(*b)).wrapping_mul(0x0000_0100_0000_01B3)
+    })
+}
+
+fn main() -> anyhow::Result<()> {
+    let args = Args::parse();
+    let iox = superflow_schemas::service::iceoryx2_config(args.iox_prefix.as_deref())
+        .map_err(|e| anyhow::anyhow!(e))?;
+    let target = args.rank.map_or(Target::Broadcast, Target::Rank);
+    let subscription = Subscription::open(&args.run, target, &iox, args.buffer)?;
+    let out = std::io::stdout();
+    let resume = |position: &[u64]| -> anyhow::Result<()> {
+        let reply = subscription.resume(position[0], position[1], Duration::from_secs(30))?;
+        writeln!(
+            out.lock(),
+            "{{\"resume\":[{},{}],\"accepted\":{},\"reason\":{}}}",
+            position[0],
+            position[1],
+            reply.accepted,
+            reply.reason
+        )?;
+        Ok(())
+    };
+    if let Some(position) = &args.resume {
+        resume(position)?;
+    }
+    for n in 0..args.count {
+        if args.stall_after == Some(n) {
+            if args.stall_secs == 0 {
+                loop {
+                    std::thread::sleep(Duration::from_secs(3600));
+                }
+            }
+            std::thread::sleep(Duration::from_secs(args.stall_secs));
+        }
+        if args.resume_after == Some(n)
+            && let Some(position) = &args.resume_to
+        {
+            resume(position)?;
+        }
+        let Some(batch) = subscription.receive(Duration::from_secs(args.timeout_secs))? else {
+            eprintln!(
+                "superflow-probe: no batch within {} s after {n}",
+                args.timeout_secs
+            );
+            std::process::exit(3);
+        };
+        let view = batch.view()?;
+        let meta = view.meta();
+        let ids = view.get::<u64>("sample_ids")?;
+        let samples: Vec<String> = ids
+            .data
+            .chunks_exact(5)
+            .map(|s| format!("[{},{},{},{},{}]", s[0], s[1], s[2], s[3], s[4]))
+            .collect();
+        let covered = &batch.payload()[..batch.header().payload_len as usize];
+        writeln!(
+            out.lock(),
+            "{{\"sequence\":{},\"epoch\":{},\"step\":{},\"samples\":[{}],\"hash\":{}}}",
+            meta.sequence,
+            meta.epoch,
+            meta.step,
+            samples.join(","),
+            fnv(covered)
+        )?;
+    }
+    Ok(())
+}

@@ -1,0 +1,333 @@
+//! The real `superflow-pipeline` streaming to `superflow-probe` subscribers over
+//! iceoryx2 (each test with its own run name and iceoryx2 prefix, so tests run in
+//! parallel): shard accounting, broadcast identity, backpressure without loss, a
+//! SIGKILLed subscriber cleaned up, resume at a position.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
+
+use serde_json::Value;
+use std::collections::BTreeMap;
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+use superflow_tests::{pipeline_binary, workspace_root};
+
+const DRIVE: &str = "recordings/drives/street_ros2.mcap";
+/// Keyframes of the sample drive (its plan; `samples.rs` checks it).
+const KEYFRAMES: u64 = 6;
+
+fn prefix(test: &str) -> String {
+    format!("sft{}{test}", std::process::id())
+}
+
+fn pipeline(prefix: &str, run: &str, args: &[&str]) -> Child {
+    Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-probe")))
+        .args(["--mcap", DRIVE, "--run", run])
+        .args(args)
+        .env("SUPERFLOW_IOX_PREFIX", prefix)
+        .env("RUST_LOG", "info")
+        .current_dir(workspace_root())
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap()
+}
+
+fn probe(prefix: &str, run: &str, args: &[&str]) -> Child {
+    Command::new(env!("CARGO_BIN_EXE_superflow-probe"))
+        .args(["--run", run])
+        .args(args)
+        .env("SUPERFLOW_IOX_PREFIX", prefix)
+        .current_dir(workspace_root())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .unwrap()
+}
+
+/// Waits for `child` with a watchdog; returns (success, stdout, stderr).
+fn finish(mut child: Child, limit: Duration) -> (bool, String, String) {
+    let started = Instant::now();
+    loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            let out = child.wait_with_output().unwrap();
+            return (
+                status.success(),
+                String::from_utf8_lossy(&out.stdout).into_owned(),
+                String::from_utf8_lossy(&out.stderr).into_owned(),
+            );
+        }
+        if started.elapsed() > limit {
+            child.kill().unwrap();
+            let out = child.wait_with_output().unwrap();
+            panic!(
+                "watchdog: process ran past {limit:?}\nstdout:\n{}\nstderr:\n{}",
+                String::from_utf8_lossy(&out.stdout),
+                String::from_utf8_lossy(&out.stderr)
+            );
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// The batches a probe printed.
+fn batches(stdout: &str) -> Vec<Value> {
+    stdout
+        .lines()
+        .map(|l| serde_json::from_str::<Value>(l).unwrap())
+        .filter(|v| v.get("sequence").is_some())
+        .collect()
+}
+
+/// (epoch, keyframe) of every sample of `batches`.
+fn sample_keys(batches: &[Value]) -> Vec<(u64, u64)> {
+    batches
+        .iter()
+        .flat_map(|b| b["samples"].as_array().unwrap().clone())
+        .map(|s| (s[0].as_u64().unwrap(), s[2].as_u64().unwrap()))
+        .collect()
+}
+
+fn no_shared_memory_left(prefix: &str) {
+    let left: Vec<String> = std::fs::read_dir("/dev/shm")
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with(prefix) && !n.ends_with(".global_mgmt"))
+        .collect();
+    assert!(left.is_empty(), "left in /dev/shm: {left:?}");
+}
+
+const LIMIT: Duration = Duration::from_secs(180);
+
+#[test]
+fn two_shards_receive_every_keyframe_once_per_epoch() {
+    let p = prefix("shard");
+    // 6 keyframes, 2 ranks, batches of 2: 2 batches per rank per epoch; 2 epochs.
+    let probes: Vec<Child> = (0..2)
+        .map(|r| probe(&p, "shard", &["--rank", &r.to_string(), "--count", "4"]))
+        .collect();
+    let pipe = pipeline(
+        &p,
+        "shard",
+        &["--world-size", "2", "--batch-size", "2", "--epochs", "2"],
+    );
+    let mut per_rank = Vec::new();
+    for child in probes {
+        let (ok, out, err) = finish(child, LIMIT);
+        assert!(ok, "{err}");
+        per_rank.push(sample_keys(&batches(&out)));
+    }
+    let (ok, _, err) = finish(pipe, LIMIT);
+    assert!(ok, "{err}");
+    for epoch in 0..2 {
+        let mut seen: BTreeMap<u64, usize> = BTreeMap::new();
+        for (rank, keys) in per_rank.iter().enumerate() {
+            let mine: Vec<u64> = keys.iter().filter(|k| k.0 == epoch).map(|k| k.1).collect();
+            assert_eq!(mine.len(), 3, "rank {rank} epoch {epoch}: {mine:?}");
+            for k in mine {
+                *seen.entry(k).or_default() += 1;
+            }
+        }
+        assert_eq!(seen.len() as u64, KEYFRAMES, "epoch {epoch}: {seen:?}");
+        assert!(seen.values().all(|n| *n == 1), "epoch {epoch}: {seen:?}");
+    }
+    no_shared_memory_left(&p);
+}
+
+#[test]
+fn broadcast_subscribers_receive_identical_batches() {
+    let p = prefix("bcast");
+    let probes: Vec<Child> = (0..3)
+        .map(|_| probe(&p, "bcast", &["--count", "3"]))
+        .collect();
+    let pipe = pipeline(
+        &p,
+        "bcast",
+        &["--batch-size", "2", "--epochs", "1", "--subscribers", "3"],
+    );
+    let mut got = Vec::new();
+    for child in probes {
+        let (ok, out, err) = finish(child, LIMIT);
+        assert!(ok, "{err}");
+        got.push(batches(&out));
+    }
+    let (ok, _, err) = finish(pipe, LIMIT);
+    assert!(ok, "{err}");
+    let mut keys = sample_keys(&got[0]);
+    keys.sort_unstable();
+    assert_eq!(keys, (0..KEYFRAMES).map(|k| (0, k)).collect::<Vec<_>>());
+    for other in &got[1..] {
+        assert_eq!(
+            other, &got[0],
+            "broadcast subscribers saw different batches"
+        );
+    }
+    assert_eq!(
+        got[0]
+            .iter()
+            .map(|b| b["step"].as_u64().unwrap())
+            .collect::<Vec<_>>(),
+        [0, 1, 2]
+    );
+    no_shared_memory_left(&p);
+}
+
+/// A subscriber that stops reading for a while makes the publisher wait (its queue of
+/// one batch is full); nothing is dropped, for it or for the other subscriber.
+#[test]
+fn a_stalled_subscriber_slows_the_stream_without_loss() {
+    let p = prefix("stall");
+    let slow = probe(
+        &p,
+        "stall",
+        &[
+            "--count",
+            "6",
+            "--buffer",
+            "1",
+            "--stall-after",
+            "1",
+            "--stall-secs",
+            "3",
+        ],
+    );
+    let fast = probe(&p, "stall", &["--count", "6"]);
+    let started = Instant::now();
+    let pipe = pipeline(
+        &p,
+        "stall",
+        &["--batch-size", "2", "--epochs", "2", "--subscribers", "2"],
+    );
+    let (ok_fast, out_fast, err_fast) = finish(fast, LIMIT);
+    let (ok_slow, out_slow, err_slow) = finish(slow, LIMIT);
+    assert!(ok_fast && ok_slow, "{err_fast}\n{err_slow}");
+    let (ok, _, err) = finish(pipe, LIMIT);
+    assert!(ok, "{err}");
+    let (fast, slow) = (batches(&out_fast), batches(&out_slow));
+    assert_eq!(fast, slow, "both received the same 6 batches");
+    let sequences: Vec<u64> = fast
+        .iter()
+        .map(|b| b["sequence"].as_u64().unwrap())
+        .collect();
+    assert_eq!(sequences, (0..6).collect::<Vec<_>>());
+    // The stall held the stream back (the whole run took at least the stall).
+    assert!(started.elapsed() >= Duration::from_secs(3));
+    no_shared_memory_left(&p);
+}
+
+/// A subscriber killed with SIGKILL while its queue is full is found dead, cleaned up,
+/// and the other subscriber receives the whole stream.
+#[test]
+fn a_killed_subscriber_is_cleaned_up_and_the_stream_goes_on() {
+    let p = prefix("kill");
+    let mut doomed = probe(
+        &p,
+        "kill",
+        &["--count", "9", "--buffer", "1", "--stall-after", "1"],
+    );
+    let survivor = probe(&p, "kill", &["--count", "9"]);
+    let pipe = pipeline(
+        &p,
+        "kill",
+        &["--batch-size", "2", "--epochs", "3", "--subscribers", "2"],
+    );
+    std::thread::sleep(Duration::from_secs(4));
+    doomed.kill().unwrap(); // SIGKILL
+    let _ = doomed.wait();
+    let (ok, out, err) = finish(survivor, LIMIT);
+    assert!(ok, "{err}");
+    let got = batches(&out);
+    assert_eq!(got.len(), 9);
+    let mut keys = sample_keys(&got);
+    keys.sort_unstable();
+    let expected: Vec<(u64, u64)> = (0..3)
+        .flat_map(|e| (0..KEYFRAMES).map(move |k| (e, k)))
+        .collect();
+    assert_eq!(keys, expected);
+    let (ok, _, err) = finish(pipe, LIMIT);
+    assert!(ok, "{err}");
+    assert!(err.contains("a subscriber died"), "{err}");
+    no_shared_memory_left(&p);
+}
+
+/// A subscriber that asks to resume at (epoch, step) receives exactly the batches from
+/// there on, bit-identical to the first time round; a pipeline started at a position
+/// publishes the same batches without building the ones before it.
+#[test]
+fn resuming_at_a_position_replays_exactly_the_following_batches() {
+    let p = prefix("resume");
+    // Read steps 0, 1, 2 of epoch 0, then rewind to (0, 1): expect 1, 2 again, then all
+    // of epoch 1 (the pipeline publishes until its epochs are done, so the reader reads
+    // them all).
+    let reader = probe(
+        &p,
+        "resume",
+        &[
+            "--count",
+            "8",
+            "--resume-after",
+            "3",
+            "--resume-to",
+            "0",
+            "1",
+        ],
+    );
+    let pipe = pipeline(&p, "resume", &["--batch-size", "2", "--epochs", "2"]);
+    let (ok, out, err) = finish(reader, LIMIT);
+    assert!(ok, "{err}");
+    let (ok, _, err) = finish(pipe, LIMIT);
+    assert!(ok, "{err}");
+    assert!(out.contains("\"resume\":[0,1],\"accepted\":1"), "{out}");
+    let got = batches(&out);
+    let positions: Vec<(u64, u64)> = got
+        .iter()
+        .map(|b| (b["epoch"].as_u64().unwrap(), b["step"].as_u64().unwrap()))
+        .collect();
+    assert_eq!(
+        positions,
+        [
+            (0, 0),
+            (0, 1),
+            (0, 2),
+            (0, 1),
+            (0, 2),
+            (1, 0),
+            (1, 1),
+            (1, 2)
+        ]
+    );
+    assert_eq!(got[1]["hash"], got[3]["hash"]);
+    assert_eq!(got[2]["hash"], got[4]["hash"]);
+    assert_eq!(got[1]["samples"], got[3]["samples"]);
+
+    // A pipeline started at (0, 2) publishes that batch first, the same bits (it is the
+    // last batch of the one epoch asked for, so the pipeline then ends).
+    let p2 = prefix("start");
+    let reader = probe(&p2, "start", &["--count", "1"]);
+    let pipe = pipeline(
+        &p2,
+        "start",
+        &[
+            "--batch-size",
+            "2",
+            "--epochs",
+            "1",
+            "--start-epoch",
+            "0",
+            "--start-step",
+            "2",
+        ],
+    );
+    let (ok, out2, err) = finish(reader, LIMIT);
+    assert!(ok, "{err}");
+    let (ok, _, err) = finish(pipe, LIMIT);
+    assert!(ok, "{err}");
+    let first = &batches(&out2)[0];
+    assert_eq!(
+        (first["epoch"].as_u64(), first["step"].as_u64()),
+        (Some(0), Some(2))
+    );
+    assert_eq!(first["hash"], got[2]["hash"]);
+    no_shared_memory_left(&p);
+    no_shared_memory_left(&p2);
+}

@@ -1,0 +1,198 @@
+//! Receiving batches: a subscriber on the run's broadcast service or on one rank's
+//! shard, woken by the ready event; and the resume request of the control service.
+
+use iceoryx2::port::listener::Listener;
+use iceoryx2::port::subscriber::Subscriber;
+use iceoryx2::prelude::*;
+use iceoryx2::sample::Sample;
+use std::time::{Duration, Instant};
+use superflow_schemas::batch::{BatchError, BatchHeader, BatchView};
+use superflow_schemas::service::{self as names, ResumeReply, ResumeRequest};
+
+/// Which stream to read.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Target {
+    /// `superflow/<run>/batches`: every batch.
+    Broadcast,
+    /// `superflow/<run>/rank/<r>`: this rank's share.
+    Rank(u32),
+}
+
+/// A subscription failure.
+#[derive(Debug, thiserror::Error)]
+pub enum SubscribeError {
+    /// iceoryx2 refused something.
+    #[error("{0}")]
+    Ipc(String),
+    /// The run name is not valid.
+    #[error(transparent)]
+    Name(#[from] BatchError),
+    /// No answer to a resume request in time.
+    #[error("the pipeline of run `{run}` did not answer the resume request within {waited:?}")]
+    NoAnswer {
+        /// The run.
+        run: String,
+        /// How long we waited.
+        waited: Duration,
+    },
+}
+
+/// One received batch: header and payload stay in shared memory while this lives.
+pub struct Received {
+    sample: Sample<ipc::Service, [u8], BatchHeader>,
+}
+
+impl std::fmt::Debug for Received {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "Received({} bytes)", self.sample.payload().len())
+    }
+}
+
+impl Received {
+    /// The batch, validated (`schemas/BATCH_FORMAT.md` rules 1–3).
+    pub fn view(&self) -> Result<BatchView<'_>, BatchError> {
+        BatchView::new(self.sample.user_header(), self.sample.payload())
+    }
+
+    /// The raw header.
+    pub fn header(&self) -> &BatchHeader {
+        self.sample.user_header()
+    }
+
+    /// The raw payload.
+    pub fn payload(&self) -> &[u8] {
+        self.sample.payload()
+    }
+}
+
+/// A subscriber to one stream of a run.
+pub struct Subscription {
+    run: String,
+    target: Target,
+    node: Node<ipc::Service>,
+    subscriber: Subscriber<ipc::Service, [u8], BatchHeader>,
+    listener: Listener<ipc::Service>,
+    _service: names::BatchService,
+    _ready: names::ReadyService,
+}
+
+impl std::fmt::Debug for Subscription {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "Subscription({} {:?})", self.run, self.target)
+    }
+}
+
+impl Subscription {
+    /// Subscribes to `target` of `run` with a receive queue of `buffer` batches (at most
+    /// [`names::qos::MAX_BUFFER`]); the service is created if the pipeline is not up
+    /// yet, and the pipeline publishes once its subscribers are there.
+    pub fn open(
+        run: &str,
+        target: Target,
+        iox: &iceoryx2::config::Config,
+        buffer: usize,
+    ) -> Result<Self, SubscribeError> {
+        let name = match target {
+            Target::Broadcast => names::batches_service(run)?,
+            Target::Rank(r) => names::rank_service(run, r)?,
+        };
+        let node = NodeBuilder::new()
+            .config(iox)
+            .create::<ipc::Service>()
+            .map_err(|e| SubscribeError::Ipc(format!("creating the iceoryx2 node: {e:?}")))?;
+        let service = names::open_batch_service(&node, &name).map_err(SubscribeError::Ipc)?;
+        let ready = names::open_ready_service(&node, &name).map_err(SubscribeError::Ipc)?;
+        let listener = ready
+            .listener_builder()
+            .create()
+            .map_err(|e| SubscribeError::Ipc(format!("{name}: listener: {e:?}")))?;
+        let subscriber = service
+            .subscriber_builder()
+            .buffer_size(buffer.clamp(1, names::qos::MAX_BUFFER))
+            .create()
+            .map_err(|e| SubscribeError::Ipc(format!("{name}: subscriber: {e:?}")))?;
+        Ok(Self {
+            run: run.to_string(),
+            target,
+            node,
+            subscriber,
+            listener,
+            _service: service,
+            _ready: ready,
+        })
+    }
+
+    /// The next batch, waiting at most `timeout` (blocked on the ready event, woken by
+    /// each publish); `None` when nothing arrived in time.
+    pub fn receive(&self, timeout: Duration) -> Result<Option<Received>, SubscribeError> {
+        let deadline = Instant::now() + timeout;
+        loop {
+            match self.subscriber.receive() {
+                Ok(Some(sample)) => return Ok(Some(Received { sample })),
+                Ok(None) => {}
+                Err(e) => return Err(SubscribeError::Ipc(format!("receive: {e:?}"))),
+            }
+            let now = Instant::now();
+            if now >= deadline {
+                return Ok(None);
+            }
+            // Bounded slices: a wake-up sent before this listener existed is not lost.
+            let slice = (deadline - now).min(Duration::from_millis(100));
+            self.listener
+                .timed_wait(|_| {}, slice)
+                .map_err(|e| SubscribeError::Ipc(format!("waiting for the ready event: {e:?}")))?;
+        }
+    }
+
+    /// Asks the pipeline to continue this stream at `(epoch, step)`. When accepted,
+    /// batches already queued (older positions) are dropped, so the next
+    /// [`Subscription::receive`] returns batch `(epoch, step)`.
+    pub fn resume(
+        &self,
+        epoch: u64,
+        step: u64,
+        timeout: Duration,
+    ) -> Result<ResumeReply, SubscribeError> {
+        let control =
+            names::open_control_service(&self.node, &self.run).map_err(SubscribeError::Ipc)?;
+        let client = control
+            .client_builder()
+            .create()
+            .map_err(|e| SubscribeError::Ipc(format!("control client: {e:?}")))?;
+        let request = ResumeRequest {
+            rank: match self.target {
+                Target::Broadcast => 0,
+                Target::Rank(r) => r,
+            },
+            broadcast: u32::from(self.target == Target::Broadcast),
+            epoch,
+            step,
+        };
+        let started = Instant::now();
+        // The server may not have connected to this fresh client yet: resend until one
+        // answers.
+        while started.elapsed() < timeout {
+            let pending = client
+                .send_copy(request)
+                .map_err(|e| SubscribeError::Ipc(format!("resume request: {e:?}")))?;
+            let attempt = Instant::now();
+            while attempt.elapsed() < Duration::from_millis(500) && started.elapsed() < timeout {
+                match pending.receive() {
+                    Ok(Some(reply)) => {
+                        let reply = *reply.payload();
+                        if reply.accepted == 1 {
+                            while let Ok(Some(_old)) = self.subscriber.receive() {}
+                        }
+                        return Ok(reply);
+                    }
+                    Ok(None) => std::thread::sleep(Duration::from_millis(2)),
+                    Err(e) => return Err(SubscribeError::Ipc(format!("resume reply: {e:?}"))),
+                }
+            }
+        }
+        Err(SubscribeError::NoAnswer {
+            run: self.run.clone(),
+            waited: timeout,
+        })
+    }
+}
