@@ -331,3 +331,40 @@ fn resuming_at_a_position_replays_exactly_the_following_batches() {
     no_shared_memory_left(&p);
     no_shared_memory_left(&p2);
 }
+
+/// The Python subscriber (`tests/python/subscribe.py`: the iceoryx2 package and numpy,
+/// zero-copy views into the shared memory) reads the same batches as the Rust reader,
+/// section by section.
+#[test]
+fn python_reads_batches_as_the_rust_reader_does() {
+    let p = prefix("py");
+    let python = Command::new("python3")
+        .args(["tests/python/subscribe.py", "--run", "py", "--count", "2", "--prefix", &p])
+        .current_dir(workspace_root())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("python3 runs (pip install -r tests/python/requirements.txt)");
+    let rust = probe(&p, "py", &["--count", "2", "--sections"]);
+    let pipe = pipeline(&p, "py", &["--batch-size", "3", "--epochs", "1", "--subscribers", "2"]);
+    let (ok, py_out, err) = finish(python, LIMIT);
+    assert!(ok, "{err}");
+    let (ok, rust_out, err) = finish(rust, LIMIT);
+    assert!(ok, "{err}");
+    let (ok, _, err) = finish(pipe, LIMIT);
+    assert!(ok, "{err}");
+    let py: Vec<Value> = py_out.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    let rs = batches(&rust_out);
+    assert_eq!(py.len(), 2);
+    for (a, b) in py.iter().zip(&rs) {
+        assert_eq!(a["sequence"], b["sequence"]);
+        assert_eq!(a["zero_copy"], true, "numpy arrays lie inside the shared memory");
+        let (sa, sb) = (a["sections"].as_object().unwrap(), b["sections"].as_object().unwrap());
+        assert_eq!(sa.len(), sb.len());
+        assert!(sa.len() >= 40, "{} sections", sa.len());
+        for (name, section) in sb {
+            assert_eq!(&sa[name], section, "section {name}");
+        }
+    }
+    no_shared_memory_left(&p);
+}

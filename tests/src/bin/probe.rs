@@ -39,9 +39,23 @@ struct Args {
     /// See `resume_after`.
     #[arg(long, num_args = 2)]
     resume_to: Option<Vec<u64>>,
+    /// Print each section's dtype, shape and checksum (as `tests/python/subscribe.py`).
+    #[arg(long)]
+    sections: bool,
     /// iceoryx2 isolation prefix.
     #[arg(long, env = "SUPERFLOW_IOX_PREFIX")]
     iox_prefix: Option<String>,
+}
+
+/// `sum_i (b_i + 1) * (i * K + 1) mod 2^64`, the checksum `subscribe.py` computes with
+/// numpy.
+fn checksum(bytes: &[u8]) -> u64 {
+    bytes.iter().enumerate().fold(0u64, |acc, (i, b)| {
+        let w = (i as u64)
+            .wrapping_mul(0x9E37_79B9_7F4A_7C15)
+            .wrapping_add(1);
+        acc.wrapping_add((u64::from(*b) + 1).wrapping_mul(w))
+    })
 }
 
 /// FNV-1a over the bytes the header's sections cover.
@@ -103,9 +117,26 @@ fn main() -> anyhow::Result<()> {
             .map(|s| format!("[{},{},{},{},{}]", s[0], s[1], s[2], s[3], s[4]))
             .collect();
         let covered = &batch.payload()[..batch.header().payload_len as usize];
+        let sections = if args.sections {
+            let entries: Vec<String> = view
+                .section_names()
+                .map(|name| {
+                    let (dtype, shape) = view.describe(name).map_err(|e| anyhow::anyhow!(e))?;
+                    let bytes = view.bytes(name).map_err(|e| anyhow::anyhow!(e))?;
+                    Ok(format!(
+                        "\"{name}\":{{\"dtype\":\"{}\",\"shape\":{shape:?},\"checksum\":{}}}",
+                        dtype.numpy(),
+                        checksum(bytes)
+                    ))
+                })
+                .collect::<anyhow::Result<_>>()?;
+            format!(",\"sections\":{{{}}}", entries.join(","))
+        } else {
+            String::new()
+        };
         writeln!(
             out.lock(),
-            "{{\"sequence\":{},\"epoch\":{},\"step\":{},\"samples\":[{}],\"hash\":{}}}",
+            "{{\"sequence\":{},\"epoch\":{},\"step\":{},\"samples\":[{}],\"hash\":{}{sections}}}",
             meta.sequence,
             meta.epoch,
             meta.step,
