@@ -459,6 +459,7 @@ pub fn serve(
             _lifetime: std::marker::PhantomData,
         });
     }
+    let publisher_ids: Vec<u128> = out.iter().map(|s| s.publisher.id().value()).collect();
     let control = names::open_control_service(&node, run).map_err(ipc("control"))?;
     let server = control
         .server_builder()
@@ -474,6 +475,7 @@ pub fn serve(
 
     let (tx, rx) = sync_channel::<Prepared>(config.prefetch as usize);
     let producer_done = AtomicBool::new(false);
+    let producer_idle = AtomicBool::new(false);
     let shape = BatchShape {
         height: builder.config().image_height as usize,
         width: builder.config().image_width as usize,
@@ -486,7 +488,16 @@ pub fn serve(
     );
     let result = std::thread::scope(|scope| {
         scope.spawn(|| {
-            produce(builder, &schedule, config, &cursors, &tx, stop, metrics);
+            produce(
+                builder,
+                &schedule,
+                config,
+                &cursors,
+                &tx,
+                stop,
+                &producer_idle,
+                metrics,
+            );
             producer_done.store(true, Ordering::SeqCst);
             drop(tx);
         });
@@ -497,20 +508,37 @@ pub fn serve(
             if stop.load(Ordering::SeqCst) {
                 break Ok(());
             }
-            serve_control(&server, &cursors, &schedule, config, sequence, metrics);
+            serve_control(
+                &server,
+                &publisher_ids,
+                &cursors,
+                &schedule,
+                config,
+                sequence,
+                metrics,
+            );
             let waited = Instant::now();
+            // Read before waiting: the producer turns idle only after its last send, so
+            // idle-then-timeout means every prepared batch was taken.
+            let idle_before = producer_idle.load(Ordering::SeqCst);
             let prepared = match rx.recv_timeout(Duration::from_millis(20)) {
                 Ok(p) => p,
                 Err(RecvTimeoutError::Timeout) => {
-                    if finished_at.is_none() {
+                    let done = config.epochs > 0
+                        && idle_before
+                        && cursors
+                            .lock()
+                            .map(|c| c.positions.iter().all(|(e, _)| *e >= config.epochs))
+                            .unwrap_or(true);
+                    if !done {
+                        finished_at = None;
                         metrics
                             .wait_for_build_nanos
                             .fetch_add(waited.elapsed().as_nanos() as u64, Ordering::Relaxed);
+                        continue;
                     }
-                    continue;
-                }
-                Err(RecvTimeoutError::Disconnected) => {
-                    // All epochs published: linger while subscribers are attached.
+                    // All epochs published: serve resume requests while subscribers
+                    // are attached, then end.
                     let since = *finished_at.get_or_insert_with(Instant::now);
                     let attached: usize = out
                         .iter()
@@ -524,9 +552,9 @@ pub fn serve(
                         break Ok(());
                     }
                     let _ = node.try_cleanup_dead_nodes();
-                    std::thread::sleep(Duration::from_millis(50));
                     continue;
                 }
+                Err(RecvTimeoutError::Disconnected) => break Ok(()),
             };
             metrics
                 .wait_for_build_nanos
@@ -554,7 +582,15 @@ pub fn serve(
                     tracing::info!(service = %stream.name, required, "waiting for subscribers");
                     announced = true;
                 }
-                serve_control(&server, &cursors, &schedule, config, sequence, metrics);
+                serve_control(
+                    &server,
+                    &publisher_ids,
+                    &cursors,
+                    &schedule,
+                    config,
+                    sequence,
+                    metrics,
+                );
                 let _ = node.try_cleanup_dead_nodes();
                 std::thread::sleep(Duration::from_millis(20));
             }
@@ -697,6 +733,7 @@ fn produce(
     cursors: &Mutex<Cursors>,
     tx: &SyncSender<Prepared>,
     stop: &AtomicBool,
+    idle: &AtomicBool,
     metrics: &Metrics,
 ) {
     let streams = config.streams() as usize;
@@ -712,20 +749,16 @@ fn produce(
         if config.epochs > 0 && epoch >= config.epochs {
             finished[stream] = true;
             if finished.iter().all(|f| *f) {
-                // Wait for a resume request that rewinds a stream, or for the end.
-                std::thread::sleep(Duration::from_millis(20));
-                if cursors
-                    .lock()
-                    .map(|c| c.positions.iter().all(|(e, _)| *e >= config.epochs))
-                    .unwrap_or(true)
-                {
-                    return;
-                }
+                // Every stream is done: idle until a resume request rewinds one (the
+                // publisher decides when the service ends).
+                idle.store(true, Ordering::SeqCst);
+                std::thread::sleep(Duration::from_millis(10));
                 finished.iter_mut().for_each(|f| *f = false);
             }
             stream = (stream + 1) % streams;
             continue;
         }
+        idle.store(false, Ordering::SeqCst);
         finished[stream] = false;
         if orders.len() > 4 {
             orders.retain(|e, _| *e + 1 >= epoch);
@@ -808,6 +841,7 @@ fn produce(
 /// Answers pending resume requests.
 fn serve_control(
     server: &iceoryx2::port::server::Server<ipc::Service, ResumeRequest, (), ResumeReply, ()>,
+    publishers: &[u128],
     cursors: &Mutex<Cursors>,
     schedule: &Schedule,
     config: &ServiceConfig,
@@ -824,23 +858,31 @@ fn serve_control(
             }
         };
         let ask = *request.payload();
+        let publisher = publishers.get(ask.rank as usize).copied().unwrap_or(0);
+        let id = |mut reply: ResumeReply| {
+            reply.publisher_lo = publisher as u64;
+            reply.publisher_hi = (publisher >> 64) as u64;
+            reply
+        };
         let wants_broadcast = ask.broadcast == 1;
         let reply = if wants_broadcast != (config.mode == Mode::Broadcast)
             || ask.rank >= config.streams()
         {
-            ResumeReply {
+            id(ResumeReply {
                 accepted: 0,
                 reason: 1,
                 next_sequence: sequence,
-            }
+                ..Default::default()
+            })
         } else if (config.epochs > 0 && ask.epoch >= config.epochs)
             || ask.step > schedule.steps(ask.rank as usize)
         {
-            ResumeReply {
+            id(ResumeReply {
                 accepted: 0,
                 reason: 2,
                 next_sequence: sequence,
-            }
+                ..Default::default()
+            })
         } else {
             let mut c = cursors.lock().unwrap_or_else(|e| e.into_inner());
             c.positions[ask.rank as usize] = (ask.epoch, ask.step);
@@ -852,11 +894,12 @@ fn serve_control(
                 step = ask.step,
                 "resume requested"
             );
-            ResumeReply {
+            id(ResumeReply {
                 accepted: 1,
                 reason: 0,
                 next_sequence: sequence,
-            }
+                ..Default::default()
+            })
         };
         match request.loan_uninit() {
             Ok(response) => {

@@ -38,6 +38,18 @@ pub struct ResumeReply {
     pub reason: u32,
     /// Sequence number of the first batch at the new position (publisher-wide).
     pub next_sequence: u64,
+    /// Low 64 bits of the id of the publisher that will send it (batches of an earlier,
+    /// dead pipeline carry another id).
+    pub publisher_lo: u64,
+    /// High 64 bits of that id.
+    pub publisher_hi: u64,
+}
+
+impl ResumeReply {
+    /// The publisher id (iceoryx2 `UniquePublisherId` value).
+    pub fn publisher(&self) -> u128 {
+        (u128::from(self.publisher_hi) << 64) | u128::from(self.publisher_lo)
+    }
 }
 
 /// Quality of service of a batch service, the same for every process that opens it

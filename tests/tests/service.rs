@@ -274,7 +274,7 @@ fn resuming_at_a_position_replays_exactly_the_following_batches() {
     );
     let pipe = pipeline(&p, "resume", &["--batch-size", "2", "--epochs", "2"]);
     let (ok, out, err) = finish(reader, LIMIT);
-    assert!(ok, "{err}");
+    assert!(ok, "{err}\n{out}");
     let (ok, _, err) = finish(pipe, LIMIT);
     assert!(ok, "{err}");
     assert!(out.contains("\"resume\":[0,1],\"accepted\":1"), "{out}");
@@ -339,32 +339,98 @@ fn resuming_at_a_position_replays_exactly_the_following_batches() {
 fn python_reads_batches_as_the_rust_reader_does() {
     let p = prefix("py");
     let python = Command::new("python3")
-        .args(["tests/python/subscribe.py", "--run", "py", "--count", "2", "--prefix", &p])
+        .args([
+            "tests/python/subscribe.py",
+            "--run",
+            "py",
+            "--count",
+            "2",
+            "--prefix",
+            &p,
+        ])
         .current_dir(workspace_root())
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
         .expect("python3 runs (pip install -r tests/python/requirements.txt)");
     let rust = probe(&p, "py", &["--count", "2", "--sections"]);
-    let pipe = pipeline(&p, "py", &["--batch-size", "3", "--epochs", "1", "--subscribers", "2"]);
+    let pipe = pipeline(
+        &p,
+        "py",
+        &["--batch-size", "3", "--epochs", "1", "--subscribers", "2"],
+    );
     let (ok, py_out, err) = finish(python, LIMIT);
     assert!(ok, "{err}");
     let (ok, rust_out, err) = finish(rust, LIMIT);
     assert!(ok, "{err}");
     let (ok, _, err) = finish(pipe, LIMIT);
     assert!(ok, "{err}");
-    let py: Vec<Value> = py_out.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    let py: Vec<Value> = py_out
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap())
+        .collect();
     let rs = batches(&rust_out);
     assert_eq!(py.len(), 2);
     for (a, b) in py.iter().zip(&rs) {
         assert_eq!(a["sequence"], b["sequence"]);
-        assert_eq!(a["zero_copy"], true, "numpy arrays lie inside the shared memory");
-        let (sa, sb) = (a["sections"].as_object().unwrap(), b["sections"].as_object().unwrap());
+        assert_eq!(
+            a["zero_copy"], true,
+            "numpy arrays lie inside the shared memory"
+        );
+        let (sa, sb) = (
+            a["sections"].as_object().unwrap(),
+            b["sections"].as_object().unwrap(),
+        );
         assert_eq!(sa.len(), sb.len());
         assert!(sa.len() >= 40, "{} sections", sa.len());
         for (name, section) in sb {
             assert_eq!(&sa[name], section, "section {name}");
         }
     }
+    no_shared_memory_left(&p);
+}
+
+/// A pipeline killed with SIGKILL mid-epoch: the subscriber waits; a new pipeline comes
+/// up, the subscriber asks for its position and receives exactly the rest of the epoch.
+#[test]
+fn a_restarted_pipeline_continues_where_the_subscriber_is() {
+    let p = prefix("restart");
+    // 6 batches of 1; read 2, pause 5 s (the pipeline is killed and restarted meanwhile),
+    // then ask for (0, 2) and read the remaining 4.
+    let reader = probe(
+        &p,
+        "restart",
+        &[
+            "--count",
+            "6",
+            "--buffer",
+            "1",
+            "--stall-after",
+            "2",
+            "--stall-secs",
+            "5",
+            "--resume-after",
+            "2",
+            "--resume-to",
+            "0",
+            "2",
+        ],
+    );
+    let mut first = pipeline(&p, "restart", &["--batch-size", "1", "--epochs", "1"]);
+    std::thread::sleep(Duration::from_millis(3000));
+    first.kill().unwrap(); // SIGKILL
+    let _ = first.wait();
+    let second = pipeline(&p, "restart", &["--batch-size", "1", "--epochs", "1"]);
+    let (ok, out, err) = finish(reader, LIMIT);
+    assert!(ok, "{err}\n{out}");
+    let (ok, _, err) = finish(second, LIMIT);
+    assert!(ok, "{err}");
+    assert!(out.contains("\"resume\":[0,2],\"accepted\":1"), "{out}");
+    let got = batches(&out);
+    let steps: Vec<u64> = got.iter().map(|b| b["step"].as_u64().unwrap()).collect();
+    assert_eq!(steps, [0, 1, 2, 3, 4, 5], "{out}");
+    let mut keys = sample_keys(&got);
+    keys.sort_unstable();
+    assert_eq!(keys, (0..KEYFRAMES).map(|k| (0, k)).collect::<Vec<_>>());
     no_shared_memory_left(&p);
 }

@@ -54,6 +54,11 @@ impl Received {
         BatchView::new(self.sample.user_header(), self.sample.payload())
     }
 
+    /// Id of the publisher that sent it.
+    pub fn origin(&self) -> u128 {
+        self.sample.origin().value()
+    }
+
     /// The raw header.
     pub fn header(&self) -> &BatchHeader {
         self.sample.user_header()
@@ -72,6 +77,7 @@ pub struct Subscription {
     node: Node<ipc::Service>,
     subscriber: Subscriber<ipc::Service, [u8], BatchHeader>,
     listener: Listener<ipc::Service>,
+    stash: std::cell::RefCell<Option<Received>>,
     _service: names::BatchService,
     _ready: names::ReadyService,
 }
@@ -117,6 +123,7 @@ impl Subscription {
             node,
             subscriber,
             listener,
+            stash: std::cell::RefCell::new(None),
             _service: service,
             _ready: ready,
         })
@@ -125,6 +132,9 @@ impl Subscription {
     /// The next batch, waiting at most `timeout` (blocked on the ready event, woken by
     /// each publish); `None` when nothing arrived in time.
     pub fn receive(&self, timeout: Duration) -> Result<Option<Received>, SubscribeError> {
+        if let Some(stashed) = self.stash.borrow_mut().take() {
+            return Ok(Some(stashed));
+        }
         let deadline = Instant::now() + timeout;
         loop {
             match self.subscriber.receive() {
@@ -144,9 +154,11 @@ impl Subscription {
         }
     }
 
-    /// Asks the pipeline to continue this stream at `(epoch, step)`. When accepted,
-    /// batches already queued (older positions) are dropped, so the next
-    /// [`Subscription::receive`] returns batch `(epoch, step)`.
+    /// Asks the pipeline to continue this stream at `(epoch, step)`. When accepted, the
+    /// next [`Subscription::receive`] returns batch `(epoch, step)`: batches of the old
+    /// position still queued are dropped (they are told apart by the reply's sequence
+    /// number). While waiting for the answer the queue keeps being drained, so a
+    /// pipeline blocked on this subscriber's full queue can get to the request.
     pub fn resume(
         &self,
         epoch: u64,
@@ -168,25 +180,64 @@ impl Subscription {
             epoch,
             step,
         };
+        let wanted = |r: &Received| {
+            let h = r.header();
+            (h.epoch, h.step) == (epoch, step)
+        };
+        self.stash.borrow_mut().take();
         let started = Instant::now();
-        // The server may not have connected to this fresh client yet: resend until one
-        // answers.
+        // The server may not have connected to this fresh client yet (or the pipeline
+        // is restarting): resend until one answers.
         while started.elapsed() < timeout {
             let pending = client
                 .send_copy(request)
                 .map_err(|e| SubscribeError::Ipc(format!("resume request: {e:?}")))?;
             let attempt = Instant::now();
             while attempt.elapsed() < Duration::from_millis(500) && started.elapsed() < timeout {
-                match pending.receive() {
-                    Ok(Some(reply)) => {
-                        let reply = *reply.payload();
-                        if reply.accepted == 1 {
-                            while let Ok(Some(_old)) = self.subscriber.receive() {}
+                let reply = match pending.receive() {
+                    Ok(Some(reply)) => Some(*reply.payload()),
+                    Ok(None) => None,
+                    Err(e) => return Err(SubscribeError::Ipc(format!("resume reply: {e:?}"))),
+                };
+                let mut stash = self.stash.borrow_mut();
+                if let Some(reply) = reply {
+                    if reply.accepted == 1 {
+                        // Everything published before the reply is older than it.
+                        let new = |r: &Received| {
+                            r.origin() == reply.publisher()
+                                && r.header().sequence >= reply.next_sequence
+                        };
+                        if stash.as_ref().is_some_and(|s| !new(s)) {
+                            stash.take();
                         }
-                        return Ok(reply);
+                        while stash.is_none() {
+                            match self.subscriber.receive() {
+                                Ok(Some(sample)) => {
+                                    let r = Received { sample };
+                                    if new(&r) {
+                                        *stash = Some(r);
+                                    }
+                                }
+                                Ok(None) => break,
+                                Err(e) => {
+                                    return Err(SubscribeError::Ipc(format!("receive: {e:?}")));
+                                }
+                            }
+                        }
+                    }
+                    return Ok(reply);
+                }
+                // No answer yet: keep the queue moving; keep only a batch at the asked
+                // position (it may already be the answer's first batch).
+                match self.subscriber.receive() {
+                    Ok(Some(sample)) => {
+                        let r = Received { sample };
+                        if wanted(&r) {
+                            *stash = Some(r);
+                        }
                     }
                     Ok(None) => std::thread::sleep(Duration::from_millis(2)),
-                    Err(e) => return Err(SubscribeError::Ipc(format!("resume reply: {e:?}"))),
+                    Err(e) => return Err(SubscribeError::Ipc(format!("receive: {e:?}"))),
                 }
             }
         }

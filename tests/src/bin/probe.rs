@@ -76,11 +76,13 @@ fn main() -> anyhow::Result<()> {
         let reply = subscription.resume(position[0], position[1], Duration::from_secs(30))?;
         writeln!(
             out.lock(),
-            "{{\"resume\":[{},{}],\"accepted\":{},\"reason\":{}}}",
+            "{{\"resume\":[{},{}],\"accepted\":{},\"reason\":{},\"next_sequence\":{},\"publisher\":\"{:x}\"}}",
             position[0],
             position[1],
             reply.accepted,
-            reply.reason
+            reply.reason,
+            reply.next_sequence,
+            reply.publisher()
         )?;
         Ok(())
     };
@@ -136,12 +138,13 @@ fn main() -> anyhow::Result<()> {
         };
         writeln!(
             out.lock(),
-            "{{\"sequence\":{},\"epoch\":{},\"step\":{},\"samples\":[{}],\"hash\":{}{sections}}}",
+            "{{\"sequence\":{},\"epoch\":{},\"step\":{},\"samples\":[{}],\"hash\":{},\"origin\":\"{:x}\"{sections}}}",
             meta.sequence,
             meta.epoch,
             meta.step,
             samples.join(","),
-            fnv(covered)
+            fnv(covered),
+            batch.origin()
         )?;
     }
     Ok(())
