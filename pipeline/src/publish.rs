@@ -726,6 +726,7 @@ fn dead_subscriber_handler(
 }
 
 /// Builds batches ahead, stream by stream in turn, from each stream's cursor.
+#[allow(clippy::too_many_arguments)]
 fn produce(
     builder: &SampleBuilder<'_>,
     schedule: &Schedule,
