@@ -434,3 +434,65 @@ fn a_restarted_pipeline_continues_where_the_subscriber_is() {
     assert_eq!(keys, (0..KEYFRAMES).map(|k| (0, k)).collect::<Vec<_>>());
     no_shared_memory_left(&p);
 }
+
+fn counter(text: &str, name: &str) -> u64 {
+    text.lines()
+        .find_map(|l| l.strip_prefix(&format!("{name} ")))
+        .and_then(|v| v.trim().parse().ok())
+        .unwrap_or(0)
+}
+
+/// `--metrics-addr` serves Prometheus text; SIGTERM stops the pipeline cleanly (exit 0,
+/// shared memory released) even while it waits for subscribers.
+#[test]
+fn metrics_endpoint_and_sigterm() {
+    use std::io::{Read, Write};
+    let p = prefix("metrics");
+    let port = 20_000 + (std::process::id() % 20_000) as u16;
+    let addr = format!("127.0.0.1:{port}");
+    let reader = probe(&p, "metrics", &["--count", "1"]);
+    let pipe = pipeline(
+        &p,
+        "metrics",
+        &["--batch-size", "2", "--metrics-addr", &addr],
+    );
+    let (ok, _, err) = finish(reader, LIMIT);
+    assert!(ok, "{err}");
+    // The pipeline now waits for a subscriber for its next batch: scrape it.
+    let started = Instant::now();
+    let text = loop {
+        let attempt = std::net::TcpStream::connect(&addr).and_then(|mut s| {
+            s.write_all(b"GET /metrics HTTP/1.1\r\nHost: x\r\n\r\n")?;
+            let mut text = String::new();
+            s.read_to_string(&mut text)?;
+            Ok(text)
+        });
+        match attempt {
+            Ok(text) if counter(&text, "superflow_batches_total") >= 1 => break text,
+            _ if started.elapsed() > Duration::from_secs(60) => {
+                panic!("no metrics at {addr}: {attempt:?}")
+            }
+            _ => std::thread::sleep(Duration::from_millis(100)),
+        }
+    };
+    assert!(text.starts_with("HTTP/1.1 200 OK"), "{text}");
+    assert_eq!(
+        counter(&text, "superflow_samples_total"),
+        2 * counter(&text, "superflow_batches_total")
+    );
+    for name in [
+        "superflow_backpressure_seconds_total",
+        "superflow_stage_voxels_seconds_total",
+    ] {
+        assert!(text.contains(name), "{name} missing:\n{text}");
+    }
+    let status = Command::new("kill")
+        .args(["-TERM", &pipe.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let (ok, _, err) = finish(pipe, LIMIT);
+    assert!(ok, "{err}");
+    assert!(err.contains("SIGTERM"), "{err}");
+    no_shared_memory_left(&p);
+}
