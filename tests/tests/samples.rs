@@ -482,3 +482,72 @@ fn slic_superpixels_follow_the_scene() {
     );
     assert!(purity > 0.85, "{purity}");
 }
+
+/// Class maps in a sidecar file (`<drive>.superpixels.mcap` next to `<drive>.mcap`, as
+/// when superpixels are computed offline) join the drive: naming only the drive finds
+/// them, and the samples are the same as from the single file.
+#[test]
+fn class_maps_from_a_sidecar_mcap() {
+    use std::collections::BTreeMap;
+    use superflow_recordings::out::McapOut;
+    let drive = sample_drive(Dialect::Ros2).unwrap();
+    let dir = std::env::temp_dir().join(format!("superflow-sidecar-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let (mut main, mut side) = (McapOut::default(), McapOut::default());
+    let mut channels: BTreeMap<u16, (bool, usize)> = BTreeMap::new();
+    for message in mcap::MessageStream::new(&drive.bytes).unwrap() {
+        let m = message.unwrap();
+        let is_class_map = m.channel.topic.ends_with("/superpixels");
+        let out = if is_class_map { &mut side } else { &mut main };
+        let (_, id) = *channels.entry(m.channel.id).or_insert_with(|| {
+            let schema = m.channel.schema.as_ref().unwrap();
+            let id = out.channel(
+                &m.channel.topic,
+                "copy",
+                (&schema.name, &schema.encoding, &schema.data),
+                &m.channel.message_encoding,
+                BTreeMap::new(),
+            );
+            (is_class_map, id)
+        });
+        out.message(
+            id,
+            m.log_time as i64,
+            m.publish_time as i64,
+            m.data.to_vec(),
+        );
+    }
+    let (main_bytes, _) = main.finish("ros2", Some(mcap::Compression::Zstd)).unwrap();
+    let (side_bytes, _) = side.finish("ros2", Some(mcap::Compression::Zstd)).unwrap();
+    let main_path = dir.join("street.mcap");
+    std::fs::write(&main_path, main_bytes).unwrap();
+    std::fs::write(dir.join("street.superpixels.mcap"), side_bytes).unwrap();
+
+    for input in [main_path.clone(), dir.clone()] {
+        let ds = Dataset::open(std::slice::from_ref(&input), &Default::default()).unwrap();
+        assert_eq!(
+            ds.drives.len(),
+            1,
+            "{input:?}: the sidecar is not a drive of its own"
+        );
+        assert_eq!(ds.drives[0].files.len(), 2);
+        assert!(
+            ds.drives[0]
+                .cameras
+                .iter()
+                .all(|c| !c.superpixels.is_empty())
+        );
+        let split = SampleBuilder::new(&ds, no_augment())
+            .unwrap()
+            .build_keyframe(2, 0, 2)
+            .unwrap();
+        let original = open(Dialect::Ros2);
+        let whole = SampleBuilder::new(&original, no_augment())
+            .unwrap()
+            .build_keyframe(2, 0, 2)
+            .unwrap();
+        assert!(split.class_superpixels);
+        assert!(content(split) == content(whole), "{input:?}");
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
