@@ -169,7 +169,16 @@ impl BatchPlan {
 
     /// Writes `samples` (the ones planned) into `payload`, every section in place.
     pub fn write(&self, samples: &[Sample], payload: &mut [u8]) -> Result<(), BatchError> {
-        let mut w = BatchWriter::new(&self.layout, payload)?;
+        self.write_with(samples, BatchWriter::new(&self.layout, payload)?)
+    }
+
+    /// [`BatchPlan::write`] into a payload that is already all zeros (a freshly zeroed
+    /// loan): one pass over the memory fewer.
+    pub fn write_zeroed(&self, samples: &[Sample], payload: &mut [u8]) -> Result<(), BatchError> {
+        self.write_with(samples, BatchWriter::over_zeroed(&self.layout, payload)?)
+    }
+
+    fn write_with(&self, samples: &[Sample], mut w: BatchWriter<'_>) -> Result<(), BatchError> {
         let mut ids = self.ids.iter().copied();
         let mut next = || {
             ids.next()

@@ -951,7 +951,7 @@ fn publish(
         .map_err(|e| ServiceError::Ipc(format!("{}: loaning {len} bytes: {e:?}", stream.name)))?;
     let mut sample = sample.write_from_fn(|_| 0u8);
     *sample.user_header_mut() = header;
-    plan.write(&prepared.samples, sample.payload_mut())
+    plan.write_zeroed(&prepared.samples, sample.payload_mut())
         .map_err(|e| ServiceError::Config(format!("{}: {e}", stream.name)))?;
     metrics
         .write_nanos

@@ -30,6 +30,11 @@ fn a_batch_holds_its_samples_with_global_rows() {
     let first = payload.to_vec();
     plan.write(&samples, payload).unwrap();
     assert!(first == payload);
+    // Into a freshly zeroed loan (the service's path): the same bytes.
+    let mut zeroed = vec![0u64; layout.payload_len().div_ceil(8)];
+    let zeroed_bytes: &mut [u8] = bytemuck::cast_slice_mut(&mut zeroed);
+    plan.write_zeroed(&samples, zeroed_bytes).unwrap();
+    assert!(first[..] == zeroed_bytes[..first.len()]);
     let meta = BatchMeta {
         run: "batch-test".into(),
         epoch: 0,

@@ -171,6 +171,22 @@ impl<'a> BatchWriter<'a> {
     /// Splits `payload` (at least [`BatchLayout::payload_len`] bytes, 8-byte aligned)
     /// into the layout's sections.
     pub fn new(layout: &'a BatchLayout, payload: &'a mut [u8]) -> Result<Self, BatchError> {
+        Self::split(layout, payload, true)
+    }
+
+    /// Like [`BatchWriter::new`] for a payload the caller has just zeroed (an iceoryx2
+    /// slice loaned with `write_from_fn(|_| 0)`): skips the second zeroing pass. Bytes
+    /// that are not zero break rule 4 (identical batches are bit-identical), nothing
+    /// else.
+    pub fn over_zeroed(layout: &'a BatchLayout, payload: &'a mut [u8]) -> Result<Self, BatchError> {
+        Self::split(layout, payload, false)
+    }
+
+    fn split(
+        layout: &'a BatchLayout,
+        payload: &'a mut [u8],
+        zero: bool,
+    ) -> Result<Self, BatchError> {
         if payload.len() < layout.payload_len {
             return Err(BatchError::BufferTooSmall {
                 needed: layout.payload_len as u64,
@@ -192,7 +208,9 @@ impl<'a> BatchWriter<'a> {
             });
         }
         let (used, _) = payload.split_at_mut(layout.payload_len);
-        used.fill(0);
+        if zero {
+            used.fill(0);
+        }
         let mut rest = used;
         let mut consumed = 0usize;
         let mut slices = Vec::with_capacity(layout.sections.len());
