@@ -231,7 +231,20 @@ fn a_killed_subscriber_is_cleaned_up_and_the_stream_goes_on() {
         "kill",
         &["--batch-size", "2", "--epochs", "3", "--subscribers", "2"],
     );
-    std::thread::sleep(Duration::from_secs(4));
+    // Kill it once it has received its first batch (it then stops reading, its queue
+    // of one fills up and the publisher waits on it).
+    let mut lines = std::io::BufReader::new(doomed.stdout.take().unwrap());
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let mut line = String::new();
+        let _ = std::io::BufRead::read_line(&mut lines, &mut line);
+        let _ = tx.send(line);
+    });
+    let first = rx
+        .recv_timeout(LIMIT)
+        .expect("the doomed subscriber got a batch");
+    assert!(first.contains("\"sequence\":0"), "{first}");
+    std::thread::sleep(Duration::from_secs(1));
     doomed.kill().unwrap(); // SIGKILL
     let _ = doomed.wait();
     let (ok, out, err) = finish(survivor, LIMIT);
@@ -416,13 +429,31 @@ fn a_restarted_pipeline_continues_where_the_subscriber_is() {
             "2",
         ],
     );
+    let mut reader = reader;
+    let lines = std::io::BufReader::new(reader.stdout.take().unwrap());
+    let (tx, rx) = std::sync::mpsc::channel::<String>();
+    std::thread::spawn(move || {
+        for line in std::io::BufRead::lines(lines).map_while(Result::ok) {
+            let _ = tx.send(line);
+        }
+    });
     let mut first = pipeline(&p, "restart", &["--batch-size", "1", "--epochs", "1"]);
-    std::thread::sleep(Duration::from_millis(3000));
+    // Kill the first pipeline once the subscriber has its first 2 batches (it then
+    // pauses before asking for its position).
+    let mut out = String::new();
+    for _ in 0..2 {
+        out.push_str(&rx.recv_timeout(LIMIT).expect("batches before the kill"));
+        out.push('\n');
+    }
     first.kill().unwrap(); // SIGKILL
     let _ = first.wait();
     let second = pipeline(&p, "restart", &["--batch-size", "1", "--epochs", "1"]);
-    let (ok, out, err) = finish(reader, LIMIT);
+    let (ok, _, err) = finish(reader, LIMIT);
     assert!(ok, "{err}\n{out}");
+    while let Ok(line) = rx.recv_timeout(Duration::from_secs(5)) {
+        out.push_str(&line);
+        out.push('\n');
+    }
     let (ok, _, err) = finish(second, LIMIT);
     assert!(ok, "{err}");
     assert!(out.contains("\"resume\":[0,2],\"accepted\":1"), "{out}");
