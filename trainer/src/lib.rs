@@ -16,4 +16,5 @@
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 
+pub mod schedule;
 pub mod subscribe;
