@@ -392,6 +392,11 @@ pub fn serve(
         return Err(ServiceError::NoKeyframes);
     }
     let streams = config.streams();
+    if streams as usize > keyframes {
+        return Err(ServiceError::Config(format!(
+            "world size {streams} exceeds the {keyframes} keyframes of the drives: some ranks would get nothing"
+        )));
+    }
     let schedule = Schedule::new(
         keyframes,
         config.batch_size as usize,
@@ -982,4 +987,40 @@ fn publish(
     metrics.bytes.fetch_add(len as u64, Ordering::Relaxed);
     tracing::debug!(delivered, bytes = len, "published");
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ranks_get_disjoint_covering_shares_in_short_last_batches() {
+        for (n, b, w) in [
+            (6usize, 2usize, 2usize),
+            (7, 3, 2),
+            (10, 4, 3),
+            (5, 1, 5),
+            (9, 4, 1),
+        ] {
+            let schedule = Schedule::new(n, b, w, 7);
+            let order: Vec<u32> = (0..n as u32).rev().collect();
+            let mut seen = vec![0; n];
+            let mut positions = vec![0; n];
+            for rank in 0..w {
+                let steps = schedule.steps(rank);
+                for step in 0..steps {
+                    let slots = schedule.batch(&order, rank, step).unwrap();
+                    assert!(!slots.is_empty() && slots.len() <= b);
+                    for (keyframe, position) in slots {
+                        seen[keyframe as usize] += 1;
+                        positions[position as usize] += 1;
+                        assert_eq!(order[position as usize], keyframe);
+                    }
+                }
+                assert!(schedule.batch(&order, rank, steps).is_none());
+            }
+            assert!(seen.iter().all(|c| *c == 1), "{n} {b} {w}: {seen:?}");
+            assert!(positions.iter().all(|c| *c == 1));
+        }
+    }
 }
