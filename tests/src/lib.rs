@@ -100,26 +100,25 @@ pub fn sample_dataset(drive: &SampleDrive) -> anyhow::Result<superflow_pipeline:
 /// The `superflow-pipeline` binary next to this package's binaries (built by
 /// `cargo test --workspace`; built here if a narrower command skipped it).
 pub fn pipeline_binary(sibling: &str) -> PathBuf {
+    workspace_binary(sibling, "superflow-pipeline")
+}
+
+/// The binary `name` (package of the same name) next to `sibling`, built if missing.
+pub fn workspace_binary(sibling: &str, name: &str) -> PathBuf {
     let dir = PathBuf::from(sibling)
         .parent()
         .map(PathBuf::from)
         .unwrap_or_default();
-    let path = dir.join("superflow-pipeline");
+    let path = dir.join(name);
     if !path.exists() {
         let cargo = std::env::var("CARGO").unwrap_or_else(|_| "cargo".into());
         let status = std::process::Command::new(cargo)
-            .args([
-                "build",
-                "-p",
-                "superflow-pipeline",
-                "--bin",
-                "superflow-pipeline",
-            ])
+            .args(["build", "-p", name, "--bin", name])
             .current_dir(workspace_root())
             .status();
         assert!(
             status.is_ok_and(|s| s.success()),
-            "building superflow-pipeline for the end-to-end tests failed"
+            "building {name} for the end-to-end tests failed"
         );
     }
     path

@@ -527,3 +527,42 @@ fn metrics_endpoint_and_sigterm() {
     assert!(err.contains("SIGTERM"), "{err}");
     no_shared_memory_left(&p);
 }
+
+/// The trainer started before any pipeline says so and waits; when the pipeline comes
+/// up it receives its batches (and, its networks not being built yet, exits 2).
+#[test]
+fn the_trainer_waits_for_a_pipeline() {
+    let p = prefix("trainer");
+    let trainer = Command::new(superflow_tests::workspace_binary(
+        env!("CARGO_BIN_EXE_superflow-probe"),
+        "superflow-trainer",
+    ))
+    .args(["--run", "trainer", "--steps", "2", "--timeout-secs", "120"])
+    .env("SUPERFLOW_IOX_PREFIX", &p)
+    .env("RUST_LOG", "info")
+    .current_dir(workspace_root())
+    .stdout(Stdio::null())
+    .stderr(Stdio::piped())
+    .spawn()
+    .unwrap();
+    std::thread::sleep(Duration::from_secs(3));
+    let pipe = pipeline(&p, "trainer", &["--batch-size", "3", "--epochs", "1"]);
+    let started = Instant::now();
+    let mut trainer = trainer;
+    let status = loop {
+        if let Some(status) = trainer.try_wait().unwrap() {
+            break status;
+        }
+        assert!(started.elapsed() < LIMIT, "trainer watchdog");
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    let mut err = String::new();
+    std::io::Read::read_to_string(&mut trainer.stderr.take().unwrap(), &mut err).unwrap();
+    assert_eq!(status.code(), Some(2), "{err}");
+    assert!(err.contains("no pipeline is publishing"), "{err}");
+    assert!(err.contains("a pipeline is publishing again"), "{err}");
+    assert!(err.contains("done receiving"), "{err}");
+    let (ok, _, err) = finish(pipe, LIMIT);
+    assert!(ok, "{err}");
+    no_shared_memory_left(&p);
+}

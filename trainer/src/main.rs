@@ -49,13 +49,32 @@ fn run(args: &Args) -> anyhow::Result<bool> {
     let mut waiting = Duration::ZERO;
     for step in 0..args.steps {
         let t = Instant::now();
-        let Some(batch) = subscription.receive(Duration::from_secs(args.timeout_secs))? else {
-            anyhow::bail!(
-                "no batch from run {} within {} s (is superflow-pipeline running with --run {}?)",
-                args.run,
-                args.timeout_secs,
-                args.run
-            );
+        // Wait in slices: say when the pipeline is gone (killed, restarting) and keep
+        // waiting for it to come back, up to the timeout.
+        let mut gone_reported = false;
+        let batch = loop {
+            if let Some(batch) = subscription.receive(Duration::from_secs(2))? {
+                if gone_reported {
+                    tracing::info!(run = %args.run, "a pipeline is publishing again");
+                }
+                break batch;
+            }
+            let attached = subscription.pipeline_attached();
+            if !attached && !gone_reported {
+                tracing::warn!(run = %args.run, "no pipeline is publishing; waiting for it to come back");
+                gone_reported = true;
+            } else if attached && gone_reported {
+                tracing::info!(run = %args.run, "a pipeline is publishing again");
+                gone_reported = false;
+            }
+            if t.elapsed() > Duration::from_secs(args.timeout_secs) {
+                anyhow::bail!(
+                    "no batch from run {} within {} s (is superflow-pipeline running with --run {}?)",
+                    args.run,
+                    args.timeout_secs,
+                    args.run
+                );
+            }
         };
         waiting += t.elapsed();
         let view = batch.view().context("invalid batch")?;

@@ -78,7 +78,7 @@ pub struct Subscription {
     subscriber: Subscriber<ipc::Service, [u8], BatchHeader>,
     listener: Listener<ipc::Service>,
     stash: std::cell::RefCell<Option<Received>>,
-    _service: names::BatchService,
+    service: names::BatchService,
     _ready: names::ReadyService,
 }
 
@@ -124,9 +124,16 @@ impl Subscription {
             subscriber,
             listener,
             stash: std::cell::RefCell::new(None),
-            _service: service,
+            service,
             _ready: ready,
         })
+    }
+
+    /// Whether a pipeline is publishing on this stream. Dead publishers are cleaned up
+    /// first (iceoryx2 dead-node detection), so a killed pipeline shows as gone.
+    pub fn pipeline_attached(&self) -> bool {
+        let _ = self.node.try_cleanup_dead_nodes();
+        self.service.dynamic_config().number_of_publishers() > 0
     }
 
     /// The next batch, waiting at most `timeout` (blocked on the ready event, woken by

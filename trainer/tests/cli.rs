@@ -1,0 +1,37 @@
+//! `superflow-trainer` refuses bad arguments with a clear message (the end-to-end tests
+//! in `tests/` run it against a real pipeline).
+
+#![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
+
+use std::process::Command;
+
+fn trainer(args: &[&str]) -> (Option<i32>, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_superflow-trainer"))
+        .args(args)
+        .env(
+            "SUPERFLOW_IOX_PREFIX",
+            format!("sftcli{}", std::process::id()),
+        )
+        .output()
+        .unwrap();
+    (
+        out.status.code(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+#[test]
+fn bad_arguments_are_clear_errors() {
+    let (code, err) = trainer(&["--run", "x", "--rank", "2", "--world-size", "2"]);
+    assert_eq!(code, Some(1), "{err}");
+    assert!(
+        err.contains("--rank 2 is not below --world-size 2"),
+        "{err}"
+    );
+    let (code, err) = trainer(&["--run", "a/b"]);
+    assert_eq!(code, Some(1), "{err}");
+    assert!(err.contains("a/b"), "{err}");
+    let (code, err) = trainer(&["--run", "x", "--iox-prefix", "bad prefix!"]);
+    assert_eq!(code, Some(1), "{err}");
+    assert!(err.contains("prefix"), "{err}");
+}
