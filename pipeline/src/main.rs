@@ -234,7 +234,20 @@ fn serve(args: &Args) -> anyhow::Result<()> {
         .build()?;
     // Signals and the metrics endpoint run on tokio; building and publishing on their
     // own threads (rayon, and this one).
-    runtime.spawn(wait_for_signals(stop.clone()));
+    // Handlers are installed before anything is published, so a signal never takes
+    // the default action (which would leave shared memory behind).
+    let (int, term) = runtime.block_on(async {
+        use tokio::signal::unix::{SignalKind, signal};
+        (
+            signal(SignalKind::interrupt()),
+            signal(SignalKind::terminate()),
+        )
+    });
+    let (int, term) = (
+        int.context("installing the SIGINT handler")?,
+        term.context("installing the SIGTERM handler")?,
+    );
+    runtime.spawn(wait_for_signals(int, term, stop.clone()));
     if let Some(addr) = args.metrics_addr {
         let listener = runtime
             .block_on(tokio::net::TcpListener::bind(addr))
@@ -255,20 +268,18 @@ fn serve(args: &Args) -> anyhow::Result<()> {
     Ok(result?)
 }
 
-async fn wait_for_signals(stop: Arc<AtomicBool>) {
-    use tokio::signal::unix::{SignalKind, signal};
-    let (Ok(mut int), Ok(mut term)) = (
-        signal(SignalKind::interrupt()),
-        signal(SignalKind::terminate()),
-    ) else {
-        tracing::error!("cannot install signal handlers");
-        return;
+async fn wait_for_signals(
+    mut int: tokio::signal::unix::Signal,
+    mut term: tokio::signal::unix::Signal,
+    stop: Arc<AtomicBool>,
+) {
+    let name = tokio::select! {
+        _ = int.recv() => "SIGINT",
+        _ = term.recv() => "SIGTERM",
     };
-    tokio::select! {
-        _ = int.recv() => tracing::info!("SIGINT: finishing the batch in flight, releasing shared memory"),
-        _ = term.recv() => tracing::info!("SIGTERM: finishing the batch in flight, releasing shared memory"),
-    }
+    // Stop first: logging can fail (a closed stderr) and must not keep us running.
     stop.store(true, Ordering::SeqCst);
+    tracing::info!("{name}: finishing the batch in flight, releasing shared memory");
 }
 
 async fn serve_metrics(listener: tokio::net::TcpListener, metrics: Arc<Metrics>) {

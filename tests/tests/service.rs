@@ -19,7 +19,33 @@ fn prefix(test: &str) -> String {
     format!("sft{}{test}", std::process::id())
 }
 
-fn pipeline(prefix: &str, run: &str, args: &[&str]) -> Child {
+/// A child process killed (and reaped) when dropped, so a failing test leaves no
+/// pipeline or subscriber running.
+struct Proc(Option<Child>);
+
+impl std::ops::Deref for Proc {
+    type Target = Child;
+    fn deref(&self) -> &Child {
+        self.0.as_ref().expect("process taken")
+    }
+}
+
+impl std::ops::DerefMut for Proc {
+    fn deref_mut(&mut self) -> &mut Child {
+        self.0.as_mut().expect("process taken")
+    }
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        if let Some(mut child) = self.0.take() {
+            let _ = child.kill();
+            let _ = child.wait();
+        }
+    }
+}
+
+fn pipeline(prefix: &str, run: &str, args: &[&str]) -> Proc {
     Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-probe")))
         .args(["--mcap", DRIVE, "--run", run])
         .args(args)
@@ -29,10 +55,11 @@ fn pipeline(prefix: &str, run: &str, args: &[&str]) -> Child {
         .stdout(Stdio::null())
         .stderr(Stdio::piped())
         .spawn()
+        .map(|c| Proc(Some(c)))
         .unwrap()
 }
 
-fn probe(prefix: &str, run: &str, args: &[&str]) -> Child {
+fn probe(prefix: &str, run: &str, args: &[&str]) -> Proc {
     Command::new(env!("CARGO_BIN_EXE_superflow-probe"))
         .args(["--run", run])
         .args(args)
@@ -41,11 +68,13 @@ fn probe(prefix: &str, run: &str, args: &[&str]) -> Child {
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
+        .map(|c| Proc(Some(c)))
         .unwrap()
 }
 
 /// Waits for `child` with a watchdog; returns (success, stdout, stderr).
-fn finish(mut child: Child, limit: Duration) -> (bool, String, String) {
+fn finish(mut proc: Proc, limit: Duration) -> (bool, String, String) {
+    let mut child = proc.0.take().expect("process taken");
     let started = Instant::now();
     loop {
         if let Some(status) = child.try_wait().unwrap() {
@@ -103,7 +132,7 @@ const LIMIT: Duration = Duration::from_secs(180);
 fn two_shards_receive_every_keyframe_once_per_epoch() {
     let p = prefix("shard");
     // 6 keyframes, 2 ranks, batches of 2: 2 batches per rank per epoch; 2 epochs.
-    let probes: Vec<Child> = (0..2)
+    let probes: Vec<Proc> = (0..2)
         .map(|r| probe(&p, "shard", &["--rank", &r.to_string(), "--count", "4"]))
         .collect();
     let pipe = pipeline(
@@ -137,7 +166,7 @@ fn two_shards_receive_every_keyframe_once_per_epoch() {
 #[test]
 fn broadcast_subscribers_receive_identical_batches() {
     let p = prefix("bcast");
-    let probes: Vec<Child> = (0..3)
+    let probes: Vec<Proc> = (0..3)
         .map(|_| probe(&p, "bcast", &["--count", "3"]))
         .collect();
     let pipe = pipeline(
@@ -365,6 +394,7 @@ fn python_reads_batches_as_the_rust_reader_does() {
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
+        .map(|c| Proc(Some(c)))
         .expect("python3 runs (pip install -r tests/python/requirements.txt)");
     let rust = probe(&p, "py", &["--count", "2", "--sections"]);
     let pipe = pipeline(
@@ -544,6 +574,7 @@ fn the_trainer_waits_for_a_pipeline() {
     .stdout(Stdio::null())
     .stderr(Stdio::piped())
     .spawn()
+    .map(|c| Proc(Some(c)))
     .unwrap();
     std::thread::sleep(Duration::from_secs(3));
     let pipe = pipeline(&p, "trainer", &["--batch-size", "3", "--epochs", "1"]);
@@ -564,5 +595,39 @@ fn the_trainer_waits_for_a_pipeline() {
     assert!(err.contains("done receiving"), "{err}");
     let (ok, _, err) = finish(pipe, LIMIT);
     assert!(ok, "{err}");
+    no_shared_memory_left(&p);
+}
+
+/// SIGINT while waiting for subscribers: the handler is in place before anything is
+/// published, the pipeline exits 0 and releases its shared memory.
+#[test]
+fn sigint_stops_a_waiting_pipeline_cleanly() {
+    let p = prefix("sigint");
+    let mut pipe = pipeline(&p, "sigint", &["--batch-size", "2"]);
+    let stderr = std::io::BufReader::new(pipe.stderr.take().unwrap());
+    let (tx, rx) = std::sync::mpsc::channel::<String>();
+    std::thread::spawn(move || {
+        for line in std::io::BufRead::lines(stderr).map_while(Result::ok) {
+            let _ = tx.send(line);
+        }
+    });
+    let mut log = String::new();
+    while !log.contains("waiting for subscribers") {
+        let line = rx.recv_timeout(LIMIT).expect("the pipeline starts");
+        log.push_str(&line);
+        log.push('\n');
+    }
+    let status = Command::new("kill")
+        .args(["-INT", &pipe.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success());
+    let (ok, _, _) = finish(pipe, LIMIT);
+    while let Ok(line) = rx.recv_timeout(Duration::from_secs(2)) {
+        log.push_str(&line);
+        log.push('\n');
+    }
+    assert!(ok, "{log}");
+    assert!(log.contains("SIGINT"), "{log}");
     no_shared_memory_left(&p);
 }
