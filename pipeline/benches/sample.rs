@@ -44,12 +44,7 @@ fn run(builder: &SampleBuilder<'_>, n: usize, threads: usize) -> anyhow::Result<
     let secs = started.elapsed().as_secs_f64();
     let mut total = StageTimes::default();
     for t in &times {
-        total.decode += t.decode;
-        total.sweeps += t.sweeps;
-        total.images += t.images;
-        total.projection += t.projection;
-        total.superpixels += t.superpixels;
-        total.voxels += t.voxels;
+        total.add(t);
     }
     Ok((n as f64 / secs, total))
 }

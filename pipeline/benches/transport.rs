@@ -41,6 +41,29 @@ fn node(config: &iceoryx2::config::Config) -> anyhow::Result<Node<ipc::Service>>
         .map_err(|e| anyhow::anyhow!("{e:?}"))
 }
 
+type Data =
+    iceoryx2::service::port_factory::publish_subscribe::PortFactory<ipc::Service, [u8], u64>;
+type Ready = iceoryx2::service::port_factory::event::PortFactory<ipc::Service>;
+
+/// The lossless `[u8]` service (send time as user header) and its wake-up event.
+fn open_services(node: &Node<ipc::Service>, name: &str) -> anyhow::Result<(Data, Ready)> {
+    let service = node
+        .service_builder(&name.try_into()?)
+        .publish_subscribe::<[u8]>()
+        .user_header::<u64>()
+        .enable_safe_overflow(false)
+        .subscriber_max_buffer_size(2)
+        .max_subscribers(8)
+        .open_or_create()
+        .map_err(|e| anyhow::anyhow!("{e:?}"))?;
+    let event = node
+        .service_builder(&format!("{name}/ready").as_str().try_into()?)
+        .event()
+        .open_or_create()
+        .map_err(|e| anyhow::anyhow!("{e:?}"))?;
+    Ok((service, event))
+}
+
 /// iceoryx2 latencies (µs) of `reps` payloads of `size` bytes to `subscribers` threads;
 /// also returns the producer's time per batch (ms) for loan + fill + send.
 fn iceoryx2_run(
@@ -58,20 +81,7 @@ fn iceoryx2_run(
         let (cfg, name, ready) = (cfg.clone(), name.clone(), ready.clone());
         handles.push(std::thread::spawn(move || -> anyhow::Result<Vec<f64>> {
             let node = node(&cfg)?;
-            let service = node
-                .service_builder(&name.as_str().try_into()?)
-                .publish_subscribe::<[u8]>()
-                .user_header::<u64>()
-                .enable_safe_overflow(false)
-                .subscriber_max_buffer_size(2)
-                .max_subscribers(8)
-                .open_or_create()
-                .map_err(|e| anyhow::anyhow!("{e:?}"))?;
-            let event = node
-                .service_builder(&format!("{name}/ready").as_str().try_into()?)
-                .event()
-                .open_or_create()
-                .map_err(|e| anyhow::anyhow!("{e:?}"))?;
+            let (service, event) = open_services(&node, &name)?;
             let subscriber = service
                 .subscriber_builder()
                 .buffer_size(2)
@@ -103,20 +113,7 @@ fn iceoryx2_run(
         }));
     }
     let node = node(&cfg)?;
-    let service = node
-        .service_builder(&name.as_str().try_into()?)
-        .publish_subscribe::<[u8]>()
-        .user_header::<u64>()
-        .enable_safe_overflow(false)
-        .subscriber_max_buffer_size(2)
-        .max_subscribers(8)
-        .open_or_create()
-        .map_err(|e| anyhow::anyhow!("{e:?}"))?;
-    let event = node
-        .service_builder(&format!("{name}/ready").as_str().try_into()?)
-        .event()
-        .open_or_create()
-        .map_err(|e| anyhow::anyhow!("{e:?}"))?;
+    let (service, event) = open_services(&node, &name)?;
     let publisher = service
         .publisher_builder()
         .initial_max_slice_len(size)

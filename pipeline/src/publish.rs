@@ -224,6 +224,20 @@ pub struct Metrics {
 }
 
 impl Metrics {
+    /// Adds one sample's CPU time per stage.
+    pub fn add_stages(&self, t: &crate::sample::builder::StageTimes) {
+        for (counter, nanos) in [
+            (&self.stage_decode_nanos, t.decode),
+            (&self.stage_sweeps_nanos, t.sweeps),
+            (&self.stage_images_nanos, t.images),
+            (&self.stage_projection_nanos, t.projection),
+            (&self.stage_superpixels_nanos, t.superpixels),
+            (&self.stage_voxels_nanos, t.voxels),
+        ] {
+            counter.fetch_add(nanos, Ordering::Relaxed);
+        }
+    }
+
     /// The counters in Prometheus text format.
     pub fn prometheus(&self) -> String {
         let counters: [(&str, &str, &AtomicU64); 15] = [
@@ -791,25 +805,7 @@ fn produce(
         for (result, (keyframe, _)) in built.into_iter().zip(&slots) {
             match result {
                 Ok(sample) => {
-                    let t = &sample.times;
-                    metrics
-                        .stage_decode_nanos
-                        .fetch_add(t.decode, Ordering::Relaxed);
-                    metrics
-                        .stage_sweeps_nanos
-                        .fetch_add(t.sweeps, Ordering::Relaxed);
-                    metrics
-                        .stage_images_nanos
-                        .fetch_add(t.images, Ordering::Relaxed);
-                    metrics
-                        .stage_projection_nanos
-                        .fetch_add(t.projection, Ordering::Relaxed);
-                    metrics
-                        .stage_superpixels_nanos
-                        .fetch_add(t.superpixels, Ordering::Relaxed);
-                    metrics
-                        .stage_voxels_nanos
-                        .fetch_add(t.voxels, Ordering::Relaxed);
+                    metrics.add_stages(&sample.times);
                     samples.push(sample);
                 }
                 Err(e) => {

@@ -24,9 +24,8 @@ fn python(args: &[&str]) -> String {
     text
 }
 
-#[test]
-fn independent_python_decoders_agree_with_the_ground_truth() {
-    let text = python(&["tests/python/check_drives.py", "recordings/drives"]);
+/// A check script's last line is `N passed, 0 failed` with N > 0.
+fn assert_checks_passed(text: &str) {
     let last = text
         .lines()
         .rev()
@@ -36,6 +35,14 @@ fn independent_python_decoders_agree_with_the_ground_truth() {
         last.ends_with(" 0 failed") && !last.starts_with("0 passed"),
         "{text}"
     );
+}
+
+#[test]
+fn independent_python_decoders_agree_with_the_ground_truth() {
+    assert_checks_passed(&python(&[
+        "tests/python/check_drives.py",
+        "recordings/drives",
+    ]));
 }
 
 #[test]
@@ -169,16 +176,10 @@ fn numpy_checks_an_exported_sample() {
             &dir,
         )
         .unwrap();
-        let text = python(&["tests/python/check_sample.py", dir.to_str().unwrap()]);
-        let last = text
-            .lines()
-            .rev()
-            .find(|l| !l.trim().is_empty())
-            .unwrap_or("");
-        assert!(
-            last.ends_with(" 0 failed") && !last.starts_with("0 passed"),
-            "{text}"
-        );
+        assert_checks_passed(&python(&[
+            "tests/python/check_sample.py",
+            dir.to_str().unwrap(),
+        ]));
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -12,7 +12,7 @@ use superflow_pipeline::sample::builder::Sample;
 use superflow_pipeline::sample::project::{CameraView, camera_from_lidar};
 use superflow_pipeline::sample::recipe::{EdgePolicy, SuperpixelSource};
 use superflow_pipeline::sample::{SampleBuilder, SampleConfig, SampleError};
-use superflow_recordings::sim::{Rig, simulate_sweep};
+use superflow_recordings::sim::{DriveTiming, Rig, simulate_sweep};
 use superflow_recordings::{Dialect, IMAGE_SIZE, SCENE_SEED, scene::Scene};
 use superflow_schemas::Stamp;
 use superflow_tests::{sample_dataset, sample_drive};
@@ -25,6 +25,15 @@ fn no_augment() -> SampleConfig {
     let mut config = SampleConfig::default();
     config.augment.enabled = false;
     config
+}
+
+/// The scene, sensor rig and timing the sample drive of `dialect` was simulated with.
+fn simulation(dialect: Dialect) -> (Scene, Rig, DriveTiming) {
+    (
+        Scene::street(SCENE_SEED),
+        Rig::new(IMAGE_SIZE.0, IMAGE_SIZE.1, dialect.distortion()),
+        dialect.timing(),
+    )
 }
 
 /// A sample without its timings (the only part that differs between runs).
@@ -119,9 +128,7 @@ fn dense_cloud_sweeps_coincide_in_the_keyframe_frame() {
     for dialect in Dialect::ALL {
         let ds = open(dialect);
         let builder = SampleBuilder::new(&ds, no_augment()).unwrap();
-        let scene = Scene::street(SCENE_SEED);
-        let rig = Rig::new(IMAGE_SIZE.0, IMAGE_SIZE.1, dialect.distortion());
-        let timing = dialect.timing();
+        let (scene, rig, timing) = simulation(dialect);
         let map_from_lidar = |stamp: Stamp| {
             superflow_recordings::sim::map_from_ego(timing.start, stamp) * rig.ego_from_lidar
         };
@@ -253,9 +260,7 @@ fn class_map_superpixels_match_the_lidar_classes() {
     for dialect in Dialect::ALL {
         let ds = open(dialect);
         let builder = SampleBuilder::new(&ds, no_augment()).unwrap();
-        let scene = Scene::street(SCENE_SEED);
-        let rig = Rig::new(IMAGE_SIZE.0, IMAGE_SIZE.1, dialect.distortion());
-        let timing = dialect.timing();
+        let (scene, rig, timing) = simulation(dialect);
         let sample = builder.build_keyframe(2, 0, 2).unwrap();
         assert!(sample.class_superpixels);
         let frame = &sample.frames[sample.key_frame];

@@ -98,6 +98,28 @@ fn finish(mut proc: Proc, limit: Duration) -> (bool, String, String) {
     }
 }
 
+/// The lines `stream` produces, as they come (read on a thread).
+fn lines_of(stream: impl std::io::Read + Send + 'static) -> std::sync::mpsc::Receiver<String> {
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in std::io::BufRead::lines(std::io::BufReader::new(stream)).map_while(Result::ok) {
+            if tx.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    rx
+}
+
+/// Sends `signal` (`-INT`, `-TERM`) to a running process.
+fn send_signal(proc: &Proc, signal: &str) {
+    let status = Command::new("kill")
+        .args([signal, &proc.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success());
+}
+
 /// The batches a probe printed.
 fn batches(stdout: &str) -> Vec<Value> {
     stdout
@@ -262,13 +284,7 @@ fn a_killed_subscriber_is_cleaned_up_and_the_stream_goes_on() {
     );
     // Kill it once it has received its first batch (it then stops reading, its queue
     // of one fills up and the publisher waits on it).
-    let mut lines = std::io::BufReader::new(doomed.stdout.take().unwrap());
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        let mut line = String::new();
-        let _ = std::io::BufRead::read_line(&mut lines, &mut line);
-        let _ = tx.send(line);
-    });
+    let rx = lines_of(doomed.stdout.take().unwrap());
     let first = rx
         .recv_timeout(LIMIT)
         .expect("the doomed subscriber got a batch");
@@ -460,13 +476,7 @@ fn a_restarted_pipeline_continues_where_the_subscriber_is() {
         ],
     );
     let mut reader = reader;
-    let lines = std::io::BufReader::new(reader.stdout.take().unwrap());
-    let (tx, rx) = std::sync::mpsc::channel::<String>();
-    std::thread::spawn(move || {
-        for line in std::io::BufRead::lines(lines).map_while(Result::ok) {
-            let _ = tx.send(line);
-        }
-    });
+    let rx = lines_of(reader.stdout.take().unwrap());
     let mut first = pipeline(&p, "restart", &["--batch-size", "1", "--epochs", "1"]);
     // Kill the first pipeline once the subscriber has its first 2 batches (it then
     // pauses before asking for its position).
@@ -547,11 +557,7 @@ fn metrics_endpoint_and_sigterm() {
     ] {
         assert!(text.contains(name), "{name} missing:\n{text}");
     }
-    let status = Command::new("kill")
-        .args(["-TERM", &pipe.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(status.success());
+    send_signal(&pipe, "-TERM");
     let (ok, _, err) = finish(pipe, LIMIT);
     assert!(ok, "{err}");
     assert!(err.contains("SIGTERM"), "{err}");
@@ -604,24 +610,14 @@ fn the_trainer_waits_for_a_pipeline() {
 fn sigint_stops_a_waiting_pipeline_cleanly() {
     let p = prefix("sigint");
     let mut pipe = pipeline(&p, "sigint", &["--batch-size", "2"]);
-    let stderr = std::io::BufReader::new(pipe.stderr.take().unwrap());
-    let (tx, rx) = std::sync::mpsc::channel::<String>();
-    std::thread::spawn(move || {
-        for line in std::io::BufRead::lines(stderr).map_while(Result::ok) {
-            let _ = tx.send(line);
-        }
-    });
+    let rx = lines_of(pipe.stderr.take().unwrap());
     let mut log = String::new();
     while !log.contains("waiting for subscribers") {
         let line = rx.recv_timeout(LIMIT).expect("the pipeline starts");
         log.push_str(&line);
         log.push('\n');
     }
-    let status = Command::new("kill")
-        .args(["-INT", &pipe.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(status.success());
+    send_signal(&pipe, "-INT");
     let (ok, _, _) = finish(pipe, LIMIT);
     while let Ok(line) = rx.recv_timeout(Duration::from_secs(2)) {
         log.push_str(&line);

@@ -373,7 +373,8 @@ pub struct StageTimes {
 }
 
 impl StageTimes {
-    fn add(&mut self, o: &StageTimes) {
+    /// Adds `o` stage by stage.
+    pub fn add(&mut self, o: &StageTimes) {
         self.decode += o.decode;
         self.sweeps += o.sweeps;
         self.images += o.images;
@@ -903,12 +904,12 @@ impl<'d> SampleBuilder<'d> {
                     cfg.num_classes
                 )));
             }
-            let ids: Vec<u32> = classes.data.iter().map(|&c| u32::from(c)).collect();
-            let mut small = image_ops::resize_nearest(&ids, w, h, out_w, out_h);
+            // Resize the u8 map, then widen only the resized pixels.
+            let mut small = image_ops::resize_nearest(&classes.data, w, h, out_w, out_h);
             if flipped {
                 image_ops::flip_horizontal(&mut small, out_w, 1);
             }
-            (small, cfg.num_classes)
+            (small.into_iter().map(u32::from).collect(), cfg.num_classes)
         } else {
             let seg = slic(&rgb, out_w, out_h, &cfg.slic);
             (seg.labels, seg.count)
