@@ -89,6 +89,23 @@ enum Command {
         #[arg(long)]
         no_augment: bool,
     },
+    /// Builds one batch (keyframes `index..index + batch-size` of the plan) and writes it
+    /// to a file exactly as it goes on the wire: the `BatchHeader` bytes, then the
+    /// payload (`schemas/BATCH_FORMAT.md`). Benchmarks and offline tools read it.
+    Batch {
+        /// First keyframe of the batch.
+        #[arg(long, default_value_t = 0)]
+        index: usize,
+        /// Samples in the batch [default: the service's batch size].
+        #[arg(long)]
+        batch_size: Option<usize>,
+        /// Epoch of the random draws.
+        #[arg(long, default_value_t = 0)]
+        epoch: u64,
+        /// Output file.
+        #[arg(long)]
+        out: PathBuf,
+    },
 }
 
 fn load_config(args: &Args) -> anyhow::Result<PipelineConfig> {
@@ -169,8 +186,61 @@ fn run(args: &Args) -> anyhow::Result<()> {
             println!("wrote {} files to {}", written.len(), out.display());
             Ok(())
         }
+        Some(Command::Batch {
+            index,
+            batch_size,
+            epoch,
+            out,
+        }) => write_batch_file(args, *index, *batch_size, *epoch, out),
         None => serve(args),
     }
+}
+
+fn write_batch_file(
+    args: &Args,
+    index: usize,
+    batch_size: Option<usize>,
+    epoch: u64,
+    out: &std::path::Path,
+) -> anyhow::Result<()> {
+    use superflow_pipeline::batch::{BatchPlan, BatchShape};
+    use superflow_schemas::batch::BatchMeta;
+    let config = load_config(args)?;
+    let size = batch_size.unwrap_or(config.service.batch_size as usize).max(1);
+    let dataset = open(args)?;
+    let builder = SampleBuilder::new(&dataset, config.sample)?;
+    let keyframes = builder.plan().keyframes.len();
+    if index + size > keyframes {
+        bail!("keyframes {index}..{} requested; the drives have {keyframes}", index + size);
+    }
+    let samples = (index..index + size)
+        .map(|k| builder.build_keyframe(k, epoch, k as u64))
+        .collect::<Result<Vec<_>, _>>()?;
+    let c = builder.config();
+    let shape = BatchShape {
+        height: c.image_height as usize,
+        width: c.image_width as usize,
+        levels: c.unet_levels as usize,
+    };
+    let plan = BatchPlan::new(&samples, shape)?;
+    let meta = BatchMeta {
+        run: args.run.clone(),
+        epoch,
+        step: 0,
+        seed: c.seed,
+        sequence: 0,
+        created_unix_nanos: 0,
+        sample_count: size as u32,
+        flags: 0,
+    };
+    let header = plan.layout().header(&meta)?;
+    let mut bytes = header.as_bytes().to_vec();
+    let start = bytes.len();
+    bytes.resize(start + plan.layout().payload_len(), 0);
+    plan.write(&samples, &mut bytes[start..])?;
+    std::fs::write(out, &bytes).with_context(|| format!("writing {}", out.display()))?;
+    println!("wrote a batch of {size} samples ({} bytes) to {}", bytes.len(), out.display());
+    Ok(())
 }
 
 fn serve(args: &Args) -> anyhow::Result<()> {

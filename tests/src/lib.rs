@@ -1,6 +1,8 @@
 //! Shared helpers of the end-to-end tests: where the sample drives are, their ground
 //! truth, and the transforms and calibrations a drive records.
 
+pub mod process;
+
 use anyhow::{Context as _, bail};
 use std::collections::BTreeMap;
 use std::path::PathBuf;

@@ -9,41 +9,12 @@ use serde_json::Value;
 use std::collections::BTreeMap;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
+use superflow_tests::process::{Proc, finish, lines_of, no_shared_memory_left, prefix, send_signal};
 use superflow_tests::{pipeline_binary, workspace_root};
 
 const DRIVE: &str = "recordings/drives/street_ros2.mcap";
 /// Keyframes of the sample drive (its plan; `samples.rs` checks it).
 const KEYFRAMES: u64 = 6;
-
-fn prefix(test: &str) -> String {
-    format!("sft{}{test}", std::process::id())
-}
-
-/// A child process killed (and reaped) when dropped, so a failing test leaves no
-/// pipeline or subscriber running.
-struct Proc(Option<Child>);
-
-impl std::ops::Deref for Proc {
-    type Target = Child;
-    fn deref(&self) -> &Child {
-        self.0.as_ref().expect("process taken")
-    }
-}
-
-impl std::ops::DerefMut for Proc {
-    fn deref_mut(&mut self) -> &mut Child {
-        self.0.as_mut().expect("process taken")
-    }
-}
-
-impl Drop for Proc {
-    fn drop(&mut self) {
-        if let Some(mut child) = self.0.take() {
-            let _ = child.kill();
-            let _ = child.wait();
-        }
-    }
-}
 
 fn pipeline(prefix: &str, run: &str, args: &[&str]) -> Proc {
     Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-probe")))
@@ -72,54 +43,6 @@ fn probe(prefix: &str, run: &str, args: &[&str]) -> Proc {
         .unwrap()
 }
 
-/// Waits for `child` with a watchdog; returns (success, stdout, stderr).
-fn finish(mut proc: Proc, limit: Duration) -> (bool, String, String) {
-    let mut child = proc.0.take().expect("process taken");
-    let started = Instant::now();
-    loop {
-        if let Some(status) = child.try_wait().unwrap() {
-            let out = child.wait_with_output().unwrap();
-            return (
-                status.success(),
-                String::from_utf8_lossy(&out.stdout).into_owned(),
-                String::from_utf8_lossy(&out.stderr).into_owned(),
-            );
-        }
-        if started.elapsed() > limit {
-            child.kill().unwrap();
-            let out = child.wait_with_output().unwrap();
-            panic!(
-                "watchdog: process ran past {limit:?}\nstdout:\n{}\nstderr:\n{}",
-                String::from_utf8_lossy(&out.stdout),
-                String::from_utf8_lossy(&out.stderr)
-            );
-        }
-        std::thread::sleep(Duration::from_millis(20));
-    }
-}
-
-/// The lines `stream` produces, as they come (read on a thread).
-fn lines_of(stream: impl std::io::Read + Send + 'static) -> std::sync::mpsc::Receiver<String> {
-    let (tx, rx) = std::sync::mpsc::channel();
-    std::thread::spawn(move || {
-        for line in std::io::BufRead::lines(std::io::BufReader::new(stream)).map_while(Result::ok) {
-            if tx.send(line).is_err() {
-                break;
-            }
-        }
-    });
-    rx
-}
-
-/// Sends `signal` (`-INT`, `-TERM`) to a running process.
-fn send_signal(proc: &Proc, signal: &str) {
-    let status = Command::new("kill")
-        .args([signal, &proc.id().to_string()])
-        .status()
-        .unwrap();
-    assert!(status.success());
-}
-
 /// The batches a probe printed.
 fn batches(stdout: &str) -> Vec<Value> {
     stdout
@@ -136,16 +59,6 @@ fn sample_keys(batches: &[Value]) -> Vec<(u64, u64)> {
         .flat_map(|b| b["samples"].as_array().unwrap().clone())
         .map(|s| (s[0].as_u64().unwrap(), s[2].as_u64().unwrap()))
         .collect()
-}
-
-fn no_shared_memory_left(prefix: &str) {
-    let left: Vec<String> = std::fs::read_dir("/dev/shm")
-        .unwrap()
-        .filter_map(|e| e.ok())
-        .map(|e| e.file_name().to_string_lossy().into_owned())
-        .filter(|n| n.starts_with(prefix) && !n.ends_with(".global_mgmt"))
-        .collect();
-    assert!(left.is_empty(), "left in /dev/shm: {left:?}");
 }
 
 const LIMIT: Duration = Duration::from_secs(180);
@@ -565,43 +478,37 @@ fn metrics_endpoint_and_sigterm() {
 }
 
 /// The trainer started before any pipeline says so and waits; when the pipeline comes
-/// up it receives its batches (and, its networks not being built yet, exits 2).
+/// up it receives its batches and trains on them.
 #[test]
 fn the_trainer_waits_for_a_pipeline() {
     let p = prefix("trainer");
-    let trainer = Command::new(superflow_tests::workspace_binary(
-        env!("CARGO_BIN_EXE_superflow-probe"),
-        "superflow-trainer",
-    ))
-    .args(["--run", "trainer", "--steps", "2", "--timeout-secs", "120"])
-    .env("SUPERFLOW_IOX_PREFIX", &p)
-    .env("RUST_LOG", "info")
-    .current_dir(workspace_root())
-    .stdout(Stdio::null())
-    .stderr(Stdio::piped())
-    .spawn()
-    .map(|c| Proc(Some(c)))
-    .unwrap();
+    let out = std::env::temp_dir().join(format!("superflow-waits-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let trainer = superflow_tests::process::spawn(
+        Command::new(superflow_tests::workspace_binary(
+            env!("CARGO_BIN_EXE_superflow-probe"),
+            "superflow-trainer",
+        ))
+        .args(["--run", "trainer", "--steps", "2", "--timeout-secs", "120"])
+        .args(["--unet", "tiny", "--vit", "tiny", "--pixel-stride", "4", "--out"])
+        .arg(&out)
+        .env("SUPERFLOW_IOX_PREFIX", &p)
+        .env("RUST_LOG", "info")
+        .current_dir(workspace_root())
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped()),
+    );
     std::thread::sleep(Duration::from_secs(3));
     let pipe = pipeline(&p, "trainer", &["--batch-size", "3", "--epochs", "1"]);
-    let started = Instant::now();
-    let mut trainer = trainer;
-    let status = loop {
-        if let Some(status) = trainer.try_wait().unwrap() {
-            break status;
-        }
-        assert!(started.elapsed() < LIMIT, "trainer watchdog");
-        std::thread::sleep(Duration::from_millis(20));
-    };
-    let mut err = String::new();
-    std::io::Read::read_to_string(&mut trainer.stderr.take().unwrap(), &mut err).unwrap();
-    assert_eq!(status.code(), Some(2), "{err}");
+    let (ok, _, err) = finish(trainer, LIMIT);
+    assert!(ok, "{err}");
     assert!(err.contains("no pipeline is publishing"), "{err}");
     assert!(err.contains("a pipeline is publishing again"), "{err}");
-    assert!(err.contains("done receiving"), "{err}");
+    assert!(err.contains("done training"), "{err}");
     let (ok, _, err) = finish(pipe, LIMIT);
     assert!(ok, "{err}");
     no_shared_memory_left(&p);
+    let _ = std::fs::remove_dir_all(&out);
 }
 
 /// SIGINT while waiting for subscribers: the handler is in place before anything is

@@ -16,5 +16,15 @@
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 
+pub mod checkpoint;
+pub mod config;
+pub mod init;
+pub mod inputs;
+pub mod loss;
+pub mod metrics;
+pub mod model;
 pub mod schedule;
+pub mod sparse;
 pub mod subscribe;
+pub mod train;
+pub mod vit;

@@ -1,13 +1,17 @@
-//! `superflow-trainer`: subscribes to a run's batches and trains with the SuperFlow
-//! losses (burn). Built so far: the subscription — it receives, validates and accounts
-//! for batches (time waiting for data vs the rest); the networks, losses and optimizer
-//! arrive with the trainer issue, and until then it exits with status 2 after the
-//! requested steps, saying so.
+//! `superflow-trainer`: subscribes to a run's batches and trains the 3D network with the
+//! SuperFlow losses (burn). See the crate README section in the workspace README.
 
 use anyhow::Context as _;
 use clap::Parser;
+use indicatif::{ProgressBar, ProgressStyle};
+use std::path::PathBuf;
 use std::time::{Duration, Instant};
-use superflow_trainer::subscribe::{Subscription, Target};
+use superflow_trainer::config::TrainerConfig;
+use superflow_trainer::metrics::{self, MetricsWriter, StepRecord};
+use superflow_trainer::sparse::UNetPreset;
+use superflow_trainer::subscribe::{Received, Subscription, Target};
+use superflow_trainer::train::Trainer;
+use superflow_trainer::vit::VitPreset;
 
 /// Trains a 3D network on SuperFlow batches received over shared memory.
 #[derive(Debug, Parser)]
@@ -22,9 +26,51 @@ struct Args {
     /// ... out of this many ranks.
     #[arg(long)]
     world_size: Option<u32>,
-    /// Batches to receive.
-    #[arg(long, default_value_t = 10)]
-    steps: u64,
+    /// trainer.toml (networks, losses, optimizer, checkpoints); flags override it.
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// Optimizer steps of the run (also the one-cycle schedule's length) [default: the
+    /// config's `optim.steps`].
+    #[arg(long)]
+    steps: Option<u64>,
+    /// 3D network: minkunet34, minkunet18, tiny.
+    #[arg(long)]
+    unet: Option<UNetPreset>,
+    /// 2D network size without weights: tiny, small, base, large.
+    #[arg(long)]
+    vit: Option<VitPreset>,
+    /// DINOv2 weights (safetensors) for the frozen 2D network.
+    #[arg(long)]
+    image_weights: Option<PathBuf>,
+    /// Superpixel pooling at every n-th pixel (1 = all, as the official code).
+    #[arg(long)]
+    pixel_stride: Option<usize>,
+    /// Peak learning rate.
+    #[arg(long)]
+    lr: Option<f64>,
+    /// Seed of the initial weights.
+    #[arg(long)]
+    seed: Option<u64>,
+    /// Compute backend: flex (CPU), wgpu (build with --features wgpu), cuda (--features cuda).
+    #[arg(long, default_value = "flex")]
+    backend: String,
+    /// GPU index for wgpu/cuda.
+    #[arg(long, default_value_t = 0)]
+    device_index: usize,
+    /// Output directory: checkpoints/, metrics.jsonl, losses.svg [default: runs/<run>
+    /// or runs/<run>-rank<r>].
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Save a checkpoint every this many steps (0 = only at the end).
+    #[arg(long)]
+    checkpoint_every: Option<u64>,
+    /// Continue from the newest checkpoint in the output directory, asking the pipeline
+    /// for the batch that follows it.
+    #[arg(long)]
+    resume: bool,
+    /// Write losses.svg (the loss curves) at the end.
+    #[arg(long)]
+    plot: bool,
     /// Give up when no batch arrives for this long, seconds.
     #[arg(long, default_value_t = 300)]
     timeout_secs: u64,
@@ -33,70 +79,248 @@ struct Args {
     iox_prefix: Option<String>,
 }
 
-fn run(args: &Args) -> anyhow::Result<bool> {
+impl Args {
+    fn config(&self) -> anyhow::Result<TrainerConfig> {
+        let mut c = match &self.config {
+            Some(path) => TrainerConfig::load(path)?,
+            None => TrainerConfig::default(),
+        };
+        if let Some(v) = self.steps {
+            c.optim.steps = v;
+        }
+        if let Some(v) = self.unet {
+            c.model.unet = v;
+        }
+        if let Some(v) = self.vit {
+            c.model.vit = v;
+        }
+        if let Some(v) = &self.image_weights {
+            c.model.image_weights = Some(v.clone());
+        }
+        if let Some(v) = self.pixel_stride {
+            c.loss.pixel_stride = v;
+        }
+        if let Some(v) = self.lr {
+            c.optim.lr = v;
+        }
+        if let Some(v) = self.seed {
+            c.model.seed = v;
+        }
+        if let Some(v) = self.checkpoint_every {
+            c.checkpoint.every = v;
+        }
+        c.validate().map_err(|e| anyhow::anyhow!("configuration: {e}"))?;
+        Ok(c)
+    }
+
+    fn out_dir(&self) -> PathBuf {
+        self.out.clone().unwrap_or_else(|| {
+            let name = match self.rank {
+                Some(r) => format!("{}-rank{r}", self.run),
+                None => self.run.clone(),
+            };
+            PathBuf::from("runs").join(name)
+        })
+    }
+}
+
+fn device(backend: &str, index: usize) -> anyhow::Result<burn::tensor::Device> {
+    let _ = index;
+    match backend {
+        "flex" => Ok(burn::tensor::Device::flex()),
+        #[cfg(feature = "wgpu")]
+        "wgpu" => Ok(burn::tensor::Device::wgpu(
+            burn::tensor::DeviceKind::DiscreteGpu(index),
+        )),
+        #[cfg(feature = "cuda")]
+        "cuda" => Ok(burn::tensor::Device::cuda(index)),
+        "wgpu" | "cuda" => anyhow::bail!(
+            "backend {backend} is not compiled in: build with `--features {backend}`"
+        ),
+        other => anyhow::bail!("unknown backend {other:?} (flex, wgpu, cuda)"),
+    }
+}
+
+/// Waits for the next batch; says when no pipeline publishes and keeps waiting for one
+/// to come back, up to `timeout`.
+fn next_batch(
+    subscription: &Subscription,
+    run: &str,
+    timeout: Duration,
+) -> anyhow::Result<Received> {
+    let t = Instant::now();
+    let mut gone_reported = false;
+    loop {
+        if let Some(batch) = subscription.receive(Duration::from_secs(2))? {
+            if gone_reported {
+                tracing::info!(run, "a pipeline is publishing again");
+            }
+            return Ok(batch);
+        }
+        let attached = subscription.pipeline_attached();
+        if !attached && !gone_reported {
+            tracing::warn!(run, "no pipeline is publishing; waiting for it to come back");
+            gone_reported = true;
+        } else if attached && gone_reported {
+            tracing::info!(run, "a pipeline is publishing again");
+            gone_reported = false;
+        }
+        if t.elapsed() > timeout {
+            anyhow::bail!(
+                "no batch from run {run} within {} s (is superflow-pipeline running with --run {run}?)",
+                timeout.as_secs()
+            );
+        }
+    }
+}
+
+fn run(args: &Args) -> anyhow::Result<()> {
     if let (Some(rank), Some(world)) = (args.rank, args.world_size)
         && rank >= world
     {
         anyhow::bail!("--rank {rank} is not below --world-size {world}");
     }
+    let config = args.config()?;
     let iox = superflow_schemas::service::iceoryx2_config(args.iox_prefix.as_deref())
         .map_err(|e| anyhow::anyhow!(e))?;
     let target = args.rank.map_or(Target::Broadcast, Target::Rank);
     let subscription = Subscription::open(&args.run, target, &iox, 2)
         .with_context(|| format!("subscribing to run {}", args.run))?;
-    tracing::info!(run = %args.run, ?target, "subscribed; waiting for batches");
-    let started = Instant::now();
-    let mut waiting = Duration::ZERO;
-    for step in 0..args.steps {
-        let t = Instant::now();
-        // Wait in slices: say when the pipeline is gone (killed, restarting) and keep
-        // waiting for it to come back, up to the timeout.
-        let mut gone_reported = false;
-        let batch = loop {
-            if let Some(batch) = subscription.receive(Duration::from_secs(2))? {
-                if gone_reported {
-                    tracing::info!(run = %args.run, "a pipeline is publishing again");
+    let out = args.out_dir();
+    let ckpt_dir = config
+        .checkpoint
+        .dir
+        .clone()
+        .unwrap_or_else(|| out.join("checkpoints"));
+    let steps = config.optim.steps;
+    let every = config.checkpoint.every;
+    let device = device(&args.backend, args.device_index)?;
+    tracing::info!(backend = %args.backend, ?device, "compute device");
+    let mut trainer = Trainer::new(config, &device)?;
+
+    let metrics_path = out.join("metrics.jsonl");
+    if args.resume {
+        match trainer.restore_latest(&ckpt_dir)? {
+            Some(state) => {
+                let reply = subscription
+                    .resume(state.next_epoch, state.next_batch, Duration::from_secs(args.timeout_secs))
+                    .with_context(|| format!("asking run {} to resume", args.run))?;
+                if reply.accepted != 1 {
+                    anyhow::bail!(
+                        "the pipeline refused to resume run {} at epoch {} batch {} (reason {}): \
+                         is it the same recording and configuration?",
+                        args.run,
+                        state.next_epoch,
+                        state.next_batch,
+                        reply.reason
+                    );
                 }
-                break batch;
-            }
-            let attached = subscription.pipeline_attached();
-            if !attached && !gone_reported {
-                tracing::warn!(run = %args.run, "no pipeline is publishing; waiting for it to come back");
-                gone_reported = true;
-            } else if attached && gone_reported {
-                tracing::info!(run = %args.run, "a pipeline is publishing again");
-                gone_reported = false;
-            }
-            if t.elapsed() > Duration::from_secs(args.timeout_secs) {
-                anyhow::bail!(
-                    "no batch from run {} within {} s (is superflow-pipeline running with --run {}?)",
-                    args.run,
-                    args.timeout_secs,
-                    args.run
+                tracing::info!(
+                    step = state.step,
+                    epoch = state.next_epoch,
+                    batch = state.next_batch,
+                    "resuming: the pipeline continues at the checkpoint's next batch"
                 );
             }
-        };
-        waiting += t.elapsed();
-        let view = batch.view().context("invalid batch")?;
-        let meta = view.meta();
-        tracing::info!(
-            step,
-            epoch = meta.epoch,
-            batch_step = meta.step,
-            samples = meta.sample_count,
-            sections = view.section_names().count(),
-            megabytes = batch.header().payload_len as f64 / 1e6,
-            wait_ms = t.elapsed().as_secs_f64() * 1e3,
-            "batch received"
+            None => tracing::warn!(dir = %ckpt_dir.display(), "--resume: no checkpoint yet, starting fresh"),
+        }
+    } else if superflow_trainer::checkpoint::latest(&ckpt_dir)?.is_some() {
+        anyhow::bail!(
+            "{} already holds checkpoints: pass --resume to continue that run, or choose another --out",
+            ckpt_dir.display()
         );
+    } else if metrics_path.exists() {
+        std::fs::remove_file(&metrics_path)
+            .with_context(|| format!("replacing {}", metrics_path.display()))?;
     }
-    let total = started.elapsed();
-    tracing::info!(
-        batches = args.steps,
-        data_stall_fraction = waiting.as_secs_f64() / total.as_secs_f64().max(1e-9),
-        "done receiving"
+    let mut metrics = MetricsWriter::open(&metrics_path)?;
+
+    let bar = ProgressBar::new(steps);
+    bar.set_style(
+        ProgressStyle::with_template("{spinner} step {pos}/{len} [{elapsed_precise}<{eta_precise}] {msg}")
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
-    Ok(false)
+    bar.set_position(trainer.step_count());
+    let started = Instant::now();
+    let (mut waiting, mut computing) = (0.0_f64, 0.0_f64);
+    let mut last = None;
+    let mut next = (0, 0);
+    tracing::info!(run = %args.run, ?target, steps, out = %out.display(), "training");
+    while trainer.step_count() < steps {
+        let t = Instant::now();
+        let batch = next_batch(&subscription, &args.run, Duration::from_secs(args.timeout_secs))?;
+        let wait = t.elapsed().as_secs_f64();
+        let view = batch.view().context("invalid batch")?;
+        let meta = view.meta().clone();
+        let outcome = trainer
+            .step(&view)
+            .with_context(|| format!("step {} (epoch {}, batch {})", trainer.step_count() + 1, meta.epoch, meta.step))?;
+        drop(view);
+        drop(batch);
+        waiting += wait;
+        computing += outcome.seconds;
+        next = (meta.epoch, meta.step + 1);
+        let record = StepRecord {
+            step: trainer.step_count(),
+            epoch: meta.epoch,
+            batch: meta.step,
+            loss: outcome.losses.total,
+            l_sc: outcome.losses.sc,
+            l_tc: outcome.losses.tc,
+            l_d2s: outcome.losses.d2s,
+            lr: outcome.lr,
+            wait_ms: wait * 1e3,
+            step_ms: outcome.seconds * 1e3,
+            samples_per_s: meta.sample_count as f64 / (wait + outcome.seconds).max(1e-9),
+            samples: meta.sample_count as usize,
+            points: outcome.counts[0],
+            pairings: outcome.counts[1],
+            voxels: outcome.counts[2],
+            sample_ids: outcome.sample_ids.clone(),
+        };
+        metrics.write(&record)?;
+        tracing::info!(
+            step = record.step,
+            epoch = meta.epoch,
+            batch = meta.step,
+            loss = format_args!("{:.4}", record.loss),
+            l_sc = format_args!("{:.4}", record.l_sc),
+            l_tc = format_args!("{:.4}", record.l_tc),
+            l_d2s = format_args!("{:.4}", record.l_d2s),
+            lr = format_args!("{:.2e}", record.lr),
+            wait_ms = format_args!("{:.1}", record.wait_ms),
+            step_ms = format_args!("{:.1}", record.step_ms),
+            vit_ms = format_args!("{:.1}", outcome.vit_seconds * 1e3),
+            "step"
+        );
+        bar.set_position(record.step);
+        bar.set_message(format!("loss {:.4}", record.loss));
+        if every > 0 && record.step % every == 0 && record.step < steps {
+            let dir = trainer.save_checkpoint(&ckpt_dir, &args.run, next, &outcome.losses)?;
+            tracing::info!(checkpoint = %dir.display(), "checkpoint saved");
+        }
+        last = Some(outcome.losses);
+    }
+    bar.finish_and_clear();
+    if let Some(losses) = last {
+        let dir = trainer.save_checkpoint(&ckpt_dir, &args.run, next, &losses)?;
+        tracing::info!(checkpoint = %dir.display(), "final checkpoint saved");
+    }
+    if args.plot {
+        let svg = out.join("losses.svg");
+        metrics::plot_svg(&metrics::read(&metrics_path)?, &svg)?;
+        tracing::info!(plot = %svg.display(), "loss curves written");
+    }
+    let total = started.elapsed().as_secs_f64();
+    tracing::info!(
+        steps = trainer.step_count(),
+        seconds = format_args!("{total:.1}"),
+        data_stall_fraction = format_args!("{:.3}", waiting / total.max(1e-9)),
+        compute_fraction = format_args!("{:.3}", computing / total.max(1e-9)),
+        metrics = %metrics_path.display(),
+        "done training"
+    );
+    Ok(())
 }
 
 fn main() -> std::process::ExitCode {
@@ -107,13 +331,7 @@ fn main() -> std::process::ExitCode {
         )
         .init();
     match run(&Args::parse()) {
-        Ok(_) => {
-            eprintln!(
-                "superflow-trainer: not yet built: the networks, SuperFlow losses and optimizer \
-                 arrive with the trainer issue (batches were received and validated)"
-            );
-            std::process::ExitCode::from(2)
-        }
+        Ok(()) => std::process::ExitCode::SUCCESS,
         Err(err) => {
             eprintln!("superflow-trainer: {err:#}");
             std::process::ExitCode::from(1)

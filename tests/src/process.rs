@@ -1,0 +1,105 @@
+//! Child processes for the end-to-end tests: killed when dropped (a failing test leaves
+//! nothing running), waited for with a watchdog, their output read line by line, and
+//! the check that they left nothing in /dev/shm.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)] // test support fails loudly
+
+use std::process::{Child, Command};
+use std::time::{Duration, Instant};
+
+/// A unique iceoryx2 prefix for one test of this test process.
+pub fn prefix(test: &str) -> String {
+    format!("sft{}{test}", std::process::id())
+}
+
+/// A child process killed (and reaped) when dropped, so a failing test leaves no
+/// pipeline or subscriber running.
+pub struct Proc(pub Option<Child>);
+
+impl std::ops::Deref for Proc {
+    type Target = Child;
+    fn deref(&self) -> &Child {
+        self.0.as_ref().expect("process taken")
+    }
+}
+
+impl std::ops::DerefMut for Proc {
+    fn deref_mut(&mut self) -> &mut Child {
+        self.0.as_mut().expect("process taken")
+    }
+}
+
+impl Drop for Proc {
+    fn drop(&mut self) {
+        if let Some(mut child) = self.0.take() {
+            let _ = child.kill();
+            let _ = child.wait();
+        }
+    }
+}
+
+/// Waits for `child` with a watchdog; returns (success, stdout, stderr).
+pub fn finish(mut proc: Proc, limit: Duration) -> (bool, String, String) {
+    let mut child = proc.0.take().expect("process taken");
+    let started = Instant::now();
+    loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            let out = child.wait_with_output().unwrap();
+            return (
+                status.success(),
+                String::from_utf8_lossy(&out.stdout).into_owned(),
+                String::from_utf8_lossy(&out.stderr).into_owned(),
+            );
+        }
+        if started.elapsed() > limit {
+            child.kill().unwrap();
+            let out = child.wait_with_output().unwrap();
+            panic!(
+                "watchdog: process ran past {limit:?}\nstdout:\n{}\nstderr:\n{}",
+                String::from_utf8_lossy(&out.stdout),
+                String::from_utf8_lossy(&out.stderr)
+            );
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// The lines `stream` produces, as they come (read on a thread).
+pub fn lines_of(stream: impl std::io::Read + Send + 'static) -> std::sync::mpsc::Receiver<String> {
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        for line in std::io::BufRead::lines(std::io::BufReader::new(stream)).map_while(Result::ok) {
+            if tx.send(line).is_err() {
+                break;
+            }
+        }
+    });
+    rx
+}
+
+/// Sends `signal` (`-INT`, `-TERM`) to a running process.
+pub fn send_signal(proc: &Proc, signal: &str) {
+    let status = Command::new("kill")
+        .args([signal, &proc.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success());
+}
+
+/// Fails if a file of `prefix` (other than iceoryx2's per-prefix `.global_mgmt`) is left
+/// in /dev/shm.
+pub fn no_shared_memory_left(prefix: &str) {
+    let left: Vec<String> = std::fs::read_dir("/dev/shm")
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .map(|e| e.file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with(prefix) && !n.ends_with(".global_mgmt"))
+        .collect();
+    assert!(left.is_empty(), "left in /dev/shm: {left:?}");
+}
+
+
+/// Spawns `command` as a [`Proc`].
+pub fn spawn(command: &mut Command) -> Proc {
+    Proc(Some(command.spawn().unwrap()))
+}

@@ -1,0 +1,144 @@
+//! The real `superflow-pipeline` feeding the real `superflow-trainer` (tiny presets) on
+//! the sample drive: the loss goes down, checkpoints are written, and a trainer killed
+//! after a checkpoint and restarted with `--resume` continues with the same batches and
+//! the same losses as an uninterrupted run.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::time::{Duration, Instant};
+use superflow_tests::process::{Proc, finish, lines_of, no_shared_memory_left, prefix, send_signal, spawn};
+use superflow_tests::{pipeline_binary, workspace_binary, workspace_root};
+use superflow_trainer::metrics::{self, StepRecord};
+
+const DRIVE: &str = "recordings/drives/street_ros2.mcap";
+const LIMIT: Duration = Duration::from_secs(600);
+/// Steps of each run: 8 epochs of the drive's 6 keyframes in batches of 2.
+const STEPS: u64 = 24;
+const EPOCHS: &str = "8";
+
+fn pipeline(prefix: &str, run: &str) -> Proc {
+    spawn(
+        Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-probe")))
+            .args(["--mcap", DRIVE, "--run", run, "--batch-size", "2", "--epochs", EPOCHS])
+            .env("SUPERFLOW_IOX_PREFIX", prefix)
+            .env("RUST_LOG", "warn")
+            .current_dir(workspace_root())
+            .stdout(Stdio::null())
+            .stderr(Stdio::null()),
+    )
+}
+
+fn trainer(prefix: &str, run: &str, out: &Path, extra: &[&str]) -> Proc {
+    let steps = STEPS.to_string();
+    spawn(
+        Command::new(workspace_binary(
+            env!("CARGO_BIN_EXE_superflow-probe"),
+            "superflow-trainer",
+        ))
+        .args(["--run", run, "--steps", &steps, "--unet", "tiny", "--vit", "tiny"])
+        .args(["--pixel-stride", "4", "--timeout-secs", "120", "--out"])
+        .arg(out)
+        .args(extra)
+        .env("SUPERFLOW_IOX_PREFIX", prefix)
+        .env("RUST_LOG", "info")
+        .current_dir(workspace_root())
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped()),
+    )
+}
+
+fn temp_dir(name: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!("superflow-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    dir
+}
+
+/// The last record of every step (a resumed run repeats the steps after its checkpoint).
+fn by_step(records: Vec<StepRecord>) -> BTreeMap<u64, StepRecord> {
+    records.into_iter().map(|r| (r.step, r)).collect()
+}
+
+fn mean(values: impl Iterator<Item = f64>) -> f64 {
+    let v: Vec<f64> = values.collect();
+    v.iter().sum::<f64>() / v.len() as f64
+}
+
+#[test]
+fn training_lowers_the_loss_and_a_resumed_run_matches_an_uninterrupted_one() {
+    // The uninterrupted run.
+    let p = prefix("train");
+    let full = temp_dir("train-full");
+    let pipe = pipeline(&p, "full");
+    let (ok, _, err) = finish(trainer(&p, "full", &full, &["--checkpoint-every", "10", "--plot"]), LIMIT);
+    assert!(ok, "{err}");
+    send_signal(&pipe, "-TERM");
+    let _ = finish(pipe, LIMIT);
+    no_shared_memory_left(&p);
+    let uninterrupted = by_step(metrics::read(&full.join("metrics.jsonl")).unwrap());
+    assert_eq!(uninterrupted.len() as u64, STEPS);
+    let first = mean(uninterrupted.values().take(6).map(|r| r.loss));
+    let last = mean(uninterrupted.values().skip(STEPS as usize - 6).map(|r| r.loss));
+    eprintln!("loss: first 6 steps {first:.4}, last 6 steps {last:.4}");
+    assert!(last < first * 0.95, "the loss did not decrease: {first} → {last}");
+    for r in uninterrupted.values() {
+        assert!(r.l_sc > 0.0 && r.l_tc > 0.0 && r.l_d2s > 0.0, "a term is empty: {r:?}");
+    }
+    // Every epoch saw every keyframe once (by sample id).
+    let mut seen: BTreeMap<u64, Vec<u64>> = BTreeMap::new();
+    for r in uninterrupted.values() {
+        for &[epoch, index] in &r.sample_ids {
+            seen.entry(epoch).or_default().push(index);
+        }
+    }
+    for (epoch, mut ids) in seen {
+        ids.sort_unstable();
+        assert_eq!(ids, (0..6).collect::<Vec<_>>(), "epoch {epoch}");
+    }
+    assert!(full.join("checkpoints/latest").exists());
+    assert!(full.join("checkpoints/step-00000020/model.bpk").exists());
+    assert!(full.join("losses.svg").exists());
+
+    // The same run, killed after its checkpoint at step 10, then resumed.
+    let p = prefix("resume");
+    let cut = temp_dir("train-cut");
+    let pipe = pipeline(&p, "cut");
+    let mut first_half = trainer(&p, "cut", &cut, &["--checkpoint-every", "10"]);
+    let rx = lines_of(first_half.stderr.take().unwrap());
+    let started = Instant::now();
+    let mut log = String::new();
+    while !log.contains("checkpoint saved") {
+        let line = rx.recv_timeout(LIMIT).unwrap_or_else(|_| panic!("no checkpoint:\n{log}"));
+        log.push_str(&line);
+        log.push('\n');
+        assert!(started.elapsed() < LIMIT, "{log}");
+    }
+    send_signal(&first_half, "-KILL");
+    let _ = first_half.wait();
+    drop(first_half);
+    let (ok, _, err) = finish(trainer(&p, "cut", &cut, &["--checkpoint-every", "10", "--resume"]), LIMIT);
+    assert!(ok, "{err}");
+    assert!(err.contains("resuming"), "{err}");
+    send_signal(&pipe, "-TERM");
+    let _ = finish(pipe, LIMIT);
+    no_shared_memory_left(&p);
+
+    let resumed = by_step(metrics::read(&cut.join("metrics.jsonl")).unwrap());
+    assert_eq!(resumed.len() as u64, STEPS, "steps 1..{STEPS} all recorded");
+    let mut worst = 0.0_f64;
+    for (step, r) in &resumed {
+        let u = &uninterrupted[step];
+        assert_eq!((r.epoch, r.batch), (u.epoch, u.batch), "step {step}: stream position");
+        assert_eq!(r.sample_ids, u.sample_ids, "step {step}: samples");
+        for (a, b) in [(r.loss, u.loss), (r.l_sc, u.l_sc), (r.l_tc, u.l_tc), (r.l_d2s, u.l_d2s)] {
+            worst = worst.max((a - b).abs() / b.abs().max(1e-12));
+        }
+        assert!((r.lr - u.lr).abs() <= 1e-12 * u.lr, "step {step}: lr");
+    }
+    eprintln!("resumed vs uninterrupted: worst relative loss difference {worst:.2e}");
+    assert!(worst <= 1e-5, "resumed losses differ from the uninterrupted run by {worst:.2e}");
+    let _ = std::fs::remove_dir_all(&full);
+    let _ = std::fs::remove_dir_all(&cut);
+}

@@ -1,0 +1,188 @@
+//! Checkpoints: model, optimizer, schedule position and stream position, saved
+//! atomically.
+//!
+//! A checkpoint is a directory `step-NNNNNNNN/` holding `model.bpk` and `optim.bpk`
+//! (burnpack) and `state.json`. It is written under a temporary name, every file is
+//! synced, then the directory is renamed into place and the `latest` file (the name of
+//! the newest checkpoint) is replaced by a rename as well. A crash at any point leaves
+//! `latest` naming a complete checkpoint.
+
+use serde::{Deserialize, Serialize};
+use std::fs::{self, File};
+use std::io::Write as _;
+use std::path::{Path, PathBuf};
+
+/// Everything besides the tensors.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CheckpointState {
+    /// Format tag.
+    pub format: String,
+    /// Optimizer steps taken.
+    pub step: u64,
+    /// Stream position of the next batch to train on.
+    pub next_epoch: u64,
+    /// See `next_epoch`.
+    pub next_batch: u64,
+    /// Run name of the stream.
+    pub run: String,
+    /// The configuration the run was started with (as TOML).
+    pub config: String,
+    /// Learning rate of the last step.
+    pub lr: f64,
+    /// Loss of the last step.
+    pub loss: f64,
+}
+
+/// The format tag of [`CheckpointState`].
+pub const FORMAT: &str = "superflow.checkpoint/1";
+
+/// A saved checkpoint's files.
+#[derive(Debug, Clone)]
+pub struct Checkpoint {
+    /// Its directory.
+    pub dir: PathBuf,
+    /// Its state.
+    pub state: CheckpointState,
+}
+
+impl Checkpoint {
+    /// The model record file.
+    pub fn model_path(&self) -> PathBuf {
+        self.dir.join("model.bpk")
+    }
+
+    /// The optimizer record file.
+    pub fn optim_path(&self) -> PathBuf {
+        self.dir.join("optim.bpk")
+    }
+}
+
+fn write_synced(path: &Path, bytes: &[u8]) -> std::io::Result<()> {
+    let mut f = File::create(path)?;
+    f.write_all(bytes)?;
+    f.sync_all()
+}
+
+fn sync_dir(dir: &Path) -> std::io::Result<()> {
+    File::open(dir)?.sync_all()
+}
+
+/// Writes a checkpoint into `root` atomically and removes all but the `keep` newest.
+pub fn save(
+    root: &Path,
+    state: &CheckpointState,
+    model: &[u8],
+    optim: &[u8],
+    keep: usize,
+) -> anyhow::Result<PathBuf> {
+    let ctx = |what: &str, p: &Path, e: std::io::Error| {
+        anyhow::anyhow!("checkpoint: {what} {}: {e}", p.display())
+    };
+    fs::create_dir_all(root).map_err(|e| ctx("creating", root, e))?;
+    let name = format!("step-{:08}", state.step);
+    let tmp = root.join(format!(".{name}.tmp-{}", std::process::id()));
+    if tmp.exists() {
+        fs::remove_dir_all(&tmp).map_err(|e| ctx("removing", &tmp, e))?;
+    }
+    fs::create_dir(&tmp).map_err(|e| ctx("creating", &tmp, e))?;
+    let json = serde_json::to_vec_pretty(state)?;
+    for (file, bytes) in [("model.bpk", model), ("optim.bpk", optim), ("state.json", &json[..])] {
+        let p = tmp.join(file);
+        write_synced(&p, bytes).map_err(|e| ctx("writing", &p, e))?;
+    }
+    sync_dir(&tmp).map_err(|e| ctx("syncing", &tmp, e))?;
+    let dir = root.join(&name);
+    if dir.exists() {
+        fs::remove_dir_all(&dir).map_err(|e| ctx("replacing", &dir, e))?;
+    }
+    fs::rename(&tmp, &dir).map_err(|e| ctx("renaming into", &dir, e))?;
+    let latest_tmp = root.join(format!(".latest.tmp-{}", std::process::id()));
+    write_synced(&latest_tmp, name.as_bytes()).map_err(|e| ctx("writing", &latest_tmp, e))?;
+    let latest = root.join("latest");
+    fs::rename(&latest_tmp, &latest).map_err(|e| ctx("renaming into", &latest, e))?;
+    sync_dir(root).map_err(|e| ctx("syncing", root, e))?;
+    prune(root, keep)?;
+    Ok(dir)
+}
+
+/// Removes all but the `keep` newest complete checkpoints (never the one `latest` names).
+fn prune(root: &Path, keep: usize) -> anyhow::Result<()> {
+    let latest = fs::read_to_string(root.join("latest")).unwrap_or_default();
+    let mut names: Vec<String> = fs::read_dir(root)?
+        .filter_map(|e| e.ok())
+        .filter_map(|e| e.file_name().into_string().ok())
+        .filter(|n| n.starts_with("step-"))
+        .collect();
+    names.sort();
+    let excess = names.len().saturating_sub(keep);
+    for name in names.into_iter().take(excess) {
+        if name != latest.trim() {
+            fs::remove_dir_all(root.join(&name))?;
+        }
+    }
+    Ok(())
+}
+
+/// The checkpoint `latest` names in `root`, if any. A damaged one is an error naming it.
+pub fn latest(root: &Path) -> anyhow::Result<Option<Checkpoint>> {
+    let pointer = root.join("latest");
+    let name = match fs::read_to_string(&pointer) {
+        Ok(n) => n.trim().to_string(),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => anyhow::bail!("reading {}: {e}", pointer.display()),
+    };
+    let dir = root.join(&name);
+    let state_path = dir.join("state.json");
+    let text = fs::read(&state_path)
+        .map_err(|e| anyhow::anyhow!("reading {}: {e}", state_path.display()))?;
+    let state: CheckpointState = serde_json::from_slice(&text)
+        .map_err(|e| anyhow::anyhow!("{}: {e}", state_path.display()))?;
+    if state.format != FORMAT {
+        anyhow::bail!("{}: format {:?}, expected {FORMAT:?}", state_path.display(), state.format);
+    }
+    Ok(Some(Checkpoint { dir, state }))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn state(step: u64) -> CheckpointState {
+        CheckpointState {
+            format: FORMAT.into(),
+            step,
+            next_epoch: 0,
+            next_batch: step,
+            run: "t".into(),
+            config: String::new(),
+            lr: 0.01,
+            loss: 1.0,
+        }
+    }
+
+    #[test]
+    fn saves_atomically_keeps_the_newest_and_ignores_partial_writes() {
+        let root = std::env::temp_dir().join(format!("superflow-ckpt-{}", std::process::id()));
+        let _ = fs::remove_dir_all(&root);
+        assert!(latest(&root).expect("no checkpoint is fine").is_none());
+        for step in [10, 20, 30, 40] {
+            save(&root, &state(step), b"model", b"optim", 2).expect("saved");
+        }
+        let last = latest(&root).expect("readable").expect("present");
+        assert_eq!(last.state.step, 40);
+        assert_eq!(fs::read(last.model_path()).expect("model"), b"model");
+        let mut kept: Vec<String> = fs::read_dir(&root)
+            .expect("dir")
+            .filter_map(|e| e.ok()?.file_name().into_string().ok())
+            .filter(|n| n.starts_with("step-"))
+            .collect();
+        kept.sort();
+        assert_eq!(kept, ["step-00000030", "step-00000040"]);
+        // A crash mid-write leaves a temporary directory: `latest` still names step 40.
+        let partial = root.join(".step-00000050.tmp-999");
+        fs::create_dir(&partial).expect("partial");
+        fs::write(partial.join("model.bpk"), b"half").expect("half");
+        assert_eq!(latest(&root).expect("readable").expect("present").state.step, 40);
+        fs::remove_dir_all(&root).expect("cleanup");
+    }
+}

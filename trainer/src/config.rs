@@ -1,0 +1,176 @@
+//! `trainer.toml`: the networks, losses, optimizer, checkpoints and metrics of a run.
+//! Every field has the official code's default; the command line overrides the common
+//! ones. Unknown fields are errors (a typo must not silently train something else).
+
+use crate::loss::LossConfig;
+use crate::schedule::OneCycle;
+use crate::sparse::{UNetConfig, UNetPreset};
+use crate::vit::VitPreset;
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+
+/// The whole file.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TrainerConfig {
+    /// `[model]`.
+    pub model: ModelConfig,
+    /// `[loss]`.
+    pub loss: LossConfig,
+    /// `[optim]`.
+    pub optim: OptimConfig,
+    /// `[checkpoint]`.
+    pub checkpoint: CheckpointConfig,
+}
+
+impl Default for TrainerConfig {
+    fn default() -> Self {
+        Self {
+            model: ModelConfig::default(),
+            loss: LossConfig::default(),
+            optim: OptimConfig::default(),
+            checkpoint: CheckpointConfig::default(),
+        }
+    }
+}
+
+/// `[model]`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct ModelConfig {
+    /// 3D network size.
+    pub unet: UNetPreset,
+    /// 2D network size (ignored when `image_weights` is given: the file decides).
+    pub vit: VitPreset,
+    /// DINOv2 weights (safetensors, Hugging Face or torch-hub tensor names). Without
+    /// them the ViT is random — useful for tests and the CPU demo only.
+    pub image_weights: Option<PathBuf>,
+    /// Seed of the initial weights.
+    pub seed: u64,
+}
+
+impl Default for ModelConfig {
+    fn default() -> Self {
+        Self {
+            unet: UNetPreset::Minkunet34,
+            vit: VitPreset::Small,
+            image_weights: None,
+            seed: 0,
+        }
+    }
+}
+
+impl ModelConfig {
+    /// The UNet's shape.
+    pub fn unet_config(&self) -> UNetConfig {
+        UNetConfig::preset(self.unet)
+    }
+}
+
+/// `[optim]`: AdamW with a one-cycle schedule.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct OptimConfig {
+    /// Peak learning rate.
+    pub lr: f64,
+    /// Adam β₁, β₂.
+    pub betas: [f64; 2],
+    /// Decoupled weight decay.
+    pub weight_decay: f64,
+    /// Adam ε.
+    pub eps: f64,
+    /// Steps of the schedule (the run's length).
+    pub steps: u64,
+    /// Fraction of the steps spent warming up.
+    pub pct_start: f64,
+    /// Initial lr = lr / div_factor.
+    pub div_factor: f64,
+    /// Final lr = initial lr / final_div_factor.
+    pub final_div_factor: f64,
+}
+
+impl Default for OptimConfig {
+    fn default() -> Self {
+        let s = OneCycle::superflow(1);
+        Self {
+            lr: s.max_lr,
+            betas: [0.9, 0.999],
+            weight_decay: 0.01,
+            eps: 1e-6,
+            steps: 1000,
+            pct_start: s.pct_start,
+            div_factor: s.div_factor,
+            final_div_factor: s.final_div_factor,
+        }
+    }
+}
+
+impl OptimConfig {
+    /// The learning-rate schedule.
+    pub fn schedule(&self) -> OneCycle {
+        OneCycle {
+            max_lr: self.lr,
+            total_steps: self.steps,
+            pct_start: self.pct_start,
+            div_factor: self.div_factor,
+            final_div_factor: self.final_div_factor,
+        }
+    }
+}
+
+/// `[checkpoint]`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CheckpointConfig {
+    /// Directory of the run's checkpoints (`checkpoints/<run>` when unset).
+    pub dir: Option<PathBuf>,
+    /// Save every this many steps (0 = only at the end).
+    pub every: u64,
+    /// Checkpoints kept (older ones are removed).
+    pub keep: usize,
+}
+
+impl Default for CheckpointConfig {
+    fn default() -> Self {
+        Self {
+            dir: None,
+            every: 500,
+            keep: 3,
+        }
+    }
+}
+
+impl TrainerConfig {
+    /// Reads `path`; errors name the file.
+    pub fn load(path: &Path) -> anyhow::Result<Self> {
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| anyhow::anyhow!("reading {}: {e}", path.display()))?;
+        let config: Self =
+            toml::from_str(&text).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+        config.validate().map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+        Ok(config)
+    }
+
+    /// Checks values a run cannot use.
+    pub fn validate(&self) -> Result<(), String> {
+        self.optim.schedule().validate()?;
+        let l = &self.loss;
+        if !(l.temperature > 0.0 && l.temperature.is_finite()) {
+            return Err(format!("[loss] temperature {} must be positive", l.temperature));
+        }
+        if l.pixel_stride == 0 {
+            return Err("[loss] pixel_stride must be at least 1".into());
+        }
+        let o = &self.optim;
+        if !(o.lr > 0.0 && o.eps > 0.0 && o.weight_decay >= 0.0) {
+            return Err("[optim] lr and eps must be positive, weight_decay ≥ 0".into());
+        }
+        if o.betas.iter().any(|b| !(0.0..1.0).contains(b)) {
+            return Err("[optim] betas must be in [0, 1)".into());
+        }
+        if self.checkpoint.keep == 0 {
+            return Err("[checkpoint] keep must be at least 1".into());
+        }
+        Ok(())
+    }
+}

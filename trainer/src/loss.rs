@@ -1,0 +1,502 @@
+//! The SuperFlow losses: superpoint / superpixel pooling with count masks, InfoNCE, and
+//! the spatial (`L_sc`), temporal (`L_tc`) and dense-to-sparse (`L_d2s`) terms.
+//!
+//! Everything that depends only on the batch's integer sections — which pairing falls
+//! into which superpoint, which pixel into which superpixel, which slots are non-empty
+//! — is computed once on the host into a [`LossPlan`]; the device work is two
+//! scatter-adds (pooling), a few row selections and the similarity matrices.
+//!
+//! Slots: a *superpoint slot* is (cloud kind `c`, sample `b`, superpixel id `s`) with
+//! `s < num_superpixels[b, frame(c)]` (the dense cloud uses the key frame's ids); a
+//! *superpixel slot* is (frame `f`, sample `b`, id `s`). Slots of one kind are
+//! concatenated over the samples, so negatives come from the whole batch (as in SLidR
+//! and SuperFlow's code). Pooled features are plain means — not re-normalized.
+//!
+//! * `L_sc` = mean over frames f of InfoNCE(superpoints of frame f, superpixels of f),
+//!   on slots with pairings and pixels;
+//! * `L_tc` = mean over f ≠ key of InfoNCE(superpoints at the key frame, superpoints at
+//!   f), on ids below both frames' counts with pairings in both;
+//! * `L_d2s` on ids of the key frame with pairings in the key cloud and the dense
+//!   cloud: `mean(1 − cos(q_key, q_dense))` (paper, Eq. 3) or InfoNCE(q_dense, q_key)
+//!   (official code);
+//! * total = w_sc·L_sc + w_tc·L_tc + w_d2s·L_d2s. A term without slots is 0.
+//!
+//! InfoNCE(a, b) = mean_i −log softmax_j(a_i·b_j / τ)[i].
+
+use crate::sparse::index_tensor;
+use burn::tensor::activation::log_softmax;
+use burn::tensor::{Device, IndexingUpdateOp, Int, Tensor, TensorData};
+use serde::{Deserialize, Serialize};
+
+/// Which form of the dense-to-sparse term.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum D2sForm {
+    /// `mean(1 − cos)`, the paper's Eq. 3.
+    Cosine,
+    /// InfoNCE, as the official code.
+    #[default]
+    Infonce,
+}
+
+/// `[loss]` of trainer.toml.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LossConfig {
+    /// InfoNCE temperature τ.
+    pub temperature: f64,
+    /// Weight of `L_sc`.
+    pub w_sc: f64,
+    /// Weight of `L_tc`.
+    pub w_tc: f64,
+    /// Weight of `L_d2s`.
+    pub w_d2s: f64,
+    /// Form of `L_d2s`.
+    pub d2s: D2sForm,
+    /// Superpixel pooling evaluates the 2D features at every `pixel_stride`-th pixel of
+    /// each row and column (1 = every pixel, as the official code; larger strides make
+    /// CPU training affordable — the features at those pixels are exact).
+    pub pixel_stride: usize,
+}
+
+impl Default for LossConfig {
+    fn default() -> Self {
+        Self {
+            temperature: 0.07,
+            w_sc: 1.0,
+            w_tc: 1.0,
+            w_d2s: 1.0,
+            d2s: D2sForm::Infonce,
+            pixel_stride: 1,
+        }
+    }
+}
+
+/// What the plan needs from a batch, as host arrays (see `pipeline/src/batch.rs`).
+#[derive(Debug, Clone, Copy)]
+pub struct LossInputs<'a> {
+    /// Samples.
+    pub batch: usize,
+    /// Frames per sample.
+    pub frames: usize,
+    /// Cameras per frame.
+    pub cameras: usize,
+    /// Index of the key frame (offset 0).
+    pub key_frame: usize,
+    /// Image height and width.
+    pub height: usize,
+    /// See `height`.
+    pub width: usize,
+    /// `[B, F]`.
+    pub num_superpixels: &'a [u32],
+    /// `[B·F·K, H, W]`.
+    pub superpixels: &'a [u16],
+    /// Global point row of each pairing.
+    pub pairing_point: &'a [u32],
+    /// Superpixel id of each pairing.
+    pub pairing_superpixel: &'a [u32],
+    /// `B·C + 1` first pairing of each cloud.
+    pub pairing_clouds: &'a [u32],
+}
+
+/// A malformed batch for the losses.
+#[derive(Debug, thiserror::Error)]
+#[error("batch section `{section}`: {reason}")]
+pub struct PlanError {
+    /// The section at fault.
+    pub section: &'static str,
+    /// What is wrong.
+    pub reason: String,
+}
+
+fn bad(section: &'static str, reason: impl Into<String>) -> PlanError {
+    PlanError {
+        section,
+        reason: reason.into(),
+    }
+}
+
+/// Rows of two pooled tables to compare (one pair per kept slot).
+#[derive(Debug, Clone)]
+pub struct Matched {
+    /// Rows of the first table.
+    pub a: Tensor<1, Int>,
+    /// Rows of the second table.
+    pub b: Tensor<1, Int>,
+    /// Kept slots.
+    pub len: usize,
+}
+
+impl Matched {
+    fn new(a: Vec<i64>, b: Vec<i64>, device: &Device) -> Self {
+        let len = a.len();
+        Self {
+            a: index_tensor(a, device),
+            b: index_tensor(b, device),
+            len,
+        }
+    }
+}
+
+/// The host-side index plan of one batch's losses.
+#[derive(Debug, Clone)]
+pub struct LossPlan {
+    /// Point row of every pairing (to gather the 3D features).
+    pub pairing_point: Tensor<1, Int>,
+    /// Superpoint slot of every pairing.
+    pairing_slot: Tensor<1, Int>,
+    /// `[superpoint slots, 1]` pairings per slot, clamped to ≥ 1.
+    point_counts: Tensor<2>,
+    point_slots: usize,
+    /// Sampled pixels: image number, row, column.
+    pub pixels: Vec<[u32; 3]>,
+    /// Superpixel slot of every sampled pixel.
+    pixel_slot: Tensor<1, Int>,
+    /// `[superpixel slots, 1]` sampled pixels per slot, clamped to ≥ 1.
+    pixel_counts: Tensor<2>,
+    pixel_slots: usize,
+    /// `L_sc` per frame: (superpoint rows, superpixel rows).
+    pub sc: Vec<Matched>,
+    /// `L_tc` per non-key frame: (key superpoint rows, frame superpoint rows).
+    pub tc: Vec<Matched>,
+    /// `L_d2s`: (key superpoint rows, dense superpoint rows).
+    pub d2s: Matched,
+    /// Image height and width.
+    pub image_size: [usize; 2],
+}
+
+impl LossPlan {
+    /// Plans the pooling and the matched slots; checks every id against its frame's
+    /// superpixel count.
+    pub fn new(x: &LossInputs<'_>, pixel_stride: usize, device: &Device) -> Result<Self, PlanError> {
+        let (b_n, f_n, k_n) = (x.batch, x.frames, x.cameras);
+        let c_n = f_n + 1;
+        let (h, w) = (x.height, x.width);
+        if x.num_superpixels.len() != b_n * f_n {
+            return Err(bad("num_superpixels", "expected B×F entries"));
+        }
+        if x.superpixels.len() != b_n * f_n * k_n * h * w {
+            return Err(bad("superpixels", "expected B·F·K×H×W entries"));
+        }
+        if x.pairing_clouds.len() != b_n * c_n + 1 {
+            return Err(bad("pairing_clouds", "expected B·C+1 entries"));
+        }
+        if x.key_frame >= f_n {
+            return Err(bad("frame_offsets", "no key frame"));
+        }
+        let n = |b: usize, f: usize| x.num_superpixels[b * f_n + f] as usize;
+        let frame_of = |c: usize| if c == f_n { x.key_frame } else { c };
+        // Superpoint slot bases: [cloud kind][sample].
+        let mut pt_base = vec![vec![0usize; b_n]; c_n];
+        let mut next = 0;
+        for (c, bases) in pt_base.iter_mut().enumerate() {
+            for (b, base) in bases.iter_mut().enumerate() {
+                *base = next;
+                next += n(b, frame_of(c));
+            }
+        }
+        let point_slots = next;
+        // Superpixel slot bases: [frame][sample].
+        let mut px_base = vec![vec![0usize; b_n]; f_n];
+        let mut next = 0;
+        for (f, bases) in px_base.iter_mut().enumerate() {
+            for (b, base) in bases.iter_mut().enumerate() {
+                *base = next;
+                next += n(b, f);
+            }
+        }
+        let pixel_slots = next;
+
+        // Pairings → superpoint slots.
+        let pairings = x.pairing_point.len();
+        if x.pairing_superpixel.len() != pairings
+            || x.pairing_clouds[b_n * c_n] as usize != pairings
+        {
+            return Err(bad("pairing_clouds", "does not cover the pairings"));
+        }
+        let mut pt_count = vec![0u32; point_slots];
+        let mut pairing_slot = Vec::with_capacity(pairings);
+        for b in 0..b_n {
+            for c in 0..c_n {
+                let cloud = b * c_n + c;
+                let (s, e) = (x.pairing_clouds[cloud] as usize, x.pairing_clouds[cloud + 1] as usize);
+                if s > e || e > pairings {
+                    return Err(bad("pairing_clouds", "offsets not increasing"));
+                }
+                let limit = n(b, frame_of(c));
+                for &id in &x.pairing_superpixel[s..e] {
+                    let id = id as usize;
+                    if id >= limit {
+                        return Err(bad(
+                            "pairing_superpixel",
+                            format!("id {id} of cloud {cloud} is not below its frame's {limit} superpixels"),
+                        ));
+                    }
+                    let slot = pt_base[c][b] + id;
+                    pt_count[slot] += 1;
+                    pairing_slot.push(slot as i64);
+                }
+            }
+        }
+
+        // Sampled pixels → superpixel slots.
+        let stride = pixel_stride.max(1);
+        let mut px_count = vec![0u32; pixel_slots];
+        let mut pixels = Vec::new();
+        let mut pixel_slot = Vec::new();
+        for b in 0..b_n {
+            for f in 0..f_n {
+                let limit = n(b, f);
+                for k in 0..k_n {
+                    let image = (b * f_n + f) * k_n + k;
+                    let map = &x.superpixels[image * h * w..(image + 1) * h * w];
+                    for r in (stride / 2..h).step_by(stride) {
+                        for col in (stride / 2..w).step_by(stride) {
+                            let id = map[r * w + col] as usize;
+                            if id >= limit {
+                                return Err(bad(
+                                    "superpixels",
+                                    format!("id {id} in image {image} is not below its frame's {limit} superpixels"),
+                                ));
+                            }
+                            let slot = px_base[f][b] + id;
+                            px_count[slot] += 1;
+                            pixels.push([image as u32, r as u32, col as u32]);
+                            pixel_slot.push(slot as i64);
+                        }
+                    }
+                }
+            }
+        }
+
+        // Kept slots of each term.
+        let mut sc = Vec::with_capacity(f_n);
+        for f in 0..f_n {
+            let (mut a, mut bb) = (Vec::new(), Vec::new());
+            for b in 0..b_n {
+                for s in 0..n(b, f) {
+                    let (p, q) = (pt_base[f][b] + s, px_base[f][b] + s);
+                    if pt_count[p] > 0 && px_count[q] > 0 {
+                        a.push(p as i64);
+                        bb.push(q as i64);
+                    }
+                }
+            }
+            sc.push(Matched::new(a, bb, device));
+        }
+        let key = x.key_frame;
+        let mut tc = Vec::new();
+        for f in (0..f_n).filter(|&f| f != key) {
+            let (mut a, mut bb) = (Vec::new(), Vec::new());
+            for b in 0..b_n {
+                for s in 0..n(b, key).min(n(b, f)) {
+                    let (p, q) = (pt_base[key][b] + s, pt_base[f][b] + s);
+                    if pt_count[p] > 0 && pt_count[q] > 0 {
+                        a.push(p as i64);
+                        bb.push(q as i64);
+                    }
+                }
+            }
+            tc.push(Matched::new(a, bb, device));
+        }
+        let (mut a, mut bb) = (Vec::new(), Vec::new());
+        for b in 0..b_n {
+            for s in 0..n(b, key) {
+                let (p, q) = (pt_base[key][b] + s, pt_base[f_n][b] + s);
+                if pt_count[p] > 0 && pt_count[q] > 0 {
+                    a.push(p as i64);
+                    bb.push(q as i64);
+                }
+            }
+        }
+        let d2s = Matched::new(a, bb, device);
+
+        let counts = |c: Vec<u32>| {
+            let len = c.len();
+            let values: Vec<f32> = c.into_iter().map(|v| v.max(1) as f32).collect();
+            Tensor::<2>::from_data(TensorData::new(values, [len, 1]), device)
+        };
+        Ok(Self {
+            pairing_point: index_tensor(x.pairing_point.iter().map(|&p| i64::from(p)).collect(), device),
+            pairing_slot: index_tensor(pairing_slot, device),
+            point_counts: counts(pt_count),
+            point_slots,
+            pixels,
+            pixel_slot: index_tensor(pixel_slot, device),
+            pixel_counts: counts(px_count),
+            pixel_slots,
+            sc,
+            tc,
+            d2s,
+            image_size: [h, w],
+        })
+    }
+
+    /// Sampled pixels per image row/column step and in total.
+    pub fn sampled_pixels(&self) -> usize {
+        self.pixels.len()
+    }
+}
+
+/// Mean of `rows` per slot: scatter-add, then divide by the (clamped) counts.
+fn pool(rows: Tensor<2>, slot: &Tensor<1, Int>, slots: usize, counts: &Tensor<2>) -> Tensor<2> {
+    let [_, d] = rows.dims();
+    let device = rows.device();
+    let sums = Tensor::zeros([slots, d], &device).select_assign(0, slot.clone(), rows, IndexingUpdateOp::Add);
+    sums / counts.clone()
+}
+
+/// InfoNCE of matched rows: cross-entropy of `a·bᵀ/τ` against the diagonal.
+pub fn info_nce(a: Tensor<2>, b: Tensor<2>, temperature: f64) -> Tensor<1> {
+    let [m, _] = a.dims();
+    let device = a.device();
+    let logits = a.matmul(b.transpose()).div_scalar(temperature);
+    let log_p = log_softmax(logits, 1);
+    let diagonal = (log_p * Tensor::<2>::eye(m, &device)).sum();
+    diagonal.neg().div_scalar(m as f64)
+}
+
+/// `mean(1 − cos(a_i, b_i))`.
+pub fn cosine_distance(a: Tensor<2>, b: Tensor<2>) -> Tensor<1> {
+    let dot = (a.clone() * b.clone()).sum_dim(1);
+    let na = a.square().sum_dim(1).sqrt();
+    let nb = b.square().sum_dim(1).sqrt();
+    let cos = dot / (na * nb).clamp_min(1e-8);
+    cos.neg().add_scalar(1.0).mean()
+}
+
+/// The loss terms of one step (scalars, `[1]`).
+#[derive(Debug, Clone)]
+pub struct LossTerms {
+    /// The weighted sum that is optimized.
+    pub total: Tensor<1>,
+    /// `L_sc` (mean over frames).
+    pub sc: Tensor<1>,
+    /// `L_sc` of each frame.
+    pub sc_frames: Vec<Tensor<1>>,
+    /// `L_tc` (mean over the non-key frames).
+    pub tc: Tensor<1>,
+    /// `L_d2s`.
+    pub d2s: Tensor<1>,
+}
+
+/// The loss values of a step, read back from the device.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct LossValues {
+    /// Weighted total.
+    pub total: f64,
+    /// `L_sc`.
+    pub sc: f64,
+    /// `L_tc`.
+    pub tc: f64,
+    /// `L_d2s`.
+    pub d2s: f64,
+}
+
+impl LossTerms {
+    /// Reads the scalars back (one transfer).
+    pub fn values(&self) -> LossValues {
+        let all = Tensor::cat(
+            vec![self.total.clone(), self.sc.clone(), self.tc.clone(), self.d2s.clone()],
+            0,
+        );
+        let v: Vec<f32> = all.into_data().try_into_vec().unwrap_or_else(|_| vec![f32::NAN; 4]);
+        LossValues {
+            total: f64::from(v[0]),
+            sc: f64::from(v[1]),
+            tc: f64::from(v[2]),
+            d2s: f64::from(v[3]),
+        }
+    }
+}
+
+/// The SuperFlow objective.
+#[derive(Debug, Clone)]
+pub struct SuperFlowLoss {
+    /// Temperature, weights and the `L_d2s` form.
+    pub config: LossConfig,
+}
+
+impl SuperFlowLoss {
+    /// The objective with `config`.
+    pub fn new(config: LossConfig) -> Self {
+        Self { config }
+    }
+
+    /// Superpoint features: mean 3D feature of each slot's pairings. `pairing_features`
+    /// holds the 3D feature of every pairing's point, in pairing order.
+    pub fn superpoints(&self, pairing_features: Tensor<2>, plan: &LossPlan) -> Tensor<2> {
+        pool(pairing_features, &plan.pairing_slot, plan.point_slots, &plan.point_counts)
+    }
+
+    /// Superpixel features: mean 2D feature of each slot's sampled pixels
+    /// (`pixel_features` in the order of `plan.pixels`).
+    pub fn superpixels(&self, pixel_features: Tensor<2>, plan: &LossPlan) -> Tensor<2> {
+        pool(pixel_features, &plan.pixel_slot, plan.pixel_slots, &plan.pixel_counts)
+    }
+
+    fn nce(&self, a: &Tensor<2>, b: &Tensor<2>, m: &Matched) -> Option<Tensor<1>> {
+        (m.len > 0).then(|| {
+            info_nce(
+                a.clone().select(0, m.a.clone()),
+                b.clone().select(0, m.b.clone()),
+                self.config.temperature,
+            )
+        })
+    }
+
+    /// All terms from the 3D features of the pairings' points and the 2D features of
+    /// the sampled pixels.
+    pub fn forward(
+        &self,
+        pairing_features: Tensor<2>,
+        pixel_features: Tensor<2>,
+        plan: &LossPlan,
+    ) -> LossTerms {
+        let device = pairing_features.device();
+        let zero = || Tensor::<1>::zeros([1], &device);
+        let k = self.superpoints(pairing_features, plan);
+        let q = self.superpixels(pixel_features, plan);
+        let mean = |terms: Vec<Tensor<1>>| {
+            let n = terms.len();
+            if n == 0 {
+                zero()
+            } else {
+                Tensor::cat(terms, 0).sum().div_scalar(n as f64)
+            }
+        };
+        let sc_frames: Vec<Tensor<1>> = plan
+            .sc
+            .iter()
+            .map(|m| self.nce(&k, &q, m).unwrap_or_else(zero))
+            .collect();
+        let sc = mean(sc_frames.clone());
+        let tc = mean(
+            plan.tc
+                .iter()
+                .map(|m| self.nce(&k, &k, m).unwrap_or_else(zero))
+                .collect(),
+        );
+        let d2s = if plan.d2s.len == 0 {
+            zero()
+        } else {
+            let key = k.clone().select(0, plan.d2s.a.clone());
+            let dense = k.select(0, plan.d2s.b.clone());
+            match self.config.d2s {
+                D2sForm::Cosine => cosine_distance(key, dense),
+                D2sForm::Infonce => info_nce(dense, key, self.config.temperature),
+            }
+        };
+        let c = &self.config;
+        let total = sc.clone().mul_scalar(c.w_sc)
+            + tc.clone().mul_scalar(c.w_tc)
+            + d2s.clone().mul_scalar(c.w_d2s);
+        LossTerms {
+            total,
+            sc,
+            sc_frames,
+            tc,
+            d2s,
+        }
+    }
+}

@@ -1,0 +1,139 @@
+//! Per-step metrics: one JSON object per line (`superflow.metrics/1`), and an optional
+//! PNG of the loss curves at the end of a run.
+
+use serde::{Deserialize, Serialize};
+use std::fs::{File, OpenOptions};
+use std::io::{BufWriter, Write as _};
+use std::path::{Path, PathBuf};
+
+/// One training step.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StepRecord {
+    /// Optimizer step (1-based: the number of steps taken after this one).
+    pub step: u64,
+    /// Stream position of the batch.
+    pub epoch: u64,
+    /// See `epoch`.
+    pub batch: u64,
+    /// Weighted total loss.
+    pub loss: f64,
+    /// `L_sc`.
+    pub l_sc: f64,
+    /// `L_tc`.
+    pub l_tc: f64,
+    /// `L_d2s`.
+    pub l_d2s: f64,
+    /// Learning rate used by this step.
+    pub lr: f64,
+    /// Time spent waiting for the batch, ms.
+    pub wait_ms: f64,
+    /// Time spent on the step (tensors, forward, backward, update), ms.
+    pub step_ms: f64,
+    /// Samples per second over wait + step.
+    pub samples_per_s: f64,
+    /// Samples in the batch.
+    pub samples: usize,
+    /// Points, pairings and level-0 voxels of the batch.
+    pub points: usize,
+    /// See `points`.
+    pub pairings: usize,
+    /// See `points`.
+    pub voxels: usize,
+    /// `sample_ids` of the batch: (epoch, index in epoch) per sample.
+    pub sample_ids: Vec<[u64; 2]>,
+}
+
+/// Appends step records to a JSON-lines file.
+#[derive(Debug)]
+pub struct MetricsWriter {
+    path: PathBuf,
+    out: BufWriter<File>,
+}
+
+impl MetricsWriter {
+    /// Opens `path` for appending (a resumed run continues the same file).
+    pub fn open(path: &Path) -> anyhow::Result<Self> {
+        if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
+            std::fs::create_dir_all(parent)?;
+        }
+        let file = OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(path)
+            .map_err(|e| anyhow::anyhow!("opening {}: {e}", path.display()))?;
+        Ok(Self {
+            path: path.to_path_buf(),
+            out: BufWriter::new(file),
+        })
+    }
+
+    /// Writes one line and flushes it (a killed trainer loses no finished step).
+    pub fn write(&mut self, record: &StepRecord) -> anyhow::Result<()> {
+        serde_json::to_writer(&mut self.out, record)?;
+        self.out.write_all(b"\n")?;
+        self.out
+            .flush()
+            .map_err(|e| anyhow::anyhow!("writing {}: {e}", self.path.display()))
+    }
+}
+
+/// Reads a metrics file (for plots and tests).
+pub fn read(path: &Path) -> anyhow::Result<Vec<StepRecord>> {
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| anyhow::anyhow!("reading {}: {e}", path.display()))?;
+    text.lines()
+        .filter(|l| !l.trim().is_empty())
+        .enumerate()
+        .map(|(i, l)| {
+            serde_json::from_str(l).map_err(|e| anyhow::anyhow!("{}:{}: {e}", path.display(), i + 1))
+        })
+        .collect()
+}
+
+/// Draws the loss terms against the step as an SVG (axes, ticks, legend; opens in any
+/// browser, no font or plotting library needed).
+pub fn plot_svg(records: &[StepRecord], path: &Path) -> anyhow::Result<()> {
+    use std::fmt::Write as _;
+    if records.is_empty() {
+        anyhow::bail!("no steps to plot");
+    }
+    let (w, h, left, right, top, bottom) = (960.0, 540.0, 70.0, 20.0, 30.0, 50.0);
+    let x0 = records.first().map_or(0, |r| r.step) as f64;
+    let x1 = (records.last().map_or(1, |r| r.step) as f64).max(x0 + 1.0);
+    let series: [(&str, fn(&StepRecord) -> f64, &str); 4] = [
+        ("total", |r| r.loss, "#000000"),
+        ("L_sc", |r| r.l_sc, "#1f77b4"),
+        ("L_tc", |r| r.l_tc, "#ff7f0e"),
+        ("L_d2s", |r| r.l_d2s, "#2ca02c"),
+    ];
+    let y1 = records
+        .iter()
+        .flat_map(|r| series.iter().map(move |s| (s.1)(r)))
+        .filter(|v| v.is_finite())
+        .fold(1e-6_f64, f64::max)
+        * 1.05;
+    let px = |x: f64| left + (x - x0) / (x1 - x0) * (w - left - right);
+    let py = |y: f64| h - bottom - y / y1 * (h - top - bottom);
+    let mut svg = String::new();
+    writeln!(svg, r#"<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" font-family="sans-serif" font-size="12">"#)?;
+    writeln!(svg, r#"<rect width="100%" height="100%" fill="white"/>"#)?;
+    writeln!(svg, r#"<path d="M{l} {t} V{b} H{r}" stroke="black" fill="none"/>"#, l = left, t = top, b = h - bottom, r = w - right)?;
+    for i in 0..=5 {
+        let (xv, yv) = (x0 + (x1 - x0) * f64::from(i) / 5.0, y1 * f64::from(i) / 5.0);
+        writeln!(svg, r#"<text x="{}" y="{}" text-anchor="middle">{:.0}</text>"#, px(xv), h - bottom + 18.0, xv)?;
+        writeln!(svg, r#"<text x="{}" y="{}" text-anchor="end">{:.3}</text>"#, left - 6.0, py(yv) + 4.0, yv)?;
+    }
+    writeln!(svg, r#"<text x="{}" y="{}" text-anchor="middle">step</text>"#, (left + w - right) / 2.0, h - 12.0)?;
+    for (i, (name, value, color)) in series.iter().enumerate() {
+        let points: Vec<String> = records
+            .iter()
+            .filter(|r| value(r).is_finite())
+            .map(|r| format!("{:.1},{:.1}", px(r.step as f64), py(value(r))))
+            .collect();
+        writeln!(svg, r#"<polyline points="{}" stroke="{color}" fill="none" stroke-width="1.5"/>"#, points.join(" "))?;
+        let ly = top + 16.0 * i as f64 + 8.0;
+        writeln!(svg, r#"<path d="M{} {ly} h20" stroke="{color}" stroke-width="2"/><text x="{}" y="{}">{name}</text>"#, w - right - 110.0, w - right - 84.0, ly + 4.0)?;
+    }
+    writeln!(svg, "</svg>")?;
+    std::fs::write(path, svg).map_err(|e| anyhow::anyhow!("writing {}: {e}", path.display()))
+}
