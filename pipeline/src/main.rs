@@ -206,12 +206,17 @@ fn write_batch_file(
     use superflow_pipeline::batch::{BatchPlan, BatchShape};
     use superflow_schemas::batch::BatchMeta;
     let config = load_config(args)?;
-    let size = batch_size.unwrap_or(config.service.batch_size as usize).max(1);
+    let size = batch_size
+        .unwrap_or(config.service.batch_size as usize)
+        .max(1);
     let dataset = open(args)?;
     let builder = SampleBuilder::new(&dataset, config.sample)?;
     let keyframes = builder.plan().keyframes.len();
     if index + size > keyframes {
-        bail!("keyframes {index}..{} requested; the drives have {keyframes}", index + size);
+        bail!(
+            "keyframes {index}..{} requested; the drives have {keyframes}",
+            index + size
+        );
     }
     let samples = (index..index + size)
         .map(|k| builder.build_keyframe(k, epoch, k as u64))
@@ -239,7 +244,11 @@ fn write_batch_file(
     bytes.resize(start + plan.layout().payload_len(), 0);
     plan.write(&samples, &mut bytes[start..])?;
     std::fs::write(out, &bytes).with_context(|| format!("writing {}", out.display()))?;
-    println!("wrote a batch of {size} samples ({} bytes) to {}", bytes.len(), out.display());
+    println!(
+        "wrote a batch of {size} samples ({} bytes) to {}",
+        bytes.len(),
+        out.display()
+    );
     Ok(())
 }
 

@@ -14,6 +14,7 @@ pub fn prefix(test: &str) -> String {
 
 /// A child process killed (and reaped) when dropped, so a failing test leaves no
 /// pipeline or subscriber running.
+#[derive(Debug)]
 pub struct Proc(pub Option<Child>);
 
 impl std::ops::Deref for Proc {
@@ -97,7 +98,6 @@ pub fn no_shared_memory_left(prefix: &str) {
         .collect();
     assert!(left.is_empty(), "left in /dev/shm: {left:?}");
 }
-
 
 /// Spawns `command` as a [`Proc`].
 pub fn spawn(command: &mut Command) -> Proc {

@@ -9,7 +9,9 @@ use serde_json::Value;
 use std::collections::BTreeMap;
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
-use superflow_tests::process::{Proc, finish, lines_of, no_shared_memory_left, prefix, send_signal};
+use superflow_tests::process::{
+    Proc, finish, lines_of, no_shared_memory_left, prefix, send_signal,
+};
 use superflow_tests::{pipeline_binary, workspace_root};
 
 const DRIVE: &str = "recordings/drives/street_ros2.mcap";
@@ -490,7 +492,15 @@ fn the_trainer_waits_for_a_pipeline() {
             "superflow-trainer",
         ))
         .args(["--run", "trainer", "--steps", "2", "--timeout-secs", "120"])
-        .args(["--unet", "tiny", "--vit", "tiny", "--pixel-stride", "4", "--out"])
+        .args([
+            "--unet",
+            "tiny",
+            "--vit",
+            "tiny",
+            "--pixel-stride",
+            "4",
+            "--out",
+        ])
         .arg(&out)
         .env("SUPERFLOW_IOX_PREFIX", &p)
         .env("RUST_LOG", "info")

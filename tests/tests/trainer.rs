@@ -9,20 +9,31 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
-use superflow_tests::process::{Proc, finish, lines_of, no_shared_memory_left, prefix, send_signal, spawn};
+use superflow_tests::process::{
+    Proc, finish, lines_of, no_shared_memory_left, prefix, send_signal, spawn,
+};
 use superflow_tests::{pipeline_binary, workspace_binary, workspace_root};
 use superflow_trainer::metrics::{self, StepRecord};
 
 const DRIVE: &str = "recordings/drives/street_ros2.mcap";
 const LIMIT: Duration = Duration::from_secs(600);
-/// Steps of each run: 8 epochs of the drive's 6 keyframes in batches of 2.
+/// Steps of each run: 4 epochs of the drive's 6 keyframes in batches of 1.
 const STEPS: u64 = 24;
-const EPOCHS: &str = "8";
+const EPOCHS: &str = "4";
 
 fn pipeline(prefix: &str, run: &str) -> Proc {
     spawn(
         Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-probe")))
-            .args(["--mcap", DRIVE, "--run", run, "--batch-size", "2", "--epochs", EPOCHS])
+            .args([
+                "--mcap",
+                DRIVE,
+                "--run",
+                run,
+                "--batch-size",
+                "1",
+                "--epochs",
+                EPOCHS,
+            ])
             .env("SUPERFLOW_IOX_PREFIX", prefix)
             .env("RUST_LOG", "warn")
             .current_dir(workspace_root())
@@ -38,7 +49,9 @@ fn trainer(prefix: &str, run: &str, out: &Path, extra: &[&str]) -> Proc {
             env!("CARGO_BIN_EXE_superflow-probe"),
             "superflow-trainer",
         ))
-        .args(["--run", run, "--steps", &steps, "--unet", "tiny", "--vit", "tiny"])
+        .args([
+            "--run", run, "--steps", &steps, "--unet", "tiny", "--vit", "tiny",
+        ])
         .args(["--pixel-stride", "4", "--timeout-secs", "120", "--out"])
         .arg(out)
         .args(extra)
@@ -72,7 +85,10 @@ fn training_lowers_the_loss_and_a_resumed_run_matches_an_uninterrupted_one() {
     let p = prefix("train");
     let full = temp_dir("train-full");
     let pipe = pipeline(&p, "full");
-    let (ok, _, err) = finish(trainer(&p, "full", &full, &["--checkpoint-every", "10", "--plot"]), LIMIT);
+    let (ok, _, err) = finish(
+        trainer(&p, "full", &full, &["--checkpoint-every", "10", "--plot"]),
+        LIMIT,
+    );
     assert!(ok, "{err}");
     send_signal(&pipe, "-TERM");
     let _ = finish(pipe, LIMIT);
@@ -80,11 +96,22 @@ fn training_lowers_the_loss_and_a_resumed_run_matches_an_uninterrupted_one() {
     let uninterrupted = by_step(metrics::read(&full.join("metrics.jsonl")).unwrap());
     assert_eq!(uninterrupted.len() as u64, STEPS);
     let first = mean(uninterrupted.values().take(6).map(|r| r.loss));
-    let last = mean(uninterrupted.values().skip(STEPS as usize - 6).map(|r| r.loss));
+    let last = mean(
+        uninterrupted
+            .values()
+            .skip(STEPS as usize - 6)
+            .map(|r| r.loss),
+    );
     eprintln!("loss: first 6 steps {first:.4}, last 6 steps {last:.4}");
-    assert!(last < first * 0.95, "the loss did not decrease: {first} → {last}");
+    assert!(
+        last < first * 0.95,
+        "the loss did not decrease: {first} → {last}"
+    );
     for r in uninterrupted.values() {
-        assert!(r.l_sc > 0.0 && r.l_tc > 0.0 && r.l_d2s > 0.0, "a term is empty: {r:?}");
+        assert!(
+            r.l_sc > 0.0 && r.l_tc > 0.0 && r.l_d2s > 0.0,
+            "a term is empty: {r:?}"
+        );
     }
     // Every epoch saw every keyframe once (by sample id).
     let mut seen: BTreeMap<u64, Vec<u64>> = BTreeMap::new();
@@ -110,7 +137,9 @@ fn training_lowers_the_loss_and_a_resumed_run_matches_an_uninterrupted_one() {
     let started = Instant::now();
     let mut log = String::new();
     while !log.contains("checkpoint saved") {
-        let line = rx.recv_timeout(LIMIT).unwrap_or_else(|_| panic!("no checkpoint:\n{log}"));
+        let line = rx
+            .recv_timeout(LIMIT)
+            .unwrap_or_else(|_| panic!("no checkpoint:\n{log}"));
         log.push_str(&line);
         log.push('\n');
         assert!(started.elapsed() < LIMIT, "{log}");
@@ -118,7 +147,10 @@ fn training_lowers_the_loss_and_a_resumed_run_matches_an_uninterrupted_one() {
     send_signal(&first_half, "-KILL");
     let _ = first_half.wait();
     drop(first_half);
-    let (ok, _, err) = finish(trainer(&p, "cut", &cut, &["--checkpoint-every", "10", "--resume"]), LIMIT);
+    let (ok, _, err) = finish(
+        trainer(&p, "cut", &cut, &["--checkpoint-every", "10", "--resume"]),
+        LIMIT,
+    );
     assert!(ok, "{err}");
     assert!(err.contains("resuming"), "{err}");
     send_signal(&pipe, "-TERM");
@@ -130,15 +162,27 @@ fn training_lowers_the_loss_and_a_resumed_run_matches_an_uninterrupted_one() {
     let mut worst = 0.0_f64;
     for (step, r) in &resumed {
         let u = &uninterrupted[step];
-        assert_eq!((r.epoch, r.batch), (u.epoch, u.batch), "step {step}: stream position");
+        assert_eq!(
+            (r.epoch, r.batch),
+            (u.epoch, u.batch),
+            "step {step}: stream position"
+        );
         assert_eq!(r.sample_ids, u.sample_ids, "step {step}: samples");
-        for (a, b) in [(r.loss, u.loss), (r.l_sc, u.l_sc), (r.l_tc, u.l_tc), (r.l_d2s, u.l_d2s)] {
+        for (a, b) in [
+            (r.loss, u.loss),
+            (r.l_sc, u.l_sc),
+            (r.l_tc, u.l_tc),
+            (r.l_d2s, u.l_d2s),
+        ] {
             worst = worst.max((a - b).abs() / b.abs().max(1e-12));
         }
         assert!((r.lr - u.lr).abs() <= 1e-12 * u.lr, "step {step}: lr");
     }
     eprintln!("resumed vs uninterrupted: worst relative loss difference {worst:.2e}");
-    assert!(worst <= 1e-5, "resumed losses differ from the uninterrupted run by {worst:.2e}");
+    assert!(
+        worst <= 1e-5,
+        "resumed losses differ from the uninterrupted run by {worst:.2e}"
+    );
     let _ = std::fs::remove_dir_all(&full);
     let _ = std::fs::remove_dir_all(&cut);
 }

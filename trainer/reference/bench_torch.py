@@ -4,7 +4,8 @@
 Usage (needs PyTorch, numpy and safetensors; CI does not run it)::
 
     /tmp/torchenv/bin/python trainer/reference/bench_torch.py --batch FILE \\
-        --preset tiny|minkunet18|minkunet34 --steps N --warmup W --threads T [--json]
+        --preset tiny|minkunet18|minkunet34 [--pixel-stride S] --steps N --warmup W \\
+        --threads T [--json]
 
     # checks the losses and the ViT against the fixtures of the other two scripts
     /tmp/torchenv/bin/python trainer/reference/bench_torch.py --self-test
@@ -17,20 +18,26 @@ Usage (needs PyTorch, numpy and safetensors; CI does not run it)::
 then the payload (``schemas/BATCH_FORMAT.md``); it is read and validated with
 ``tests/python/read_batch.py``. Prints the median milliseconds per step and
 ``steps/s = 1000 / median ms``; with ``--json`` the human-readable lines go to stderr
-and stdout gets one line ``{"preset", "ms_per_step_median", "steps_per_s", "threads"}``.
+and stdout gets one line ``{"preset", "ms_per_step_median", "steps_per_s", "threads",
+"pixel_stride", "sampled_pixels", "params", "prep_ms", "phases_ms": {"vit", "forward",
+"backward", "update"}}`` (phases: medians over the timed steps). ``trainer/benches/step.rs``
+runs it next to the burn step on the same batch file.
 
 One step = forward (frozen ViT under ``no_grad`` on every image of the batch, 2D head,
 3D UNet, 3D head, losses) + backward + AdamW step. The batch arrays are turned into
-torch index tensors once, before the timed steps ("prep", reported apart), as they do
+torch index tensors once, before the timed steps ("prep", reported apart: the Rust
+trainer redoes this "inputs" phase every step, as every batch differs), as they do
 not change between steps; the ImageNet normalisation of the images is inside the step.
-Seeded (``--seed``), so the weights are the same from run to run.
+Seeded (``--seed``), so the weights are the same from run to run (the initial weights
+have the Rust trainer's distributions, not its values).
 
 Model (the Rust trainer's):
 
 * 3D: MinkowskiEngine's MinkUNet run on the batch's kernel maps (no sparse library).
-  A 3x3x3 convolution at level l: for each offset k, pairs
-  ``l{l}_nbr[starts[k]:starts[k+1]]`` = (input row, output row):
-  ``out.index_add_(0, out_rows, x[in_rows] @ W[k])``. The kernel-2 stride-2 down
+  A 3x3x3 convolution at level l: pairs ``l{l}_nbr`` = (input row, output row), grouped
+  by offset k (``starts[k]:starts[k+1]``); as ``trainer/src/sparse.rs`` does it: gather
+  ``x[in_rows]`` once, multiply each offset's slice by ``W[k]``, concatenate, one
+  ``out.index_add_(0, out_rows, ...)``. The kernel-2 stride-2 down
   convolution uses ``l{l}_down`` (row at l, row at l+1) grouped by child position
   (``l{l}_down_starts``), the transposed up convolution the same pairs reversed. No conv
   biases. BatchNorm1d over rows (training mode, eps 1e-5, momentum 0.1), ReLU.
@@ -48,7 +55,14 @@ Model (the Rust trainer's):
   weights), position embeddings resized as transformers does (bicubic, ``size=``,
   align_corners False), attention via ``scaled_dot_product_attention``. Head: 1x1 conv
   dim -> 64 with bias, bilinear upsampling to the image size (x14, align_corners True),
-  L2 normalisation over channels.
+  L2 normalisation over channels -- evaluated, as ``trainer/src/model.rs`` does, only at
+  the pixels the superpixel pooling samples: the 1x1 conv at patch resolution, then each
+  sampled pixel = the 4 grid cells around it with their bilinear weights, then the L2
+  normalisation (the same values as the full-resolution map at those pixels).
+* Pixel sampling (``--pixel-stride S``, as ``[loss] pixel_stride`` and
+  ``LossPlan::new``): in every image, rows ``S//2, S//2 + S, ...`` and the same columns;
+  superpixel means are over those pixels only. ``S = 1`` is every pixel (the official
+  full-resolution pooling).
 * Losses: as ``make_loss_fixture.py`` (tau 0.07), pooled with ``index_add_``; weights
   sc 1, tc 1, d2s 1, d2s in its InfoNCE form. L_tc averages the terms of every frame
   other than the key frame (the frame whose ``frame_offsets`` entry is 0).
@@ -93,19 +107,38 @@ PRESETS = {
 # Sparse UNet on kernel maps
 # ---------------------------------------------------------------------------------------
 
+def normal_(weight: torch.Tensor, std: float) -> torch.Tensor:
+    with torch.no_grad():
+        return weight.normal_(0.0, std)
+
+
+def linear(cin: int, cout: int, std: float, bias: bool) -> nn.Linear:
+    """A Linear initialised as the Rust trainer's (normal weights, zero bias)."""
+    layer = nn.Linear(cin, cout, bias=bias)
+    normal_(layer.weight, std)
+    if bias:
+        with torch.no_grad():
+            layer.bias.zero_()
+    return layer
+
+
 class SparseConv(nn.Module):
-    """Weights [kernels, in, out]; applied with a list of (in rows, out rows) per kernel."""
+    """Weights [kernels, in, out], normal with std sqrt(2 / (kernels * out)) (the Rust
+    init); applied to a kernel map (in rows, out rows, starts of each kernel's pairs)."""
 
     def __init__(self, kernels: int, cin: int, cout: int):
         super().__init__()
-        self.weight = nn.Parameter(torch.randn(kernels, cin, cout) * math.sqrt(2.0 / (kernels * cin)))
+        self.weight = nn.Parameter(torch.randn(kernels, cin, cout) * math.sqrt(2.0 / (kernels * cout)))
 
-    def forward(self, x: torch.Tensor, pairs: list, n_out: int) -> torch.Tensor:
+    def forward(self, x: torch.Tensor, kmap: tuple, n_out: int) -> torch.Tensor:
+        rows_in, rows_out, starts = kmap
         out = x.new_zeros(n_out, self.weight.shape[2])
-        for k, (rows_in, rows_out) in enumerate(pairs):
-            if rows_in.numel():
-                out.index_add_(0, rows_out, x[rows_in] @ self.weight[k])
-        return out
+        if rows_in.numel() == 0:
+            return out
+        gathered = x[rows_in]
+        parts = [gathered[s:e] @ self.weight[k]
+                 for k, (s, e) in enumerate(zip(starts[:-1], starts[1:])) if e > s]
+        return out.index_add_(0, rows_out, torch.cat(parts))
 
 
 class BasicBlock(nn.Module):
@@ -115,7 +148,8 @@ class BasicBlock(nn.Module):
         self.conv2, self.bn2 = SparseConv(27, cout, cout), nn.BatchNorm1d(cout)
         self.down = None
         if cin != cout:
-            self.down = nn.Sequential(nn.Linear(cin, cout, bias=False), nn.BatchNorm1d(cout))
+            self.down = nn.Sequential(linear(cin, cout, math.sqrt(2.0 / cout), bias=False),
+                                      nn.BatchNorm1d(cout))
 
     def forward(self, x, nbr):
         n = x.shape[0]
@@ -155,8 +189,8 @@ class MinkUNet(nn.Module):
         self.out_channels = ch
 
     def forward(self, feats, maps):
-        """maps: {"rows": [V_l], "nbr": [27 pairs per level], "down": [8 pairs per level],
-        "up": [8 pairs per level]}."""
+        """maps: {"rows": [V_l], "nbr": [map per level], "down": [map per level],
+        "up": [map per level]}; a map is (in rows, out rows, starts per kernel)."""
         rows = maps["rows"]
         x = torch.relu(self.stem_bn(self.stem(feats, maps["nbr"][0], rows[0])))
         skips = [x]
@@ -247,14 +281,44 @@ class FrozenViT:
         return z[:, 1:].transpose(1, 2).reshape(n, d, gh, gw)
 
 
+def pixel_sampler(pixels: np.ndarray, image: tuple, grid: tuple) -> dict:
+    """Bilinear (aligned corners) sampling of a [gh, gw] patch grid upsampled to [H, W] at
+    ``pixels`` [P, 3] (image, row, col), as ``PixelSampler::new``: source = dst * (g - 1)
+    / (size - 1); the 4 cells around each pixel (rows of the [I * gh * gw] grid table)
+    and their weights [P, 1]."""
+    (h, w), (gh, gw) = image, grid
+    sy = (gh - 1) / (h - 1) if h > 1 else 0.0
+    sx = (gw - 1) / (w - 1) if w > 1 else 0.0
+    img = pixels[:, 0].astype(np.int64)
+    y = pixels[:, 1].astype(np.float64) * sy
+    x = pixels[:, 2].astype(np.float64) * sx
+    y0, x0 = np.floor(y).astype(np.int64), np.floor(x).astype(np.int64)
+    y1, x1 = np.minimum(y0 + 1, gh - 1), np.minimum(x0 + 1, gw - 1)
+    fy, fx = y - y0, x - x0
+    base = img * gh * gw
+    cells = [(y0, x0), (y0, x1), (y1, x0), (y1, x1)]
+    weights = [(1 - fy) * (1 - fx), (1 - fy) * fx, fy * (1 - fx), fy * fx]
+    return {"corners": [long(base + cy * gw + cx) for cy, cx in cells],
+            "weights": [torch.from_numpy(wt.astype(np.float32))[:, None] for wt in weights]}
+
+
 class Head2D(nn.Module):
+    """1x1 conv dim -> 64 (a Linear on the patch rows, std sqrt(1 / dim), zero bias), x14
+    bilinear upsampling with aligned corners evaluated at the sampled pixels only, L2
+    normalisation: [I, dim, gh, gw] -> [P, 64] in the order of the sampler's pixels."""
+
     def __init__(self, dim: int):
         super().__init__()
-        self.proj = nn.Conv2d(dim, OUT_DIM, 1)
+        self.proj = linear(dim, OUT_DIM, math.sqrt(1.0 / dim), bias=True)
 
-    def forward(self, tokens, h, w):
-        y = Fn.interpolate(self.proj(tokens), size=(h, w), mode="bilinear", align_corners=True)
-        return Fn.normalize(y, dim=1)
+    def forward(self, tokens, sampler):
+        n, d, gh, gw = tokens.shape
+        rows = self.proj(tokens.permute(0, 2, 3, 1).reshape(n * gh * gw, d))
+        out = None
+        for idx, wt in zip(sampler["corners"], sampler["weights"]):
+            term = rows[idx] * wt
+            out = term if out is None else out + term
+        return Fn.normalize(out, dim=1)
 
 
 # ---------------------------------------------------------------------------------------
@@ -267,12 +331,14 @@ def info_nce(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return Fn.cross_entropy(a @ b.T / TAU, torch.arange(a.shape[0]))
 
 
-def superflow_losses(point_feats, pixel_feats, ix, weights=(1.0, 1.0, 1.0)) -> dict:
-    d, dt = point_feats.shape[1], point_feats.dtype
-    pix = pixel_feats.permute(0, 2, 3, 1).reshape(-1, d)
-    q = torch.zeros(ix["px_slots"], d, dtype=dt).index_add_(0, ix["px_slot"], pix) / ix["cpx"].to(dt)
+def superflow_losses(pairing_feats, pixel_feats, ix, weights=(1.0, 1.0, 1.0)) -> dict:
+    """pairing_feats [pairings, d]: the 3D feature of every pairing's point (pairing
+    order); pixel_feats [P, d]: the 2D features of the sampled pixels (``ix["pixels"]``
+    order), as ``SuperFlowLoss::forward`` takes them."""
+    d, dt = pairing_feats.shape[1], pairing_feats.dtype
+    q = torch.zeros(ix["px_slots"], d, dtype=dt).index_add_(0, ix["px_slot"], pixel_feats) / ix["cpx"].to(dt)
     k = torch.zeros(ix["pt_slots"], d, dtype=dt).index_add_(
-        0, ix["pt_slot"], point_feats[ix["pairing_point"]]) / ix["cpt"].to(dt)
+        0, ix["pt_slot"], pairing_feats) / ix["cpt"].to(dt)
     sc = [info_nce(k[a], q[b]) for a, b in ix["sc"]]
     tc = [info_nce(k[a], k[b]) for a, b in ix["tc"]]
     d2s = info_nce(k[ix["d2s"][0]], k[ix["d2s"][1]])
@@ -291,36 +357,41 @@ def long(a) -> torch.Tensor:
     return torch.from_numpy(np.asarray(a, dtype=np.int64).copy())
 
 
-def prepare(arr: dict) -> dict:
+def prepare(arr: dict, pixel_stride: int = 1, patch: int = 14) -> dict:
     images = arr["images"]
     levels = sum(1 for name in arr if name.endswith("_nbr_starts"))
     maps = {"rows": [], "nbr": [], "down": [], "up": []}
     for l in range(levels):
         maps["rows"].append(int(arr[f"l{l}_coords"].shape[0]))
         nbr, starts = arr[f"l{l}_nbr"].astype(np.int64), arr[f"l{l}_nbr_starts"].astype(np.int64)
-        maps["nbr"].append([(long(nbr[starts[j]:starts[j + 1], 0]), long(nbr[starts[j]:starts[j + 1], 1]))
-                            for j in range(27)])
+        maps["nbr"].append((long(nbr[:, 0]), long(nbr[:, 1]), [int(v) for v in starts]))
         if l + 1 < levels:
             dn, ds = arr[f"l{l}_down"].astype(np.int64), arr[f"l{l}_down_starts"].astype(np.int64)
-            child = [long(dn[ds[j]:ds[j + 1], 0]) for j in range(8)]
-            parent = [long(dn[ds[j]:ds[j + 1], 1]) for j in range(8)]
-            maps["down"].append(list(zip(child, parent)))
-            maps["up"].append(list(zip(parent, child)))
+            child, parent, ds = long(dn[:, 0]), long(dn[:, 1]), [int(v) for v in ds]
+            maps["down"].append((child, parent, ds))
+            maps["up"].append((parent, child, ds))
     if levels != 5:
         raise ValueError(f"the UNet needs 5 levels of maps, the batch has {levels}")
 
-    ix = prepare_losses(arr)
+    ix = prepare_losses(arr, pixel_stride)
+    h, w = images.shape[1:3]
+    if h % patch or w % patch:
+        raise ValueError(f"images are {h}x{w}, not multiples of the ViT patch {patch}")
+    p2v = np.asarray(arr["point_to_voxel"], dtype=np.int64)
     return {
         "images": torch.from_numpy(np.array(images)),
         "voxel_features": torch.from_numpy(np.array(arr["voxel_features"], dtype=np.float32)),
-        "point_to_voxel": long(arr["point_to_voxel"]),
+        "pairing_voxel": long(p2v[np.asarray(arr["pairing_point"], dtype=np.int64)]),
+        "sampler": pixel_sampler(ix["pixels"], (h, w), (h // patch, w // patch)),
         "maps": maps, "ix": ix,
         "summary": (f"{ix['summary']}, points {arr['points'].shape[0]}, voxels {maps['rows']}"),
     }
 
 
-def prepare_losses(arr: dict) -> dict:
-    """Index tensors of the losses: pooling slots, counts and the kept slot pairs."""
+def prepare_losses(arr: dict, pixel_stride: int = 1) -> dict:
+    """Index tensors of the losses: pooling slots, counts and the kept slot pairs; the
+    superpixel means are over the pixels sampled every ``pixel_stride`` rows and columns
+    (from ``pixel_stride // 2``), image by image, row by row (``LossPlan::new``)."""
     b, f = arr["num_superpixels"].shape
     n_img, h, w = arr["superpixels"].shape
     k_cams = n_img // (b * f)
@@ -331,7 +402,11 @@ def prepare_losses(arr: dict) -> dict:
     smax = max(int(n_sp.max()), 1)
 
     # Superpixel slots: frame (b*F + f) * smax + id; superpoint slots: cloud * smax + id.
-    sp = arr["superpixels"].astype(np.int64).reshape(n_img, h * w)
+    stride = max(int(pixel_stride), 1)
+    rows, cols = np.arange(stride // 2, h, stride), np.arange(stride // 2, w, stride)
+    sp = arr["superpixels"].astype(np.int64)[:, rows][:, :, cols].reshape(n_img, -1)
+    grid = np.stack(np.meshgrid(np.arange(n_img), rows, cols, indexing="ij"), -1)
+    pixels = grid.reshape(-1, 3)  # (image, row, col), image-major then row-major
     frame_of_image = np.arange(n_img) // k_cams
     px_slot = (frame_of_image[:, None] * smax + sp).reshape(-1)
     cpx = np.bincount(px_slot, minlength=b * f * smax)
@@ -372,13 +447,14 @@ def prepare_losses(arr: dict) -> dict:
     dense, keyrows = slots(lambda bb: [(cloud_base(bb, f), cloud_base(bb, key), int(n_sp[bb, key]),
                                         [cpt_of(bb, key), cpt_of(bb, f)])])
     return {
-        "px_slot": long(px_slot), "px_slots": b * f * smax,
+        "px_slot": long(px_slot), "px_slots": b * f * smax, "pixels": pixels,
         "cpx": torch.from_numpy(np.maximum(cpx, 1).astype(np.float32))[:, None],
         "pt_slot": long(pt_slot), "pt_slots": b * c_per * smax,
         "cpt": torch.from_numpy(np.maximum(cpt, 1).astype(np.float32))[:, None],
         "pairing_point": long(arr["pairing_point"]),
         "sc": sc, "tc": tc, "d2s": (dense, keyrows),
-        "summary": (f"B={b} F={f} K={k_cams} images {h}x{w}, pairings "
+        "summary": (f"B={b} F={f} K={k_cams} images {h}x{w}, pixel stride {stride} "
+                    f"({pixels.shape[0]} sampled pixels), pairings "
                     f"{arr['pairing_point'].shape[0]}, slots sc {[len(a) for a, _ in sc]} "
                     f"tc {[len(a) for a, _ in tc]} d2s {len(dense)}"),
     }
@@ -543,8 +619,51 @@ def load(data: bytes):
 
 # ---------------------------------------------------------------------------------------
 
+def build(preset_name: str, seed: int = 0):
+    """The frozen ViT and the trainable modules of a preset (seeded)."""
+    torch.manual_seed(seed)
+    preset = PRESETS[preset_name]
+    if preset["vit"] == "tiny":
+        from safetensors.torch import load_file
+        vit = FrozenViT(load_file(os.path.join(HERE, "..", "tests", "fixtures", "tiny_dinov2.safetensors")),
+                        heads=2)
+    else:
+        vit = FrozenViT(vits14_weights(seed), heads=6)
+    unet = MinkUNet(preset)
+    head3d = linear(unet.out_channels, OUT_DIM, math.sqrt(1.0 / unet.out_channels), bias=True)
+    head2d = Head2D(vit.dim)
+    return vit, unet, head3d, head2d
+
+
+def make_step(batch: dict, vit, unet, head3d, head2d, opt):
+    """One training step; returns (losses, phase seconds {vit, forward, backward, update})."""
+    mean = torch.tensor(MEAN).view(1, 3, 1, 1)
+    std = torch.tensor(STD).view(1, 3, 1, 1)
+
+    def step():
+        t = [time.perf_counter()]
+        with torch.no_grad():
+            x = batch["images"].permute(0, 3, 1, 2).float() / 255.0
+            tokens = vit((x - mean) / std)
+        t.append(time.perf_counter())
+        pixel = head2d(tokens, batch["sampler"])
+        vox = Fn.normalize(head3d(unet(batch["voxel_features"], batch["maps"])), dim=1)
+        losses = superflow_losses(vox[batch["pairing_voxel"]], pixel, batch["ix"])
+        t.append(time.perf_counter())
+        opt.zero_grad(set_to_none=True)
+        losses["total"].backward()
+        t.append(time.perf_counter())
+        opt.step()
+        t.append(time.perf_counter())
+        phases = dict(zip(("vit", "forward", "backward", "update"), np.diff(t)))
+        return losses, phases
+
+    return step
+
+
 def self_test(seed: int) -> None:
-    """Checks the losses and the ViT against the fixtures, and the synthetic batch."""
+    """Checks the losses and the ViT against the fixtures, the 2D head's pixel sampling
+    against full-resolution upsampling, and a tiny step on a synthetic batch."""
     fixtures = os.path.join(HERE, "..", "tests", "fixtures")
     with open(os.path.join(fixtures, "losses.json")) as fh:
         fx = json.load(fh)
@@ -561,7 +680,9 @@ def self_test(seed: int) -> None:
     xf = torch.tensor(np.array(fx["pixel_features"], np.float32).reshape(b * f * k, d, h, w),
                       dtype=torch.float64, requires_grad=True)
     wt = cfg["weights"]
-    out = superflow_losses(pf, xf, ix, (wt["sc"], wt["tc"], wt["d2s"]))
+    # Stride 1: every pixel, image-major then row-major = the full map's order.
+    out = superflow_losses(pf[ix["pairing_point"]], xf.permute(0, 2, 3, 1).reshape(-1, d), ix,
+                           (wt["sc"], wt["tc"], wt["d2s"]))
     out["total"].backward()
     ex = fx["expected"]
     for got, want in ((out["l_sc"], ex["l_sc"]), (out["l_tc"], ex["l_tc"]),
@@ -570,6 +691,35 @@ def self_test(seed: int) -> None:
     assert np.abs(pf.grad.numpy().reshape(-1) - ex["grad_point_features_infonce"]).max() < 1e-10
     assert np.abs(xf.grad.numpy().reshape(-1) - ex["grad_pixel_features_infonce"]).max() < 1e-10
     print("losses match losses.json (to 1e-10, gradients included)")
+
+    # Strided pooling = the full-map pooling restricted to the sampled pixels.
+    for stride in (2, 3, 4):
+        ixs = prepare_losses(arr, stride)
+        rows, cols = np.arange(stride // 2, h, stride), np.arange(stride // 2, w, stride)
+        assert ixs["pixels"].shape[0] == b * f * k * len(rows) * len(cols)
+        sub = xf.detach()[:, :, rows][:, :, :, cols].permute(0, 2, 3, 1).reshape(-1, d)
+        got = superflow_losses(pf.detach()[ixs["pairing_point"]], sub, ixs)["l_sc"].item()
+        pix = torch.from_numpy(ixs["pixels"])
+        again = xf.detach()[pix[:, 0], :, pix[:, 1], pix[:, 2]]
+        want = superflow_losses(pf.detach()[ixs["pairing_point"]], again, ixs)["l_sc"].item()
+        assert abs(got - want) < 1e-12, (stride, got, want)
+    print("strided superpixel pooling samples rows/cols stride//2, stride//2 + stride, ...")
+
+    # The 2D head at sampled pixels = full-resolution upsampling at those pixels.
+    g = torch.Generator().manual_seed(seed)
+    tokens = torch.randn(3, 24, 4, 6, generator=g)
+    head = Head2D(24)
+    with torch.no_grad():
+        full = Fn.conv2d(tokens, head.proj.weight[:, :, None, None], head.proj.bias)
+        full = Fn.normalize(Fn.interpolate(full, size=(56, 84), mode="bilinear", align_corners=True), dim=1)
+        for stride in (1, 3, 4):
+            rows, cols = np.arange(stride // 2, 56, stride), np.arange(stride // 2, 84, stride)
+            pixels = np.stack(np.meshgrid(np.arange(3), rows, cols, indexing="ij"), -1).reshape(-1, 3)
+            got = head(tokens, pixel_sampler(pixels, (56, 84), (4, 6)))
+            want = full[:, :, rows][:, :, :, cols].permute(0, 2, 3, 1).reshape(-1, OUT_DIM)
+            err = (got - want).abs().max().item()
+            assert err < 1e-5, (stride, err)
+    print(f"2D head at sampled pixels matches the full-resolution map (max |diff| {err:.1e})")
 
     from safetensors.torch import load_file
     with open(os.path.join(fixtures, "vit.json")) as fh:
@@ -585,17 +735,25 @@ def self_test(seed: int) -> None:
 
     data = synthetic_batch(seed, 500, 56, 112)
     _, arrays = load(data)
-    batch = prepare(arrays)
+    batch = prepare(arrays, pixel_stride=4)
     for l in range(4):  # every voxel has one parent and the up map covers every child
-        n = sum(len(c) for c, _ in batch["maps"]["down"][l])
-        assert n == batch["maps"]["rows"][l]
+        assert len(batch["maps"]["down"][l][0]) == batch["maps"]["rows"][l]
     print(f"synthetic batch reads back: {batch['summary']}")
+    vit, unet, head3d, head2d = build("tiny", seed=seed)
+    params = [*unet.parameters(), *head3d.parameters(), *head2d.parameters()]
+    opt = torch.optim.AdamW(params, lr=0.01, betas=(0.9, 0.999), weight_decay=0.01, eps=1e-6)
+    step = make_step(batch, vit, unet, head3d, head2d, opt)
+    first = [step()[0]["total"].item() for _ in range(2)]
+    assert all(math.isfinite(v) for v in first), first
+    print(f"tiny preset trains on it at pixel stride 4 (total {first[0]:.4f} -> {first[1]:.4f})")
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--batch", help="batch file (header + payload)")
     p.add_argument("--preset", choices=sorted(PRESETS), default="tiny")
+    p.add_argument("--pixel-stride", type=int, default=1,
+                   help="superpixel pooling at every S-th pixel (1 = every pixel)")
     p.add_argument("--steps", type=int, default=10)
     p.add_argument("--warmup", type=int, default=2)
     p.add_argument("--threads", type=int, default=os.cpu_count())
@@ -606,7 +764,7 @@ def main(argv=None) -> int:
     p.add_argument("--synthetic-size", default="224x448", help="image HxW of the synthetic batch")
     p.add_argument("--write-synthetic", help="also save the synthetic batch to this file")
     p.add_argument("--self-test", action="store_true",
-                   help="check the losses and the ViT against the fixtures, then exit")
+                   help="check the losses, the 2D head and the ViT against references, then exit")
     args = p.parse_args(argv)
     log = (lambda *a: print(*a, file=sys.stderr)) if args.json else print
     if args.self_test:
@@ -614,9 +772,10 @@ def main(argv=None) -> int:
         return 0
     if bool(args.batch) == args.synthetic:
         p.error("give exactly one of --batch FILE and --synthetic")
+    if args.pixel_stride < 1:
+        p.error("--pixel-stride must be at least 1")
 
     torch.set_num_threads(args.threads)
-    torch.manual_seed(args.seed)
     if args.synthetic:
         hh, ww = (int(v) for v in args.synthetic_size.split("x"))
         data = synthetic_batch(args.seed, args.synthetic_points, hh, ww)
@@ -629,50 +788,30 @@ def main(argv=None) -> int:
         _, arrays = rb.read_batch(header, payload)
 
     t0 = time.perf_counter()
-    batch = prepare(arrays)
+    batch = prepare(arrays, args.pixel_stride)
     prep_ms = (time.perf_counter() - t0) * 1e3
     log(f"batch: {batch['summary']}; prep {prep_ms:.1f} ms")
 
-    preset = PRESETS[args.preset]
-    if preset["vit"] == "tiny":
-        from safetensors.torch import load_file
-        vit = FrozenViT(load_file(os.path.join(HERE, "..", "tests", "fixtures", "tiny_dinov2.safetensors")),
-                        heads=2)
-    else:
-        vit = FrozenViT(vits14_weights(args.seed), heads=6)
-    unet = MinkUNet(preset)
-    head3d = nn.Linear(unet.out_channels, OUT_DIM)
-    head2d = Head2D(vit.dim)
+    vit, unet, head3d, head2d = build(args.preset, seed=args.seed)
     params = [*unet.parameters(), *head3d.parameters(), *head2d.parameters()]
+    n_params = sum(x.numel() for x in params)
     opt = torch.optim.AdamW(params, lr=0.01, betas=(0.9, 0.999), weight_decay=0.01, eps=1e-6)
-    log(f"preset {args.preset}: {sum(x.numel() for x in params)} trainable parameters, "
-        f"ViT dim {vit.dim} depth {vit.depth}, threads {args.threads}")
+    log(f"preset {args.preset}: {n_params} trainable parameters "
+        f"({sum(x.numel() for x in unet.parameters()) + sum(x.numel() for x in head3d.parameters())} 3D), "
+        f"ViT dim {vit.dim} depth {vit.depth}, pixel stride {args.pixel_stride}, threads {args.threads}")
+    step = make_step(batch, vit, unet, head3d, head2d, opt)
 
-    mean = torch.tensor(MEAN).view(1, 3, 1, 1)
-    std = torch.tensor(STD).view(1, 3, 1, 1)
-
-    def step():
-        with torch.no_grad():
-            x = batch["images"].permute(0, 3, 1, 2).float() / 255.0
-            tokens = vit((x - mean) / std)
-        h, w = batch["images"].shape[1:3]
-        pixel = head2d(tokens, h, w)
-        vox = Fn.normalize(head3d(unet(batch["voxel_features"], batch["maps"])), dim=1)
-        point = vox[batch["point_to_voxel"]]
-        losses = superflow_losses(point, pixel, batch["ix"])
-        opt.zero_grad(set_to_none=True)
-        losses["total"].backward()
-        opt.step()
-        return losses
-
-    times = []
+    times, phases = [], []
     for i in range(args.warmup + args.steps):
         t0 = time.perf_counter()
-        losses = step()
+        losses, split = step()
         dt = (time.perf_counter() - t0) * 1e3
         if i >= args.warmup:
             times.append(dt)
-        log(f"step {i}{' (warmup)' if i < args.warmup else ''}: {dt:.1f} ms, total "
+            phases.append(split)
+        log(f"step {i}{' (warmup)' if i < args.warmup else ''}: {dt:.1f} ms "
+            f"(ViT {split['vit'] * 1e3:.0f}, forward {split['forward'] * 1e3:.0f}, "
+            f"backward {split['backward'] * 1e3:.0f}, update {split['update'] * 1e3:.0f}), total "
             f"{losses['total'].item():.4f} (sc {losses['l_sc'].item():.4f}, "
             f"tc {losses['l_tc'].item():.4f}, d2s {losses['l_d2s'].item():.4f})")
         if not math.isfinite(losses["total"].item()):
@@ -682,8 +821,16 @@ def main(argv=None) -> int:
         f"{statistics.fmean(times) if times else float('nan'):.1f}), {1e3 / med:.3f} steps/s, "
         f"{args.threads} threads")
     if args.json:
-        print(json.dumps({"preset": args.preset, "ms_per_step_median": med,
-                          "steps_per_s": 1e3 / med, "threads": args.threads}))
+        print(json.dumps({
+            "preset": args.preset, "ms_per_step_median": med, "steps_per_s": 1e3 / med,
+            "threads": args.threads, "pixel_stride": args.pixel_stride,
+            "sampled_pixels": int(batch["ix"]["pixels"].shape[0]), "params": n_params,
+            "params_3d": sum(x.numel() for x in unet.parameters())
+            + sum(x.numel() for x in head3d.parameters()),
+            "prep_ms": prep_ms,
+            "phases_ms": {k: statistics.median(ph[k] for ph in phases) * 1e3 if phases else float("nan")
+                          for k in ("vit", "forward", "backward", "update")},
+        }))
     return 0
 
 

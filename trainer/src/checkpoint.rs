@@ -86,7 +86,11 @@ pub fn save(
     }
     fs::create_dir(&tmp).map_err(|e| ctx("creating", &tmp, e))?;
     let json = serde_json::to_vec_pretty(state)?;
-    for (file, bytes) in [("model.bpk", model), ("optim.bpk", optim), ("state.json", &json[..])] {
+    for (file, bytes) in [
+        ("model.bpk", model),
+        ("optim.bpk", optim),
+        ("state.json", &json[..]),
+    ] {
         let p = tmp.join(file);
         write_synced(&p, bytes).map_err(|e| ctx("writing", &p, e))?;
     }
@@ -138,7 +142,11 @@ pub fn latest(root: &Path) -> anyhow::Result<Option<Checkpoint>> {
     let state: CheckpointState = serde_json::from_slice(&text)
         .map_err(|e| anyhow::anyhow!("{}: {e}", state_path.display()))?;
     if state.format != FORMAT {
-        anyhow::bail!("{}: format {:?}, expected {FORMAT:?}", state_path.display(), state.format);
+        anyhow::bail!(
+            "{}: format {:?}, expected {FORMAT:?}",
+            state_path.display(),
+            state.format
+        );
     }
     Ok(Some(Checkpoint { dir, state }))
 }
@@ -182,7 +190,14 @@ mod tests {
         let partial = root.join(".step-00000050.tmp-999");
         fs::create_dir(&partial).expect("partial");
         fs::write(partial.join("model.bpk"), b"half").expect("half");
-        assert_eq!(latest(&root).expect("readable").expect("present").state.step, 40);
+        assert_eq!(
+            latest(&root)
+                .expect("readable")
+                .expect("present")
+                .state
+                .step,
+            40
+        );
         fs::remove_dir_all(&root).expect("cleanup");
     }
 }

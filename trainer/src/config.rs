@@ -147,7 +147,9 @@ impl TrainerConfig {
             .map_err(|e| anyhow::anyhow!("reading {}: {e}", path.display()))?;
         let config: Self =
             toml::from_str(&text).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
-        config.validate().map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+        config
+            .validate()
+            .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
         Ok(config)
     }
 
@@ -156,7 +158,10 @@ impl TrainerConfig {
         self.optim.schedule().validate()?;
         let l = &self.loss;
         if !(l.temperature > 0.0 && l.temperature.is_finite()) {
-            return Err(format!("[loss] temperature {} must be positive", l.temperature));
+            return Err(format!(
+                "[loss] temperature {} must be positive",
+                l.temperature
+            ));
         }
         if l.pixel_stride == 0 {
             return Err("[loss] pixel_stride must be at least 1".into());
@@ -172,5 +177,24 @@ impl TrainerConfig {
             return Err("[checkpoint] keep must be at least 1".into());
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_example_file_holds_the_defaults_and_typos_are_errors() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("trainer.toml");
+        assert_eq!(
+            TrainerConfig::load(&path).expect("example parses"),
+            TrainerConfig::default()
+        );
+        let err = toml::from_str::<TrainerConfig>("[loss]\ntemprature = 0.1\n").expect_err("typo");
+        assert!(err.to_string().contains("temprature"), "{err}");
+        let mut c = TrainerConfig::default();
+        c.optim.steps = 1;
+        assert!(c.validate().is_err());
     }
 }

@@ -127,7 +127,9 @@ impl StepInputs {
                 .get(p as usize)
                 .ok_or_else(|| invalid(format!("pairing point {p} beyond {points} points")))?;
             if v as usize >= voxels {
-                return Err(invalid(format!("point {p} in voxel {v} beyond {voxels} voxels")));
+                return Err(invalid(format!(
+                    "point {p} in voxel {v} beyond {voxels} voxels"
+                )));
             }
             pairing_voxel.push(i64::from(v));
         }
@@ -138,7 +140,8 @@ impl StepInputs {
             let rows = view.get::<i32>(&format!("l{l}_coords"))?.shape()[0];
             let nbr = view.get::<u32>(&format!("l{l}_nbr"))?;
             let starts = view.get::<u32>(&format!("l{l}_nbr_starts"))?;
-            check_map(&nbr.data, &starts.data, 27, rows, rows).map_err(|r| invalid(format!("l{l}_nbr: {r}")))?;
+            check_map(&nbr.data, &starts.data, 27, rows, rows)
+                .map_err(|r| invalid(format!("l{l}_nbr: {r}")))?;
             let down = match (
                 view.get::<u32>(&format!("l{l}_down")),
                 view.get::<u32>(&format!("l{l}_down_starts")),
@@ -156,7 +159,10 @@ impl StepInputs {
             )));
         }
         if levels[0].0 != voxels {
-            return Err(invalid(format!("l0 has {} voxels, voxel_features {voxels}", levels[0].0)));
+            return Err(invalid(format!(
+                "l0 has {} voxels, voxel_features {voxels}",
+                levels[0].0
+            )));
         }
         let mut maps = Vec::with_capacity(levels.len());
         for (l, &(rows, nbr, starts, down)) in levels.iter().enumerate() {

@@ -168,7 +168,11 @@ pub struct LossPlan {
 impl LossPlan {
     /// Plans the pooling and the matched slots; checks every id against its frame's
     /// superpixel count.
-    pub fn new(x: &LossInputs<'_>, pixel_stride: usize, device: &Device) -> Result<Self, PlanError> {
+    pub fn new(
+        x: &LossInputs<'_>,
+        pixel_stride: usize,
+        device: &Device,
+    ) -> Result<Self, PlanError> {
         let (b_n, f_n, k_n) = (x.batch, x.frames, x.cameras);
         let c_n = f_n + 1;
         let (h, w) = (x.height, x.width);
@@ -219,7 +223,10 @@ impl LossPlan {
         for b in 0..b_n {
             for c in 0..c_n {
                 let cloud = b * c_n + c;
-                let (s, e) = (x.pairing_clouds[cloud] as usize, x.pairing_clouds[cloud + 1] as usize);
+                let (s, e) = (
+                    x.pairing_clouds[cloud] as usize,
+                    x.pairing_clouds[cloud + 1] as usize,
+                );
                 if s > e || e > pairings {
                     return Err(bad("pairing_clouds", "offsets not increasing"));
                 }
@@ -229,7 +236,9 @@ impl LossPlan {
                     if id >= limit {
                         return Err(bad(
                             "pairing_superpixel",
-                            format!("id {id} of cloud {cloud} is not below its frame's {limit} superpixels"),
+                            format!(
+                                "id {id} of cloud {cloud} is not below its frame's {limit} superpixels"
+                            ),
                         ));
                     }
                     let slot = pt_base[c][b] + id;
@@ -256,7 +265,9 @@ impl LossPlan {
                             if id >= limit {
                                 return Err(bad(
                                     "superpixels",
-                                    format!("id {id} in image {image} is not below its frame's {limit} superpixels"),
+                                    format!(
+                                        "id {id} in image {image} is not below its frame's {limit} superpixels"
+                                    ),
                                 ));
                             }
                             let slot = px_base[f][b] + id;
@@ -317,7 +328,10 @@ impl LossPlan {
             Tensor::<2>::from_data(TensorData::new(values, [len, 1]), device)
         };
         Ok(Self {
-            pairing_point: index_tensor(x.pairing_point.iter().map(|&p| i64::from(p)).collect(), device),
+            pairing_point: index_tensor(
+                x.pairing_point.iter().map(|&p| i64::from(p)).collect(),
+                device,
+            ),
             pairing_slot: index_tensor(pairing_slot, device),
             point_counts: counts(pt_count),
             point_slots,
@@ -342,7 +356,12 @@ impl LossPlan {
 fn pool(rows: Tensor<2>, slot: &Tensor<1, Int>, slots: usize, counts: &Tensor<2>) -> Tensor<2> {
     let [_, d] = rows.dims();
     let device = rows.device();
-    let sums = Tensor::zeros([slots, d], &device).select_assign(0, slot.clone(), rows, IndexingUpdateOp::Add);
+    let sums = Tensor::zeros([slots, d], &device).select_assign(
+        0,
+        slot.clone(),
+        rows,
+        IndexingUpdateOp::Add,
+    );
     sums / counts.clone()
 }
 
@@ -397,10 +416,18 @@ impl LossTerms {
     /// Reads the scalars back (one transfer).
     pub fn values(&self) -> LossValues {
         let all = Tensor::cat(
-            vec![self.total.clone(), self.sc.clone(), self.tc.clone(), self.d2s.clone()],
+            vec![
+                self.total.clone(),
+                self.sc.clone(),
+                self.tc.clone(),
+                self.d2s.clone(),
+            ],
             0,
         );
-        let v: Vec<f32> = all.into_data().try_into_vec().unwrap_or_else(|_| vec![f32::NAN; 4]);
+        let v: Vec<f32> = all
+            .into_data()
+            .try_into_vec()
+            .unwrap_or_else(|_| vec![f32::NAN; 4]);
         LossValues {
             total: f64::from(v[0]),
             sc: f64::from(v[1]),
@@ -426,13 +453,23 @@ impl SuperFlowLoss {
     /// Superpoint features: mean 3D feature of each slot's pairings. `pairing_features`
     /// holds the 3D feature of every pairing's point, in pairing order.
     pub fn superpoints(&self, pairing_features: Tensor<2>, plan: &LossPlan) -> Tensor<2> {
-        pool(pairing_features, &plan.pairing_slot, plan.point_slots, &plan.point_counts)
+        pool(
+            pairing_features,
+            &plan.pairing_slot,
+            plan.point_slots,
+            &plan.point_counts,
+        )
     }
 
     /// Superpixel features: mean 2D feature of each slot's sampled pixels
     /// (`pixel_features` in the order of `plan.pixels`).
     pub fn superpixels(&self, pixel_features: Tensor<2>, plan: &LossPlan) -> Tensor<2> {
-        pool(pixel_features, &plan.pixel_slot, plan.pixel_slots, &plan.pixel_counts)
+        pool(
+            pixel_features,
+            &plan.pixel_slot,
+            plan.pixel_slots,
+            &plan.pixel_counts,
+        )
     }
 
     fn nce(&self, a: &Tensor<2>, b: &Tensor<2>, m: &Matched) -> Option<Tensor<1>> {

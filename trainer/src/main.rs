@@ -54,7 +54,8 @@ struct Args {
     /// Compute backend: flex (CPU), wgpu (build with --features wgpu), cuda (--features cuda).
     #[arg(long, default_value = "flex")]
     backend: String,
-    /// GPU index for wgpu/cuda.
+    /// GPU index for cuda (wgpu takes the best adapter; set CUBECL_WGPU_DEFAULT_DEVICE to
+    /// choose another).
     #[arg(long, default_value_t = 0)]
     device_index: usize,
     /// Output directory: checkpoints/, metrics.jsonl, losses.svg [default: runs/<run>
@@ -109,7 +110,8 @@ impl Args {
         if let Some(v) = self.checkpoint_every {
             c.checkpoint.every = v;
         }
-        c.validate().map_err(|e| anyhow::anyhow!("configuration: {e}"))?;
+        c.validate()
+            .map_err(|e| anyhow::anyhow!("configuration: {e}"))?;
         Ok(c)
     }
 
@@ -128,15 +130,16 @@ fn device(backend: &str, index: usize) -> anyhow::Result<burn::tensor::Device> {
     let _ = index;
     match backend {
         "flex" => Ok(burn::tensor::Device::flex()),
+        // wgpu picks the best adapter (override with CUBECL_WGPU_DEFAULT_DEVICE).
         #[cfg(feature = "wgpu")]
         "wgpu" => Ok(burn::tensor::Device::wgpu(
-            burn::tensor::DeviceKind::DiscreteGpu(index),
+            burn::tensor::DeviceKind::DefaultDevice,
         )),
         #[cfg(feature = "cuda")]
         "cuda" => Ok(burn::tensor::Device::cuda(index)),
-        "wgpu" | "cuda" => anyhow::bail!(
-            "backend {backend} is not compiled in: build with `--features {backend}`"
-        ),
+        "wgpu" | "cuda" => {
+            anyhow::bail!("backend {backend} is not compiled in: build with `--features {backend}`")
+        }
         other => anyhow::bail!("unknown backend {other:?} (flex, wgpu, cuda)"),
     }
 }
@@ -159,7 +162,10 @@ fn next_batch(
         }
         let attached = subscription.pipeline_attached();
         if !attached && !gone_reported {
-            tracing::warn!(run, "no pipeline is publishing; waiting for it to come back");
+            tracing::warn!(
+                run,
+                "no pipeline is publishing; waiting for it to come back"
+            );
             gone_reported = true;
         } else if attached && gone_reported {
             tracing::info!(run, "a pipeline is publishing again");
@@ -203,7 +209,11 @@ fn run(args: &Args) -> anyhow::Result<()> {
         match trainer.restore_latest(&ckpt_dir)? {
             Some(state) => {
                 let reply = subscription
-                    .resume(state.next_epoch, state.next_batch, Duration::from_secs(args.timeout_secs))
+                    .resume(
+                        state.next_epoch,
+                        state.next_batch,
+                        Duration::from_secs(args.timeout_secs),
+                    )
                     .with_context(|| format!("asking run {} to resume", args.run))?;
                 if reply.accepted != 1 {
                     anyhow::bail!(
@@ -222,7 +232,9 @@ fn run(args: &Args) -> anyhow::Result<()> {
                     "resuming: the pipeline continues at the checkpoint's next batch"
                 );
             }
-            None => tracing::warn!(dir = %ckpt_dir.display(), "--resume: no checkpoint yet, starting fresh"),
+            None => {
+                tracing::warn!(dir = %ckpt_dir.display(), "--resume: no checkpoint yet, starting fresh")
+            }
         }
     } else if superflow_trainer::checkpoint::latest(&ckpt_dir)?.is_some() {
         anyhow::bail!(
@@ -237,8 +249,10 @@ fn run(args: &Args) -> anyhow::Result<()> {
 
     let bar = ProgressBar::new(steps);
     bar.set_style(
-        ProgressStyle::with_template("{spinner} step {pos}/{len} [{elapsed_precise}<{eta_precise}] {msg}")
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        ProgressStyle::with_template(
+            "{spinner} step {pos}/{len} [{elapsed_precise}<{eta_precise}] {msg}",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
     bar.set_position(trainer.step_count());
     let started = Instant::now();
@@ -248,13 +262,22 @@ fn run(args: &Args) -> anyhow::Result<()> {
     tracing::info!(run = %args.run, ?target, steps, out = %out.display(), "training");
     while trainer.step_count() < steps {
         let t = Instant::now();
-        let batch = next_batch(&subscription, &args.run, Duration::from_secs(args.timeout_secs))?;
+        let batch = next_batch(
+            &subscription,
+            &args.run,
+            Duration::from_secs(args.timeout_secs),
+        )?;
         let wait = t.elapsed().as_secs_f64();
         let view = batch.view().context("invalid batch")?;
         let meta = view.meta().clone();
-        let outcome = trainer
-            .step(&view)
-            .with_context(|| format!("step {} (epoch {}, batch {})", trainer.step_count() + 1, meta.epoch, meta.step))?;
+        let outcome = trainer.step(&view).with_context(|| {
+            format!(
+                "step {} (epoch {}, batch {})",
+                trainer.step_count() + 1,
+                meta.epoch,
+                meta.step
+            )
+        })?;
         drop(view);
         drop(batch);
         waiting += wait;
@@ -290,7 +313,9 @@ fn run(args: &Args) -> anyhow::Result<()> {
             lr = format_args!("{:.2e}", record.lr),
             wait_ms = format_args!("{:.1}", record.wait_ms),
             step_ms = format_args!("{:.1}", record.step_ms),
-            vit_ms = format_args!("{:.1}", outcome.vit_seconds * 1e3),
+            vit_ms = format_args!("{:.1}", outcome.phases.vit * 1e3),
+            forward_ms = format_args!("{:.1}", outcome.phases.forward * 1e3),
+            backward_ms = format_args!("{:.1}", outcome.phases.backward * 1e3),
             "step"
         );
         bar.set_position(record.step);

@@ -85,7 +85,8 @@ pub fn read(path: &Path) -> anyhow::Result<Vec<StepRecord>> {
         .filter(|l| !l.trim().is_empty())
         .enumerate()
         .map(|(i, l)| {
-            serde_json::from_str(l).map_err(|e| anyhow::anyhow!("{}:{}: {e}", path.display(), i + 1))
+            serde_json::from_str(l)
+                .map_err(|e| anyhow::anyhow!("{}:{}: {e}", path.display(), i + 1))
         })
         .collect()
 }
@@ -115,24 +116,61 @@ pub fn plot_svg(records: &[StepRecord], path: &Path) -> anyhow::Result<()> {
     let px = |x: f64| left + (x - x0) / (x1 - x0) * (w - left - right);
     let py = |y: f64| h - bottom - y / y1 * (h - top - bottom);
     let mut svg = String::new();
-    writeln!(svg, r#"<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" font-family="sans-serif" font-size="12">"#)?;
+    writeln!(
+        svg,
+        r#"<svg xmlns="http://www.w3.org/2000/svg" width="{w}" height="{h}" font-family="sans-serif" font-size="12">"#
+    )?;
     writeln!(svg, r#"<rect width="100%" height="100%" fill="white"/>"#)?;
-    writeln!(svg, r#"<path d="M{l} {t} V{b} H{r}" stroke="black" fill="none"/>"#, l = left, t = top, b = h - bottom, r = w - right)?;
+    writeln!(
+        svg,
+        r#"<path d="M{l} {t} V{b} H{r}" stroke="black" fill="none"/>"#,
+        l = left,
+        t = top,
+        b = h - bottom,
+        r = w - right
+    )?;
     for i in 0..=5 {
         let (xv, yv) = (x0 + (x1 - x0) * f64::from(i) / 5.0, y1 * f64::from(i) / 5.0);
-        writeln!(svg, r#"<text x="{}" y="{}" text-anchor="middle">{:.0}</text>"#, px(xv), h - bottom + 18.0, xv)?;
-        writeln!(svg, r#"<text x="{}" y="{}" text-anchor="end">{:.3}</text>"#, left - 6.0, py(yv) + 4.0, yv)?;
+        writeln!(
+            svg,
+            r#"<text x="{}" y="{}" text-anchor="middle">{:.0}</text>"#,
+            px(xv),
+            h - bottom + 18.0,
+            xv
+        )?;
+        writeln!(
+            svg,
+            r#"<text x="{}" y="{}" text-anchor="end">{:.3}</text>"#,
+            left - 6.0,
+            py(yv) + 4.0,
+            yv
+        )?;
     }
-    writeln!(svg, r#"<text x="{}" y="{}" text-anchor="middle">step</text>"#, (left + w - right) / 2.0, h - 12.0)?;
+    writeln!(
+        svg,
+        r#"<text x="{}" y="{}" text-anchor="middle">step</text>"#,
+        (left + w - right) / 2.0,
+        h - 12.0
+    )?;
     for (i, (name, value, color)) in series.iter().enumerate() {
         let points: Vec<String> = records
             .iter()
             .filter(|r| value(r).is_finite())
             .map(|r| format!("{:.1},{:.1}", px(r.step as f64), py(value(r))))
             .collect();
-        writeln!(svg, r#"<polyline points="{}" stroke="{color}" fill="none" stroke-width="1.5"/>"#, points.join(" "))?;
+        writeln!(
+            svg,
+            r#"<polyline points="{}" stroke="{color}" fill="none" stroke-width="1.5"/>"#,
+            points.join(" ")
+        )?;
         let ly = top + 16.0 * i as f64 + 8.0;
-        writeln!(svg, r#"<path d="M{} {ly} h20" stroke="{color}" stroke-width="2"/><text x="{}" y="{}">{name}</text>"#, w - right - 110.0, w - right - 84.0, ly + 4.0)?;
+        writeln!(
+            svg,
+            r#"<path d="M{} {ly} h20" stroke="{color}" stroke-width="2"/><text x="{}" y="{}">{name}</text>"#,
+            w - right - 110.0,
+            w - right - 84.0,
+            ly + 4.0
+        )?;
     }
     writeln!(svg, "</svg>")?;
     std::fs::write(path, svg).map_err(|e| anyhow::anyhow!("writing {}: {e}", path.display()))

@@ -53,7 +53,12 @@ impl PixelSampler {
             let (fy, fx) = (y - y0 as f64, x - x0 as f64);
             let base = image as usize * gh * gw;
             let cells = [(y0, x0), (y0, x1), (y1, x0), (y1, x1)];
-            let weights = [(1.0 - fy) * (1.0 - fx), (1.0 - fy) * fx, fy * (1.0 - fx), fy * fx];
+            let weights = [
+                (1.0 - fy) * (1.0 - fx),
+                (1.0 - fy) * fx,
+                fy * (1.0 - fx),
+                fy * fx,
+            ];
             for j in 0..4 {
                 idx[j].push((base + cells[j].0 * gw + cells[j].1) as i64);
                 wt[j].push(weights[j] as f32);
@@ -72,7 +77,8 @@ impl PixelSampler {
     pub fn sample(&self, grid_rows: Tensor<2>) -> Tensor<2> {
         let mut out: Option<Tensor<2>> = None;
         for j in 0..4 {
-            let term = grid_rows.clone().select(0, self.corners[j].clone()) * self.weights[j].clone();
+            let term =
+                grid_rows.clone().select(0, self.corners[j].clone()) * self.weights[j].clone();
             out = Some(match out {
                 Some(acc) => acc + term,
                 None => term,
@@ -87,7 +93,13 @@ impl ImageHead {
     pub fn new(dim: usize, out_dim: usize, seed: u64, device: &Device) -> Self {
         Self {
             conv: Linear {
-                weight: normal_param([dim, out_dim], (1.0 / dim as f64).sqrt(), seed, "image_head.weight", device),
+                weight: normal_param(
+                    [dim, out_dim],
+                    (1.0 / dim as f64).sqrt(),
+                    seed,
+                    "image_head.weight",
+                    device,
+                ),
                 bias: Some(Param::from_tensor(Tensor::zeros([out_dim], device))),
             },
         }
@@ -127,6 +139,8 @@ impl SuperFlowModel {
         levels: &[LevelMaps],
         pairing_voxel: Tensor<1, Int>,
     ) -> Tensor<2> {
-        self.unet.forward(voxel_features, levels).select(0, pairing_voxel)
+        self.unet
+            .forward(voxel_features, levels)
+            .select(0, pairing_voxel)
     }
 }

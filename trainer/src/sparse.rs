@@ -34,26 +34,65 @@ pub const KERNEL_2: usize = 8;
 pub struct LevelMaps {
     /// Voxel rows at this level.
     pub rows: usize,
-    /// 3×3×3 map: input rows, output rows, and where each offset's pairs start (28).
-    pub nbr_in: Tensor<1, Int>,
-    /// See `nbr_in`.
-    pub nbr_out: Tensor<1, Int>,
-    /// See `nbr_in`.
-    pub nbr_starts: Vec<usize>,
+    /// 3×3×3 map: the pairs of every offset (input rows, output rows).
+    pub nbr: KernelPairs,
     /// Stride-2 map to the next level (absent at the coarsest level): child rows here,
     /// parent rows at `l + 1`, and where each child position's pairs start (9).
     pub down: Option<DownMap>,
 }
 
-/// The stride-2 map from one level to the next.
+/// The stride-2 map from one level to the next: (child row here, parent row at the next
+/// level) pairs, grouped by the child's position in its parent cell.
+pub type DownMap = KernelPairs;
+
+/// A kernel map on the device: for every offset, the rows it gathers from and the rows
+/// it adds into (empty offsets are `None`), plus all target rows in offset order for the
+/// single scatter-add. Gathering per offset (rather than gathering all pairs and slicing)
+/// keeps the backward pass at one scatter per offset into the input's size.
 #[derive(Debug, Clone)]
-pub struct DownMap {
-    /// Child rows (this level).
-    pub child: Tensor<1, Int>,
-    /// Parent rows (next level).
-    pub parent: Tensor<1, Int>,
-    /// Where the pairs of child position `k` start; 9 entries.
-    pub starts: Vec<usize>,
+pub struct KernelPairs {
+    /// First column of the pairs, per offset.
+    pub first: Vec<Option<Tensor<1, Int>>>,
+    /// Second column of the pairs, per offset.
+    pub second: Vec<Option<Tensor<1, Int>>>,
+    /// Second column of all pairs, offset by offset.
+    pub second_all: Tensor<1, Int>,
+    /// First column of all pairs, offset by offset.
+    pub first_all: Tensor<1, Int>,
+    /// Pairs in all.
+    pub len: usize,
+}
+
+impl KernelPairs {
+    /// From interleaved pairs and the start of each offset's pairs (one transfer; the
+    /// per-offset index tensors are views cut on the device).
+    pub fn new(pairs: &[u32], starts: &[u32], device: &Device) -> Self {
+        let (first_all, second_all) = split_pairs(pairs, device);
+        let mut first = Vec::with_capacity(starts.len().saturating_sub(1));
+        let mut second = Vec::with_capacity(first.capacity());
+        for w in starts.windows(2) {
+            let (s, e) = (w[0] as usize, w[1] as usize);
+            if e > s {
+                first.push(Some(first_all.clone().narrow(0, s, e - s)));
+                second.push(Some(second_all.clone().narrow(0, s, e - s)));
+            } else {
+                first.push(None);
+                second.push(None);
+            }
+        }
+        Self {
+            first,
+            second,
+            second_all,
+            first_all,
+            len: pairs.len() / 2,
+        }
+    }
+
+    /// Offsets of the kernel.
+    pub fn offsets(&self) -> usize {
+        self.first.len()
+    }
 }
 
 impl LevelMaps {
@@ -66,20 +105,10 @@ impl LevelMaps {
         down: Option<(&[u32], &[u32])>,
         device: &Device,
     ) -> Self {
-        let (nbr_in, nbr_out) = split_pairs(nbr, device);
         Self {
             rows,
-            nbr_in,
-            nbr_out,
-            nbr_starts: nbr_starts.iter().map(|&s| s as usize).collect(),
-            down: down.map(|(pairs, starts)| {
-                let (child, parent) = split_pairs(pairs, device);
-                DownMap {
-                    child,
-                    parent,
-                    starts: starts.iter().map(|&s| s as usize).collect(),
-                }
-            }),
+            nbr: KernelPairs::new(nbr, nbr_starts, device),
+            down: down.map(|(pairs, starts)| KernelPairs::new(pairs, starts, device)),
         }
     }
 }
@@ -129,58 +158,61 @@ impl SparseConv {
         self.weight.val().dims()
     }
 
-    /// The generic gather → matmul → scatter-add: rows `gather[starts[k]..starts[k+1]]`
-    /// of `x` times weight `k`, added into rows `scatter[...]` of an `out_rows` output.
+    /// The generic gather → matmul → scatter-add: for every offset `k`, the rows
+    /// `gather[k]` of `x` times weight `k`; all products added into rows `scatter_all`
+    /// (the same pairs, offset by offset) of an `out_rows` output.
     fn apply(
         &self,
         x: Tensor<2>,
-        gather: &Tensor<1, Int>,
-        scatter: &Tensor<1, Int>,
-        starts: &[usize],
+        gather: &[Option<Tensor<1, Int>>],
+        scatter_all: &Tensor<1, Int>,
         out_rows: usize,
     ) -> Tensor<2> {
         let [offsets, c_in, c_out] = self.dims();
-        assert_eq!(starts.len(), offsets + 1, "kernel map has a start per offset");
+        assert_eq!(gather.len(), offsets, "kernel map has one entry per offset");
         let device = x.device();
-        let total = starts[offsets];
-        if total == 0 {
+        let weight = self.weight.val();
+        let parts: Vec<Tensor<2>> = gather
+            .iter()
+            .enumerate()
+            .filter_map(|(k, rows)| {
+                let rows = rows.as_ref()?;
+                let w = weight.clone().narrow(0, k, 1).reshape([c_in, c_out]);
+                Some(x.clone().select(0, rows.clone()).matmul(w))
+            })
+            .collect();
+        if parts.is_empty() {
             return Tensor::zeros([out_rows, c_out], &device);
         }
-        let gathered = x.select(0, gather.clone());
-        let weight = self.weight.val();
-        let mut parts = Vec::with_capacity(offsets);
-        for k in 0..offsets {
-            let (s, e) = (starts[k], starts[k + 1]);
-            if e == s {
-                continue;
-            }
-            let w = weight.clone().narrow(0, k, 1).reshape([c_in, c_out]);
-            parts.push(gathered.clone().narrow(0, s, e - s).matmul(w));
-        }
-        let values = Tensor::cat(parts, 0);
         Tensor::zeros([out_rows, c_out], &device).select_assign(
             0,
-            scatter.clone(),
-            values,
+            scatter_all.clone(),
+            Tensor::cat(parts, 0),
             IndexingUpdateOp::Add,
         )
     }
 
     /// Submanifold 3×3×3 convolution at one level (output rows = input rows).
     pub fn forward(&self, x: Tensor<2>, maps: &LevelMaps) -> Tensor<2> {
-        self.apply(x, &maps.nbr_in, &maps.nbr_out, &maps.nbr_starts, maps.rows)
+        self.apply(x, &maps.nbr.first, &maps.nbr.second_all, maps.rows)
     }
 
     /// Stride-2 convolution from `maps`' level to the next (`next_rows` rows).
     pub fn forward_down(&self, x: Tensor<2>, maps: &LevelMaps, next_rows: usize) -> Tensor<2> {
-        let down = maps.down.as_ref().expect("a level below the coarsest has a down map");
-        self.apply(x, &down.child, &down.parent, &down.starts, next_rows)
+        let down = maps
+            .down
+            .as_ref()
+            .expect("a level below the coarsest has a down map");
+        self.apply(x, &down.first, &down.second_all, next_rows)
     }
 
     /// Transposed stride-2 convolution from the next level back to `maps`' level.
     pub fn forward_up(&self, x_next: Tensor<2>, maps: &LevelMaps) -> Tensor<2> {
-        let down = maps.down.as_ref().expect("a level below the coarsest has a down map");
-        self.apply(x_next, &down.parent, &down.child, &down.starts, maps.rows)
+        let down = maps
+            .down
+            .as_ref()
+            .expect("a level below the coarsest has a down map");
+        self.apply(x_next, &down.second, &down.first_all, maps.rows)
     }
 }
 
@@ -193,7 +225,13 @@ fn batch_norm(channels: usize, device: &Device) -> BatchNorm {
 /// A linear layer without bias, Kaiming-normal.
 fn projection(c_in: usize, c_out: usize, seed: u64, name: &str, device: &Device) -> Linear {
     Linear {
-        weight: normal_param([c_in, c_out], (2.0 / c_out as f64).sqrt(), seed, name, device),
+        weight: normal_param(
+            [c_in, c_out],
+            (2.0 / c_out as f64).sqrt(),
+            seed,
+            name,
+            device,
+        ),
         bias: None,
     }
 }
@@ -219,9 +257,23 @@ pub struct Shortcut {
 impl BasicBlock {
     fn new(c_in: usize, c_out: usize, seed: u64, name: &str, device: &Device) -> Self {
         Self {
-            conv1: SparseConv::new(KERNEL_3, c_in, c_out, seed, &format!("{name}.conv1"), device),
+            conv1: SparseConv::new(
+                KERNEL_3,
+                c_in,
+                c_out,
+                seed,
+                &format!("{name}.conv1"),
+                device,
+            ),
             bn1: batch_norm(c_out, device),
-            conv2: SparseConv::new(KERNEL_3, c_out, c_out, seed, &format!("{name}.conv2"), device),
+            conv2: SparseConv::new(
+                KERNEL_3,
+                c_out,
+                c_out,
+                seed,
+                &format!("{name}.conv2"),
+                device,
+            ),
             bn2: batch_norm(c_out, device),
             shortcut: (c_in != c_out).then(|| Shortcut {
                 linear: projection(c_in, c_out, seed, &format!("{name}.shortcut"), device),
@@ -343,7 +395,14 @@ impl SparseUNet {
                 .collect()
         };
         let change = |stage: usize, c_in: usize, c_out: usize| LevelChange {
-            conv: SparseConv::new(KERNEL_2, c_in, c_out, seed, &format!("stage{stage}.change"), device),
+            conv: SparseConv::new(
+                KERNEL_2,
+                c_in,
+                c_out,
+                seed,
+                &format!("stage{stage}.change"),
+                device,
+            ),
             bn: batch_norm(c_out, device),
         };
         // Encoder stage i: level i → i + 1, then blocks to planes[i].
@@ -374,7 +433,14 @@ impl SparseUNet {
             bias: Some(Param::from_tensor(Tensor::zeros([config.out_dim], device))),
         };
         Self {
-            stem: SparseConv::new(KERNEL_3, config.in_channels, config.stem, seed, "stem", device),
+            stem: SparseConv::new(
+                KERNEL_3,
+                config.in_channels,
+                config.stem,
+                seed,
+                "stem",
+                device,
+            ),
             stem_bn: batch_norm(config.stem, device),
             encoder,
             decoder,
@@ -391,23 +457,32 @@ impl SparseUNet {
             UNetConfig::LEVELS,
             levels.len()
         );
-        let mut x = relu(self.stem_bn.forward(self.stem.forward(features, &levels[0])));
+        let mut x = relu(
+            self.stem_bn
+                .forward(self.stem.forward(features, &levels[0])),
+        );
         let mut skips = Vec::with_capacity(4);
         for (i, stage) in self.encoder.iter().enumerate() {
             skips.push(x.clone());
             let next = &levels[i + 1];
-            x = relu(stage.change.bn.forward(stage.change.conv.forward_down(
-                x,
-                &levels[i],
-                next.rows,
-            )));
+            x = relu(
+                stage
+                    .change
+                    .bn
+                    .forward(stage.change.conv.forward_down(x, &levels[i], next.rows)),
+            );
             for block in &stage.blocks {
                 x = block.forward(x, next);
             }
         }
         for (i, stage) in self.decoder.iter().enumerate() {
             let level = &levels[3 - i];
-            x = relu(stage.change.bn.forward(stage.change.conv.forward_up(x, level)));
+            x = relu(
+                stage
+                    .change
+                    .bn
+                    .forward(stage.change.conv.forward_up(x, level)),
+            );
             let skip = skips.pop().expect("one skip per encoder stage");
             x = Tensor::cat(vec![x, skip], 1);
             for block in &stage.blocks {

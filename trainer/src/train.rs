@@ -27,12 +27,28 @@ pub struct StepOutcome {
     pub lr: f64,
     /// Seconds spent (tensors, forward, backward, update).
     pub seconds: f64,
-    /// Seconds of the frozen ViT within `seconds`.
-    pub vit_seconds: f64,
+    /// Where `seconds` went.
+    pub phases: StepPhases,
     /// Points, pairings and level-0 voxels of the batch.
     pub counts: [usize; 3],
     /// (epoch, index in epoch) of each sample.
     pub sample_ids: Vec<[u64; 2]>,
+}
+
+/// Seconds of each phase of a step (the CPU backend runs eagerly, so each phase's
+/// operations are done when the next starts; on GPU backends the split is indicative).
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct StepPhases {
+    /// Batch → tensors and the loss plan.
+    pub inputs: f64,
+    /// The frozen ViT.
+    pub vit: f64,
+    /// 3D network, 2D head and losses.
+    pub forward: f64,
+    /// Backward pass.
+    pub backward: f64,
+    /// AdamW update.
+    pub update: f64,
 }
 
 /// A training run's state.
@@ -124,34 +140,50 @@ impl Trainer {
 
     /// The trainable model.
     pub fn model(&self) -> &SuperFlowModel {
-        self.model.as_ref().expect("the model is only taken during a step")
+        self.model
+            .as_ref()
+            .expect("the model is only taken during a step")
     }
 
     /// One step on `view`: tensors, frozen ViT, 3D network, losses, backward, AdamW.
     pub fn step(&mut self, view: &BatchView<'_>) -> anyhow::Result<StepOutcome> {
         let started = Instant::now();
+        let mut phases = StepPhases::default();
+        let mut lap = Instant::now();
+        let mut mark = |slot: &mut f64| {
+            *slot = lap.elapsed().as_secs_f64();
+            lap = Instant::now();
+        };
         let inputs = StepInputs::from_view(
             view,
             &self.device,
             &self.vit_device,
             self.config.loss.pixel_stride,
         )?;
-        let vit_started = Instant::now();
+        mark(&mut phases.inputs);
         let patches = self.vit.forward(imagenet_normalize(inputs.images.clone()));
         let patches = patches.autodiff();
-        let vit_seconds = vit_started.elapsed().as_secs_f64();
-        let model = self.model.take().expect("the model is present between steps");
+        mark(&mut phases.vit);
+        let model = self
+            .model
+            .take()
+            .expect("the model is present between steps");
         let point_features = model.point_features(
             inputs.voxel_features.clone(),
             &inputs.levels,
             inputs.pairing_voxel.clone(),
         );
         let pixel_features = model.image_head.forward(patches, &inputs.sampler);
-        let terms = self.loss.forward(point_features, pixel_features, &inputs.plan);
+        let terms = self
+            .loss
+            .forward(point_features, pixel_features, &inputs.plan);
+        mark(&mut phases.forward);
         let grads = GradientsParams::from_grads(terms.total.backward(), &model);
+        mark(&mut phases.backward);
         let lr = self.schedule.lr(self.step);
         self.model = Some(self.optim.step(lr, model, grads));
         self.step += 1;
+        mark(&mut phases.update);
         let losses = terms.values();
         if !losses.total.is_finite() {
             anyhow::bail!(
@@ -179,7 +211,7 @@ impl Trainer {
             sc_frames,
             lr,
             seconds: started.elapsed().as_secs_f64(),
-            vit_seconds,
+            phases,
             counts: inputs.counts,
             sample_ids: inputs.sample_ids.iter().map(|s| [s[0], s[1]]).collect(),
         })
@@ -219,7 +251,10 @@ impl Trainer {
         };
         let record = ModuleRecord::from_bytes(Bytes::from_bytes_vec(read(ckpt.model_path())?))
             .map_err(|e| anyhow::anyhow!("{}: {e:?}", ckpt.model_path().display()))?;
-        let model = self.model.take().expect("the model is present between steps");
+        let model = self
+            .model
+            .take()
+            .expect("the model is present between steps");
         self.model = Some(model.load_record(record));
         let optim = std::mem::replace(&mut self.optim, AdamWConfig::new().init());
         self.optim = optim

@@ -154,7 +154,7 @@ impl VitConfig {
             ensure!(size > 0, "ViT config: {name} must be positive");
         }
         ensure!(
-            self.dim % self.heads == 0,
+            self.dim.is_multiple_of(self.heads),
             "ViT config: dim {} is not a multiple of heads {}",
             self.dim,
             self.heads
@@ -176,7 +176,7 @@ impl VitConfig {
             .map(Self::preset)
             .find(|config| config.dim == dim)
             .map(|config| config.heads)
-            .or((dim % 64 == 0).then_some(dim / 64))
+            .or(dim.is_multiple_of(64).then_some(dim / 64))
     }
 }
 
@@ -304,8 +304,8 @@ impl DinoVit {
             channels == 3
                 && height > 0
                 && width > 0
-                && height % patch == 0
-                && width % patch == 0,
+                && height.is_multiple_of(patch)
+                && width.is_multiple_of(patch),
             "DinoVit: images must be [I, 3, H, W] with H and W positive multiples of {patch}, \
              got [{batch}, {channels}, {height}, {width}]"
         );
@@ -384,17 +384,17 @@ impl DinoVit {
             pos_grid: [rows, cols],
             eps,
         } = *config;
-        let mut take = |weight: Weight, shape: &[usize]| source.take(weight, shape);
+        let mut take = |weight: WeightKey, shape: &[usize]| source.take(weight, shape);
 
-        let cls_token = tensor_param(take(Weight::ClsToken, &[1, 1, dim])?, [dim], device);
+        let cls_token = tensor_param(take(WeightKey::ClsToken, &[1, 1, dim])?, [dim], device);
         let pos_embed = tensor_param(
-            take(Weight::PosEmbed, &[1, 1 + rows * cols, dim])?,
+            take(WeightKey::PosEmbed, &[1, 1 + rows * cols, dim])?,
             [1 + rows * cols, dim],
             device,
         );
         let patch_embed = linear(
-            take(Weight::PatchWeight, &[dim, 3, patch, patch])?,
-            take(Weight::PatchBias, &[dim])?,
+            take(WeightKey::PatchWeight, &[dim, 3, patch, patch])?,
+            take(WeightKey::PatchBias, &[dim])?,
             [dim, 3 * patch * patch],
             device,
         );
@@ -402,9 +402,14 @@ impl DinoVit {
         let mut blocks = Vec::with_capacity(depth);
         for index in 0..depth {
             let mut take =
-                |weight: BlockWeight, shape: &[usize]| take(Weight::Block(index, weight), shape);
+                |weight: BlockWeight, shape: &[usize]| take(WeightKey::Block(index, weight), shape);
             let mut norm = |weight, bias| -> anyhow::Result<LayerNorm> {
-                Ok(layer_norm(take(weight, &[dim])?, take(bias, &[dim])?, eps, device))
+                Ok(layer_norm(
+                    take(weight, &[dim])?,
+                    take(bias, &[dim])?,
+                    eps,
+                    device,
+                ))
             };
             let norm1 = norm(BlockWeight::Norm1Weight, BlockWeight::Norm1Bias)?;
             let norm2 = norm(BlockWeight::Norm2Weight, BlockWeight::Norm2Bias)?;
@@ -441,8 +446,8 @@ impl DinoVit {
             });
         }
         let norm = layer_norm(
-            take(Weight::NormWeight, &[dim])?,
-            take(Weight::NormBias, &[dim])?,
+            take(WeightKey::NormWeight, &[dim])?,
+            take(WeightKey::NormBias, &[dim])?,
             eps,
             device,
         );
@@ -506,7 +511,10 @@ impl Block {
 /// Panics if the last axis is not 3.
 pub fn imagenet_normalize(images: Tensor<4>) -> Tensor<4> {
     let [.., channels] = images.dims();
-    assert_eq!(channels, 3, "imagenet_normalize: images must be [I, H, W, 3]");
+    assert_eq!(
+        channels, 3,
+        "imagenet_normalize: images must be [I, H, W, 3]"
+    );
     let device = images.device();
     let mean = Tensor::<1>::from_floats(IMAGENET_MEAN, &device).reshape([1, 3, 1, 1]);
     let std = Tensor::<1>::from_floats(IMAGENET_STD, &device).reshape([1, 3, 1, 1]);
@@ -558,7 +566,7 @@ fn bicubic_weights(input: usize, output: usize) -> Vec<f32> {
 
 /// A weight of the network, named independently of any checkpoint layout.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Weight {
+enum WeightKey {
     ClsToken,
     PosEmbed,
     PatchWeight,
@@ -592,7 +600,7 @@ enum BlockWeight {
 /// `[out, in]` linear weights, the fused `qkv` as q, k, v stacked along `out`).
 trait WeightSource {
     /// The values of `weight`, which has `shape`.
-    fn take(&mut self, weight: Weight, shape: &[usize]) -> anyhow::Result<Vec<f32>>;
+    fn take(&mut self, weight: WeightKey, shape: &[usize]) -> anyhow::Result<Vec<f32>>;
 }
 
 /// A learnable tensor holding `values` with `shape`.
@@ -605,7 +613,12 @@ fn tensor_param<const D: usize>(
 }
 
 /// A linear layer from a PyTorch `[out, in]` weight (burn stores `[in, out]`).
-fn linear(weight: Vec<f32>, bias: Vec<f32>, [outputs, inputs]: [usize; 2], device: &Device) -> Linear {
+fn linear(
+    weight: Vec<f32>,
+    bias: Vec<f32>,
+    [outputs, inputs]: [usize; 2],
+    device: &Device,
+) -> Linear {
     let mut transposed = vec![0.0; weight.len()];
     for (o, row) in weight.chunks_exact(inputs).enumerate() {
         for (i, &w) in row.iter().enumerate() {
@@ -669,15 +682,15 @@ impl RandomInit {
 }
 
 impl WeightSource for RandomInit {
-    fn take(&mut self, weight: Weight, shape: &[usize]) -> anyhow::Result<Vec<f32>> {
+    fn take(&mut self, weight: WeightKey, shape: &[usize]) -> anyhow::Result<Vec<f32>> {
         use BlockWeight as B;
         let count = shape.iter().product();
         let constant = match weight {
-            Weight::NormWeight
-            | Weight::Block(_, B::Norm1Weight | B::Norm2Weight | B::Ls1 | B::Ls2) => Some(1.0),
-            Weight::PatchBias
-            | Weight::NormBias
-            | Weight::Block(
+            WeightKey::NormWeight
+            | WeightKey::Block(_, B::Norm1Weight | B::Norm2Weight | B::Ls1 | B::Ls2) => Some(1.0),
+            WeightKey::PatchBias
+            | WeightKey::NormBias
+            | WeightKey::Block(
                 _,
                 B::Norm1Bias | B::Norm2Bias | B::QkvBias | B::ProjBias | B::Fc1Bias | B::Fc2Bias,
             ) => Some(0.0),
@@ -715,30 +728,34 @@ impl Naming {
 
     /// The names (without prefix) holding `weight`: one, or for Hugging Face's separate
     /// query/key/value projections three, stacked along the first axis.
-    fn names(self, weight: Weight) -> Vec<String> {
+    fn names(self, weight: WeightKey) -> Vec<String> {
         use BlockWeight as B;
         let hf = self == Self::HuggingFace;
         let pick = |hugging_face: &str, torch_hub: &str| {
             if hf { hugging_face } else { torch_hub }.to_owned()
         };
         let name = match weight {
-            Weight::ClsToken => self.cls_token().to_owned(),
-            Weight::PosEmbed => pick("embeddings.position_embeddings", "pos_embed"),
-            Weight::PatchWeight => pick(
+            WeightKey::ClsToken => self.cls_token().to_owned(),
+            WeightKey::PosEmbed => pick("embeddings.position_embeddings", "pos_embed"),
+            WeightKey::PatchWeight => pick(
                 "embeddings.patch_embeddings.projection.weight",
                 "patch_embed.proj.weight",
             ),
-            Weight::PatchBias => pick(
+            WeightKey::PatchBias => pick(
                 "embeddings.patch_embeddings.projection.bias",
                 "patch_embed.proj.bias",
             ),
-            Weight::NormWeight => pick("layernorm.weight", "norm.weight"),
-            Weight::NormBias => pick("layernorm.bias", "norm.bias"),
-            Weight::Block(index, weight) => {
+            WeightKey::NormWeight => pick("layernorm.weight", "norm.weight"),
+            WeightKey::NormBias => pick("layernorm.bias", "norm.bias"),
+            WeightKey::Block(index, weight) => {
                 let block = self.block(index);
                 let local = match weight {
                     B::QkvWeight | B::QkvBias if hf => {
-                        let suffix = if weight == B::QkvWeight { "weight" } else { "bias" };
+                        let suffix = if weight == B::QkvWeight {
+                            "weight"
+                        } else {
+                            "bias"
+                        };
                         return ["query", "key", "value"]
                             .map(|part| format!("{block}attention.attention.{part}.{suffix}"))
                             .into();
@@ -861,7 +878,7 @@ impl<'a> Checkpoint<'a> {
     }
 
     /// The shape of the tensor holding `weight`, which must exist with `rank` axes.
-    fn required_shape(&self, weight: Weight, rank: usize) -> anyhow::Result<Vec<usize>> {
+    fn required_shape(&self, weight: WeightKey, rank: usize) -> anyhow::Result<Vec<usize>> {
         let name = &self.naming.names(weight)[0];
         let shape = self.shape(name).with_context(|| self.missing(name))?;
         ensure!(
@@ -884,30 +901,36 @@ impl<'a> Checkpoint<'a> {
     /// The network's shape, read off the tensors' shapes (see [`DinoVit::load_safetensors`]).
     fn infer_config(&self) -> anyhow::Result<VitConfig> {
         let path = self.path.display();
-        let cls = self.required_shape(Weight::ClsToken, 3)?;
+        let cls = self.required_shape(WeightKey::ClsToken, 3)?;
         let dim = cls[2];
-        let patch = self.required_shape(Weight::PatchWeight, 4)?[2];
-        let positions = self.required_shape(Weight::PosEmbed, 3)?[1];
+        let patch = self.required_shape(WeightKey::PatchWeight, 4)?[2];
+        let positions = self.required_shape(WeightKey::PosEmbed, 3)?[1];
         let side = positions.saturating_sub(1).isqrt();
         ensure!(
             side > 0 && side * side == positions - 1,
             "{path}: tensor `{}{}` holds {positions} positions, not a class token plus a square \
              grid",
             self.prefix,
-            self.naming.names(Weight::PosEmbed)[0]
+            self.naming.names(WeightKey::PosEmbed)[0]
         );
         let depth = (0..)
             .take_while(|&index| {
-                let name = &self.naming.names(Weight::Block(index, BlockWeight::Norm1Weight))[0];
+                let name = &self
+                    .naming
+                    .names(WeightKey::Block(index, BlockWeight::Norm1Weight))[0];
                 self.shape(name).is_some()
             })
             .count();
         ensure!(
             depth > 0,
             "{}",
-            self.missing(&self.naming.names(Weight::Block(0, BlockWeight::Norm1Weight))[0])
+            self.missing(
+                &self
+                    .naming
+                    .names(WeightKey::Block(0, BlockWeight::Norm1Weight))[0]
+            )
         );
-        let mlp_hidden = self.required_shape(Weight::Block(0, BlockWeight::Fc1Weight), 2)?[0];
+        let mlp_hidden = self.required_shape(WeightKey::Block(0, BlockWeight::Fc1Weight), 2)?[0];
         let heads = VitConfig::heads_for_dim(dim).with_context(|| {
             format!(
                 "{path}: width {dim} (tensor `{}{}`) is no preset's and not a multiple of 64; \
@@ -935,7 +958,11 @@ impl<'a> Checkpoint<'a> {
     fn read(&self, name: &str, shape: &[usize]) -> anyhow::Result<Vec<f32>> {
         let full = format!("{}{name}", self.prefix);
         let path = self.path.display();
-        let view = self.file.tensor(&full).ok().with_context(|| self.missing(name))?;
+        let view = self
+            .file
+            .tensor(&full)
+            .ok()
+            .with_context(|| self.missing(name))?;
         ensure!(
             view.shape() == shape,
             "{path}: tensor `{full}` has shape {:?}, expected {shape:?}",
@@ -955,15 +982,15 @@ impl<'a> Checkpoint<'a> {
                 .chunks_exact(2)
                 .map(|b| bf16::from_le_bytes([b[0], b[1]]).to_f32())
                 .collect(),
-            other => bail!(
-                "{path}: tensor `{full}` has dtype {other:?}; expected F32, F16 or BF16"
-            ),
+            other => {
+                bail!("{path}: tensor `{full}` has dtype {other:?}; expected F32, F16 or BF16")
+            }
         })
     }
 }
 
 impl WeightSource for Checkpoint<'_> {
-    fn take(&mut self, weight: Weight, shape: &[usize]) -> anyhow::Result<Vec<f32>> {
+    fn take(&mut self, weight: WeightKey, shape: &[usize]) -> anyhow::Result<Vec<f32>> {
         let names = self.naming.names(weight);
         let mut part_shape = shape.to_vec();
         part_shape[0] /= names.len();
@@ -986,8 +1013,9 @@ mod tests {
         let fixtures = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures");
         let json = std::fs::read_to_string(fixtures.join("vit.json")).expect("reading vit.json");
         let fixture: serde_json::Value = serde_json::from_str(&json).expect("parsing vit.json");
-        let vit = DinoVit::load_safetensors(&fixtures.join("tiny_dinov2.safetensors"), &Device::flex())
-            .expect("loading the fixture checkpoint");
+        let vit =
+            DinoVit::load_safetensors(&fixtures.join("tiny_dinov2.safetensors"), &Device::flex())
+                .expect("loading the fixture checkpoint");
         let cases = fixture["cases"].as_array().expect("a list of cases");
         for case in cases {
             let grid: [usize; 2] =
@@ -1005,7 +1033,10 @@ mod tests {
                 .zip(&expected)
                 .map(|(a, e)| (a - e).abs())
                 .fold(0.0, f32::max);
-            assert!(diff < 1e-6, "grid {grid:?}: position embeddings differ by {diff}");
+            assert!(
+                diff < 1e-6,
+                "grid {grid:?}: position embeddings differ by {diff}"
+            );
         }
     }
 
@@ -1013,11 +1044,22 @@ mod tests {
     /// resizing to the same length is the identity.
     #[test]
     fn bicubic_weights_are_affine_and_identity_at_equal_size() {
-        for (input, output) in [(4, 3), (4, 6), (4, 16), (37, 16), (37, 32), (37, 80), (1, 3)] {
+        for (input, output) in [
+            (4, 3),
+            (4, 6),
+            (4, 16),
+            (37, 16),
+            (37, 32),
+            (37, 80),
+            (1, 3),
+        ] {
             let weights = bicubic_weights(input, output);
             for (o, row) in weights.chunks_exact(input).enumerate() {
                 let sum: f32 = row.iter().sum();
-                assert!((sum - 1.0).abs() < 1e-6, "{input} → {output}, row {o}: sum {sum}");
+                assert!(
+                    (sum - 1.0).abs() < 1e-6,
+                    "{input} → {output}, row {o}: sum {sum}"
+                );
             }
         }
         let weights = bicubic_weights(5, 5);

@@ -14,11 +14,19 @@ fn fixture() -> Value {
 }
 
 fn floats(v: &Value) -> Vec<f32> {
-    v.as_array().unwrap().iter().map(|x| x.as_f64().unwrap() as f32).collect()
+    v.as_array()
+        .unwrap()
+        .iter()
+        .map(|x| x.as_f64().unwrap() as f32)
+        .collect()
 }
 
 fn f64s(v: &Value) -> Vec<f64> {
-    v.as_array().unwrap().iter().map(|x| x.as_f64().unwrap()).collect()
+    v.as_array()
+        .unwrap()
+        .iter()
+        .map(|x| x.as_f64().unwrap())
+        .collect()
 }
 
 fn ints<T: TryFrom<u64>>(v: &Value) -> Vec<T>
@@ -32,7 +40,12 @@ where
             .iter()
             .flat_map(|r| r.as_array().unwrap().iter().map(|x| x.as_u64().unwrap()))
             .collect(),
-        _ => v.as_array().unwrap().iter().map(|x| x.as_u64().unwrap()).collect(),
+        _ => v
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_u64().unwrap())
+            .collect(),
     };
     flat.into_iter().map(|x| T::try_from(x).unwrap()).collect()
 }
@@ -138,28 +151,67 @@ fn losses_and_gradients_match_the_pytorch_reference() {
 
         let close = |name: &str, got: f64, want: f64| {
             let rel = (got - want).abs() / want.abs().max(1e-12);
-            assert!(rel <= 1e-5, "{name} ({form:?}): {got} vs {want} (rel {rel:.2e})");
+            assert!(
+                rel <= 1e-5,
+                "{name} ({form:?}): {got} vs {want} (rel {rel:.2e})"
+            );
         };
         for (i, want) in f64s(&expected["l_sc_frames"]).into_iter().enumerate() {
-            close(&format!("L_sc frame {i}"), scalar(&terms.sc_frames[i]), want);
+            close(
+                &format!("L_sc frame {i}"),
+                scalar(&terms.sc_frames[i]),
+                want,
+            );
         }
-        close("L_sc", scalar(&terms.sc), expected["l_sc"].as_f64().unwrap());
-        close("L_tc", scalar(&terms.tc), expected["l_tc"].as_f64().unwrap());
+        close(
+            "L_sc",
+            scalar(&terms.sc),
+            expected["l_sc"].as_f64().unwrap(),
+        );
+        close(
+            "L_tc",
+            scalar(&terms.tc),
+            expected["l_tc"].as_f64().unwrap(),
+        );
         let (d2s_key, total_key, suffix) = match form {
             D2sForm::Infonce => ("l_d2s_infonce", "total_infonce", "infonce"),
             D2sForm::Cosine => ("l_d2s_cosine", "total_cosine", "cosine"),
         };
-        close("L_d2s", scalar(&terms.d2s), expected[d2s_key].as_f64().unwrap());
-        close("total", scalar(&terms.total), expected[total_key].as_f64().unwrap());
+        close(
+            "L_d2s",
+            scalar(&terms.d2s),
+            expected[d2s_key].as_f64().unwrap(),
+        );
+        close(
+            "total",
+            scalar(&terms.total),
+            expected[total_key].as_f64().unwrap(),
+        );
 
         let grads = terms.total.backward();
-        let gp = points.grad(&grads).unwrap().into_data().try_into_vec::<f32>().unwrap();
-        let gx = pixels.grad(&grads).unwrap().into_data().try_into_vec::<f32>().unwrap();
+        let gp = points
+            .grad(&grads)
+            .unwrap()
+            .into_data()
+            .try_into_vec::<f32>()
+            .unwrap();
+        let gx = pixels
+            .grad(&grads)
+            .unwrap()
+            .into_data()
+            .try_into_vec::<f32>()
+            .unwrap();
         let ep = f64s(&expected[format!("grad_point_features_{suffix}").as_str()]);
         let ex = f64s(&expected[format!("grad_pixel_features_{suffix}").as_str()]);
         let (rp, rx) = (rel_err(&gp, &ep), rel_err(&gx, &ex));
-        assert!(rp <= 1e-5, "∂total/∂point features ({form:?}): rel err {rp:.2e}");
-        assert!(rx <= 1e-5, "∂total/∂pixel features ({form:?}): rel err {rx:.2e}");
+        assert!(
+            rp <= 1e-5,
+            "∂total/∂point features ({form:?}): rel err {rp:.2e}"
+        );
+        assert!(
+            rx <= 1e-5,
+            "∂total/∂pixel features ({form:?}): rel err {rx:.2e}"
+        );
         eprintln!(
             "{form:?}: total {:.6} (reference {:.6}); gradient rel. errors {rp:.1e} (3D), {rx:.1e} (2D)",
             scalar(&terms.total),

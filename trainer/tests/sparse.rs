@@ -53,7 +53,12 @@ fn random(shape: [usize; 2], name: &str, device: &Device) -> Tensor<2> {
 fn densify(rows: Tensor<2>, cells: &[[i32; 3]], side: usize, device: &Device) -> Tensor<5> {
     let [_, c] = rows.dims();
     Tensor::zeros([side * side * side, c], device)
-        .select_assign(0, index(flat(cells, side), device), rows, IndexingUpdateOp::Add)
+        .select_assign(
+            0,
+            index(flat(cells, side), device),
+            rows,
+            IndexingUpdateOp::Add,
+        )
         .transpose()
         .reshape([1, c, side, side, side])
 }
@@ -74,8 +79,15 @@ fn values(t: Tensor<2>) -> Vec<f32> {
 fn assert_close(what: &str, a: &[f32], b: &[f32]) {
     assert_eq!(a.len(), b.len(), "{what}");
     let scale = b.iter().fold(0.0_f32, |m, v| m.max(v.abs())).max(1e-6);
-    let err = a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max);
-    assert!(err <= 1e-5 * scale.max(1.0), "{what}: max |diff| {err} (scale {scale})");
+    let err = a
+        .iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max);
+    assert!(
+        err <= 1e-5 * scale.max(1.0),
+        "{what}: max |diff| {err} (scale {scale})"
+    );
 }
 
 /// Sparse weight `[k, cin, cout]` → dense `[cout, cin, s, s, s]` (conv) or
@@ -117,7 +129,11 @@ fn compare(
     let gs = (out_sparse * probe.clone()).sum().backward();
     let gd = (out_dense * probe).sum().backward();
     let grad = |t: &Tensor<2>, g| values(t.grad(g).unwrap());
-    assert_close(&format!("{what}: ∂/∂features"), &grad(&x, &gs), &grad(&x, &gd));
+    assert_close(
+        &format!("{what}: ∂/∂features"),
+        &grad(&x, &gs),
+        &grad(&x, &gd),
+    );
     let wgrad = |g| {
         w.grad(g)
             .unwrap()
@@ -151,7 +167,9 @@ fn submanifold_conv_equals_dense_conv3d_at_active_sites() {
     let cells = active_cells();
     let (maps, _) = level(&cells, &device);
     let features = random([cells.len(), CIN], "features", &device);
-    let weight = SparseConv::new(KERNEL_3, CIN, COUT, 1, "w", &device).weight.val();
+    let weight = SparseConv::new(KERNEL_3, CIN, COUT, 1, "w", &device)
+        .weight
+        .val();
     compare(
         "3×3×3",
         features,
@@ -175,7 +193,9 @@ fn strided_conv_and_its_transpose_equal_dense_ones() {
     let cells = active_cells();
     let (maps, parents) = level(&cells, &device);
     let half = G / 2;
-    let weight = SparseConv::new(KERNEL_2, CIN, COUT, 2, "down", &device).weight.val();
+    let weight = SparseConv::new(KERNEL_2, CIN, COUT, 2, "down", &device)
+        .weight
+        .val();
     compare(
         "down 2×2×2 stride 2",
         random([cells.len(), CIN], "features", &device),
@@ -191,7 +211,9 @@ fn strided_conv_and_its_transpose_equal_dense_ones() {
             sparsify(dense, &parents, half, &device)
         },
     );
-    let weight = SparseConv::new(KERNEL_2, CIN, COUT, 3, "up", &device).weight.val();
+    let weight = SparseConv::new(KERNEL_2, CIN, COUT, 3, "up", &device)
+        .weight
+        .val();
     compare(
         "up (transposed) 2×2×2 stride 2",
         random([parents.len(), CIN], "coarse", &device),

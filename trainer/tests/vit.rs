@@ -123,7 +123,11 @@ fn torch_hub_checkpoint(config: &VitConfig, seed: u64) -> Vec<Entry> {
     add("cls_token".into(), vec![1, 1, dim], 0.0);
     add("mask_token".into(), vec![1, dim], 0.0);
     add("pos_embed".into(), vec![1, 1 + rows * cols, dim], 0.0);
-    add("patch_embed.proj.weight".into(), vec![dim, 3, patch, patch], 0.0);
+    add(
+        "patch_embed.proj.weight".into(),
+        vec![dim, 3, patch, patch],
+        0.0,
+    );
     add("patch_embed.proj.bias".into(), vec![dim], 0.0);
     for i in 0..depth {
         let b = format!("blocks.{i}.");
@@ -202,7 +206,10 @@ fn flat<const D: usize>(tensor: Tensor<D>) -> Vec<f32> {
 
 fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
     assert_eq!(a.len(), b.len());
-    a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
+    a.iter()
+        .zip(b)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0, f32::max)
 }
 
 /// Deterministic ImageNet-normalized images `[count, 3, height, width]`.
@@ -219,8 +226,8 @@ fn test_images(count: usize, height: usize, width: usize, device: &Device) -> Te
 }
 
 fn load_error(path: &Path) -> String {
-    let error = DinoVit::load_safetensors(path, &Device::flex())
-        .expect_err("the checkpoint is broken");
+    let error =
+        DinoVit::load_safetensors(path, &Device::flex()).expect_err("the checkpoint is broken");
     format!("{error:#}")
 }
 
@@ -238,10 +245,15 @@ fn fixture_checkpoints_reproduce_transformers() {
         pos_grid: c.pos_grid,
         eps: c.layer_norm_eps,
     };
-    assert_eq!(expected_config, VitConfig::preset(VitPreset::Tiny), "the tiny preset is the fixture's");
+    assert_eq!(
+        expected_config,
+        VitConfig::preset(VitPreset::Tiny),
+        "the tiny preset is the fixture's"
+    );
 
     for file in ["tiny_dinov2_hf.safetensors", "tiny_dinov2.safetensors"] {
-        let vit = DinoVit::load_safetensors(&fixture_path(file), &device).expect("loading the fixture");
+        let vit =
+            DinoVit::load_safetensors(&fixture_path(file), &device).expect("loading the fixture");
         assert_eq!(vit.config(), &expected_config, "{file}: inferred config");
         for case in &fixture.cases {
             let [rows, cols] = case.grid;
@@ -262,7 +274,11 @@ fn fixture_checkpoints_reproduce_transformers() {
                 .flat_map(|patch| (0..dim).map(move |d| (patch, d)))
                 .map(|(patch, d)| map[d * rows * cols + patch])
                 .collect();
-            assert_eq!(as_tokens, patches, "{file} {}: forward = forward_tokens", case.name);
+            assert_eq!(
+                as_tokens, patches,
+                "{file} {}: forward = forward_tokens",
+                case.name
+            );
 
             let scale = case.patch_tokens.iter().fold(0.0f32, |m, v| m.max(v.abs()));
             let patch_diff = max_abs_diff(patches, &case.patch_tokens);
@@ -273,8 +289,16 @@ fn fixture_checkpoints_reproduce_transformers() {
                 case.name
             );
             let tolerance = 1e-4 * scale;
-            assert!(patch_diff <= tolerance, "{file} {}: patch tokens differ by {patch_diff}", case.name);
-            assert!(cls_diff <= tolerance, "{file} {}: cls token differs by {cls_diff}", case.name);
+            assert!(
+                patch_diff <= tolerance,
+                "{file} {}: patch tokens differ by {patch_diff}",
+                case.name
+            );
+            assert!(
+                cls_diff <= tolerance,
+                "{file} {}: cls token differs by {cls_diff}",
+                case.name
+            );
         }
     }
 }
@@ -288,7 +312,11 @@ fn both_namings_prefixes_and_half_dtypes_load_the_same_network() {
     let hub_path = dir.join("hub.safetensors");
     write_safetensors(&hub_path, &hub, Dtype::F32);
     let hf_path = dir.join("hf.safetensors");
-    write_safetensors(&hf_path, &hugging_face_checkpoint(&hub, "backbone."), Dtype::F32);
+    write_safetensors(
+        &hf_path,
+        &hugging_face_checkpoint(&hub, "backbone."),
+        Dtype::F32,
+    );
 
     let from_hub = DinoVit::load_safetensors(&hub_path, &device).expect("loading hub names");
     let from_hf = DinoVit::load_safetensors(&hf_path, &device).expect("loading HF names");
@@ -300,7 +328,10 @@ fn both_namings_prefixes_and_half_dtypes_load_the_same_network() {
         let images = test_images(2, height, width, &device);
         let hub_out = flat(from_hub.forward(images.clone()));
         let hf_out = flat(from_hf.forward(images.clone()));
-        assert_eq!(hub_out, hf_out, "{height}×{width}: the namings load the same weights");
+        assert_eq!(
+            hub_out, hf_out,
+            "{height}×{width}: the namings load the same weights"
+        );
 
         for dtype in [Dtype::F16, Dtype::BF16] {
             let path = dir.join(format!("hub-{dtype:?}.safetensors"));
@@ -323,7 +354,10 @@ fn a_missing_tensor_is_named_with_the_file() {
     write_safetensors(&path, &hub, Dtype::F32);
 
     let message = load_error(&path);
-    assert!(message.contains("missing tensor `blocks.1.mlp.fc2.bias`"), "{message}");
+    assert!(
+        message.contains("missing tensor `blocks.1.mlp.fc2.bias`"),
+        "{message}"
+    );
     assert!(message.contains(&path.display().to_string()), "{message}");
 
     // Hugging Face names: a missing part of the split query/key/value, under a prefix.
@@ -333,7 +367,10 @@ fn a_missing_tensor_is_named_with_the_file() {
     let path = dir.join("missing-hf.safetensors");
     write_safetensors(&path, &hf, Dtype::F32);
     let message = load_error(&path);
-    assert!(message.contains(&format!("missing tensor `{gone}`")), "{message}");
+    assert!(
+        message.contains(&format!("missing tensor `{gone}`")),
+        "{message}"
+    );
     assert!(message.contains(&path.display().to_string()), "{message}");
 }
 
@@ -352,7 +389,11 @@ fn a_wrong_shape_or_dtype_is_named_with_the_file() {
     write_safetensors(&path, &hub, Dtype::F32);
 
     let message = load_error(&path);
-    assert!(message.contains("tensor `blocks.0.attn.proj.weight` has shape [32, 16], expected [32, 32]"), "{message}");
+    assert!(
+        message
+            .contains("tensor `blocks.0.attn.proj.weight` has shape [32, 16], expected [32, 32]"),
+        "{message}"
+    );
     assert!(message.contains(&path.display().to_string()), "{message}");
 
     // A dtype the loader does not convert: write one tensor as F64 by hand.
@@ -361,23 +402,36 @@ fn a_wrong_shape_or_dtype_is_named_with_the_file() {
         .iter()
         .map(|(name, _, values)| {
             if name == "norm.bias" {
-                values.iter().flat_map(|&v| f64::from(v).to_le_bytes()).collect()
+                values
+                    .iter()
+                    .flat_map(|&v| f64::from(v).to_le_bytes())
+                    .collect()
             } else {
                 values.iter().flat_map(|v| v.to_le_bytes()).collect()
             }
         })
         .collect();
     let views = hub.iter().zip(&f64_bytes).map(|((name, shape, _), data)| {
-        let dtype = if name == "norm.bias" { Dtype::F64 } else { Dtype::F32 };
+        let dtype = if name == "norm.bias" {
+            Dtype::F64
+        } else {
+            Dtype::F32
+        };
         let view = safetensors::tensor::TensorView::new(dtype, shape.clone(), data)
             .expect("the data matches the shape");
         (name.clone(), view)
     });
     let path = dir.join("dtype.safetensors");
-    std::fs::write(&path, safetensors::serialize(views, None).expect("serializing"))
-        .expect("writing");
+    std::fs::write(
+        &path,
+        safetensors::serialize(views, None).expect("serializing"),
+    )
+    .expect("writing");
     let message = load_error(&path);
-    assert!(message.contains("tensor `norm.bias` has dtype F64"), "{message}");
+    assert!(
+        message.contains("tensor `norm.bias` has dtype F64"),
+        "{message}"
+    );
     assert!(message.contains(&path.display().to_string()), "{message}");
 }
 
@@ -387,11 +441,18 @@ fn register_and_swiglu_checkpoints_are_refused() {
     let dir = scratch_dir("refused");
 
     let mut hub = torch_hub_checkpoint(&config, 4);
-    hub.push(("register_tokens".into(), vec![1, 4, config.dim], vec![0.0; 4 * config.dim]));
+    hub.push((
+        "register_tokens".into(),
+        vec![1, 4, config.dim],
+        vec![0.0; 4 * config.dim],
+    ));
     let path = dir.join("reg.safetensors");
     write_safetensors(&path, &hub, Dtype::F32);
     let message = load_error(&path);
-    assert!(message.contains("`register_tokens`") && message.contains("register tokens"), "{message}");
+    assert!(
+        message.contains("`register_tokens`") && message.contains("register tokens"),
+        "{message}"
+    );
 
     let mut hf = hugging_face_checkpoint(&torch_hub_checkpoint(&config, 4), "");
     hf.push((
@@ -402,7 +463,10 @@ fn register_and_swiglu_checkpoints_are_refused() {
     let path = dir.join("swiglu.safetensors");
     write_safetensors(&path, &hf, Dtype::F32);
     let message = load_error(&path);
-    assert!(message.contains("SwiGLU") && message.contains(&path.display().to_string()), "{message}");
+    assert!(
+        message.contains("SwiGLU") && message.contains(&path.display().to_string()),
+        "{message}"
+    );
 }
 
 #[test]
@@ -434,7 +498,10 @@ fn presets_parse_and_serialize_by_lowercase_name() {
             serde_json::to_string(&preset).expect("serializing"),
             format!("\"{name}\"")
         );
-        assert_eq!(VitConfig::preset(preset).head_dim() * VitConfig::preset(preset).heads, VitConfig::preset(preset).dim);
+        assert_eq!(
+            VitConfig::preset(preset).head_dim() * VitConfig::preset(preset).heads,
+            VitConfig::preset(preset).dim
+        );
     }
     assert!("huge".parse::<VitPreset>().is_err());
     assert_eq!(VitConfig::preset(VitPreset::Small).dim, 384);
