@@ -7,7 +7,7 @@
 
 use serde_json::Value;
 use std::collections::BTreeMap;
-use std::process::{Child, Command, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 use superflow_tests::process::{
     Proc, finish, lines_of, no_shared_memory_left, prefix, send_signal,

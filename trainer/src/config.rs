@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
 
 /// The whole file.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct TrainerConfig {
     /// `[model]`.
@@ -21,17 +21,6 @@ pub struct TrainerConfig {
     pub optim: OptimConfig,
     /// `[checkpoint]`.
     pub checkpoint: CheckpointConfig,
-}
-
-impl Default for TrainerConfig {
-    fn default() -> Self {
-        Self {
-            model: ModelConfig::default(),
-            loss: LossConfig::default(),
-            optim: OptimConfig::default(),
-            checkpoint: CheckpointConfig::default(),
-        }
-    }
 }
 
 /// `[model]`.

@@ -140,7 +140,7 @@ impl StepInputs {
             let rows = view.get::<i32>(&format!("l{l}_coords"))?.shape()[0];
             let nbr = view.get::<u32>(&format!("l{l}_nbr"))?;
             let starts = view.get::<u32>(&format!("l{l}_nbr_starts"))?;
-            check_map(&nbr.data, &starts.data, 27, rows, rows)
+            check_map(nbr.data, starts.data, 27, rows, rows)
                 .map_err(|r| invalid(format!("l{l}_nbr: {r}")))?;
             let down = match (
                 view.get::<u32>(&format!("l{l}_down")),

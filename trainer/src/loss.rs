@@ -168,6 +168,8 @@ pub struct LossPlan {
 impl LossPlan {
     /// Plans the pooling and the matched slots; checks every id against its frame's
     /// superpixel count.
+    // (b, f, c) index several tables at once: plain index loops read best here.
+    #[allow(clippy::needless_range_loop)]
     pub fn new(
         x: &LossInputs<'_>,
         pixel_stride: usize,

@@ -320,7 +320,7 @@ fn run(args: &Args) -> anyhow::Result<()> {
         );
         bar.set_position(record.step);
         bar.set_message(format!("loss {:.4}", record.loss));
-        if every > 0 && record.step % every == 0 && record.step < steps {
+        if every > 0 && record.step.is_multiple_of(every) && record.step < steps {
             let dir = trainer.save_checkpoint(&ckpt_dir, &args.run, next, &outcome.losses)?;
             tracing::info!(checkpoint = %dir.display(), "checkpoint saved");
         }

@@ -91,6 +91,9 @@ pub fn read(path: &Path) -> anyhow::Result<Vec<StepRecord>> {
         .collect()
 }
 
+/// A plotted curve: name, value of a step, colour.
+type Series = (&'static str, fn(&StepRecord) -> f64, &'static str);
+
 /// Draws the loss terms against the step as an SVG (axes, ticks, legend; opens in any
 /// browser, no font or plotting library needed).
 pub fn plot_svg(records: &[StepRecord], path: &Path) -> anyhow::Result<()> {
@@ -101,7 +104,7 @@ pub fn plot_svg(records: &[StepRecord], path: &Path) -> anyhow::Result<()> {
     let (w, h, left, right, top, bottom) = (960.0, 540.0, 70.0, 20.0, 30.0, 50.0);
     let x0 = records.first().map_or(0, |r| r.step) as f64;
     let x1 = (records.last().map_or(1, |r| r.step) as f64).max(x0 + 1.0);
-    let series: [(&str, fn(&StepRecord) -> f64, &str); 4] = [
+    let series: [Series; 4] = [
         ("total", |r| r.loss, "#000000"),
         ("L_sc", |r| r.l_sc, "#1f77b4"),
         ("L_tc", |r| r.l_tc, "#ff7f0e"),

@@ -408,12 +408,12 @@ impl SparseUNet {
         // Encoder stage i: level i → i + 1, then blocks to planes[i].
         let mut encoder = Vec::with_capacity(4);
         let mut c = config.stem;
-        for i in 0..4 {
+        for (i, &width) in p.iter().take(4).enumerate() {
             encoder.push(Stage {
                 change: change(i, c, c),
-                blocks: blocks(i, c, p[i]),
+                blocks: blocks(i, c, width),
             });
-            c = p[i];
+            c = width;
         }
         // Decoder stage i: level 4 − i → 3 − i, concatenated with the encoder features
         // of that level (the stem's at level 0).

@@ -94,7 +94,11 @@ impl Trainer {
                     "2D network: RANDOM ViT weights (no --image-weights). The 2D features are \
                      meaningless: use this for tests and demos only, never for pretraining"
                 );
-                DinoVit::random(&vit_config, config.model.seed ^ 0x5eed_0f_u64, &vit_device)
+                DinoVit::random(
+                    &vit_config,
+                    config.model.seed ^ 0x005e_ed0f_u64,
+                    &vit_device,
+                )
             }
         };
         let model = SuperFlowModel::new(
