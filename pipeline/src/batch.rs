@@ -44,9 +44,10 @@
 //! `l{l}_down` offset k is the child's position `(k>>2 & 1, k>>1 & 1, k & 1)` in its
 //! parent cell.
 
+use crate::sample::SampleConfig;
 use crate::sample::builder::{Cloud, Sample};
 use crate::sample::sparse::KernelMap;
-use superflow_schemas::batch::{BatchError, BatchLayout, BatchWriter, SectionId};
+use superflow_schemas::batch::{BatchError, BatchLayout, BatchMeta, BatchWriter, SectionId};
 
 /// What goes into a batch besides the samples.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -57,6 +58,34 @@ pub struct BatchShape {
     pub width: usize,
     /// UNet levels.
     pub levels: usize,
+}
+
+impl BatchShape {
+    /// The shape of batches of samples built with `config`.
+    pub fn of(config: &SampleConfig) -> Self {
+        Self {
+            height: config.image_height as usize,
+            width: config.image_width as usize,
+            levels: config.unet_levels as usize,
+        }
+    }
+}
+
+/// `samples` as one batch exactly as it goes on the wire — the `BatchHeader` bytes, then
+/// the payload (`schemas/BATCH_FORMAT.md`): what `superflow-pipeline batch` writes to a
+/// file and benchmarks read back.
+pub fn batch_bytes(
+    samples: &[Sample],
+    shape: BatchShape,
+    meta: &BatchMeta,
+) -> Result<Vec<u8>, BatchError> {
+    let plan = BatchPlan::new(samples, shape)?;
+    let header = plan.layout().header(meta)?;
+    let mut bytes = header.as_bytes().to_vec();
+    let start = bytes.len();
+    bytes.resize(start + plan.layout().payload_len(), 0);
+    plan.write_zeroed(samples, &mut bytes[start..])?;
+    Ok(bytes)
 }
 
 /// The clouds of a sample in batch order: frames, then the dense cloud.

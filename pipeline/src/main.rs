@@ -203,7 +203,7 @@ fn write_batch_file(
     epoch: u64,
     out: &std::path::Path,
 ) -> anyhow::Result<()> {
-    use superflow_pipeline::batch::{BatchPlan, BatchShape};
+    use superflow_pipeline::batch::{BatchShape, batch_bytes};
     use superflow_schemas::batch::BatchMeta;
     let config = load_config(args)?;
     let size = batch_size
@@ -222,12 +222,6 @@ fn write_batch_file(
         .map(|k| builder.build_keyframe(k, epoch, k as u64))
         .collect::<Result<Vec<_>, _>>()?;
     let c = builder.config();
-    let shape = BatchShape {
-        height: c.image_height as usize,
-        width: c.image_width as usize,
-        levels: c.unet_levels as usize,
-    };
-    let plan = BatchPlan::new(&samples, shape)?;
     let meta = BatchMeta {
         run: args.run.clone(),
         epoch,
@@ -238,11 +232,7 @@ fn write_batch_file(
         sample_count: size as u32,
         flags: 0,
     };
-    let header = plan.layout().header(&meta)?;
-    let mut bytes = header.as_bytes().to_vec();
-    let start = bytes.len();
-    bytes.resize(start + plan.layout().payload_len(), 0);
-    plan.write(&samples, &mut bytes[start..])?;
+    let bytes = batch_bytes(&samples, BatchShape::of(c), &meta)?;
     std::fs::write(out, &bytes).with_context(|| format!("writing {}", out.display()))?;
     println!(
         "wrote a batch of {size} samples ({} bytes) to {}",

@@ -495,11 +495,7 @@ pub fn serve(
     let (tx, rx) = sync_channel::<Prepared>(config.prefetch as usize);
     let producer_done = AtomicBool::new(false);
     let producer_idle = AtomicBool::new(false);
-    let shape = BatchShape {
-        height: builder.config().image_height as usize,
-        width: builder.config().image_width as usize,
-        levels: builder.config().unet_levels as usize,
-    };
+    let shape = BatchShape::of(builder.config());
     let bar = indicatif::ProgressBar::new_spinner();
     bar.set_style(
         indicatif::ProgressStyle::with_template("{spinner} {msg}")
