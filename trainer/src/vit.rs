@@ -643,8 +643,7 @@ fn layer_norm(weight: Vec<f32>, bias: Vec<f32>, eps: f64, device: &Device) -> La
 /// Seeded random weights (see [`DinoVit::random`]).
 #[derive(Debug)]
 struct RandomInit {
-    /// SplitMix64 state.
-    state: u64,
+    rng: crate::init::InitRng,
 }
 
 impl RandomInit {
@@ -652,28 +651,15 @@ impl RandomInit {
     const STD: f32 = 0.02;
 
     fn new(seed: u64) -> Self {
-        Self { state: seed }
+        Self {
+            rng: crate::init::InitRng::new(seed, "vit"),
+        }
     }
 
-    /// The next 64 random bits (SplitMix64).
-    fn next_u64(&mut self) -> u64 {
-        self.state = self.state.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.state;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        z ^ (z >> 31)
-    }
-
-    /// Uniform in (0, 1].
-    fn uniform(&mut self) -> f64 {
-        ((self.next_u64() >> 11) + 1) as f64 / (1u64 << 53) as f64
-    }
-
-    /// Standard normal truncated to [−2, 2] (Box–Muller, redrawn outside).
+    /// Standard normal truncated to [−2, 2] (redrawn outside).
     fn truncated_normal(&mut self) -> f32 {
         loop {
-            let radius = (-2.0 * self.uniform().ln()).sqrt();
-            let z = radius * (std::f64::consts::TAU * self.uniform()).cos();
+            let z = self.rng.normal();
             if z.abs() <= 2.0 {
                 return z as f32;
             }
