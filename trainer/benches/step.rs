@@ -10,15 +10,23 @@
 //!    steps on that batch: median ms/step, steps/s, samples/s and the phase split.
 //! 3. PyTorch: `trainer/reference/bench_torch.py` on the batch file, same preset and
 //!    pixel stride, one warm-up step, N timed steps, as many threads as cores.
-//! 4. Streaming: the pipeline service (`publish::serve`, broadcast, batch size 4, endless)
-//!    in a thread of this process, a `Subscription`, one untimed step and then
-//!    `--stream-steps` timed ones: time blocked in `receive` over the total = the
-//!    data-stall fraction. The service is stopped (shared memory released) before the
-//!    next preset.
+//! 4. Streaming: the pipeline service (`publish::serve`, broadcast, batch size 4, endless,
+//!    its own iceoryx2 prefix `sfbench<pid>`) in a thread of this process, a
+//!    `Subscription`, and `--stream-steps` steps of the (already warm) trainer on the
+//!    received batches: time blocked in `receive` between batches over the wall time from
+//!    the first batch's arrival = the data-stall fraction (the first batch's wait is the
+//!    service's start-up, reported apart). The service is stopped and joined (shared
+//!    memory released) before the next preset. The pipeline's sample building shares
+//!    the cores (and here the rayon pool) with training.
 //!
 //! Presets: `tiny` (UNet tiny, ViT tiny, pixel stride 4), `minkunet18` (UNet minkunet18,
 //! random ViT-S/14, pixel stride 1: the official full-resolution superpixel pooling),
 //! `minkunet34` (as minkunet18 with the default UNet; not run by default).
+//!
+//! Default step counts keep the whole bench near 6-7 minutes on 2 cores, where one
+//! minkunet18 step takes about a minute: tiny 4 timed + 5 streamed, minkunet18 (and
+//! minkunet34) 1 timed + 2 streamed (two, so that one wait between batches is measured).
+//! `--steps` / `--stream-steps` override them for every preset.
 //!
 //! `cargo bench -p superflow-trainer --bench step [-- --presets tiny,minkunet18 --steps N
 //! --stream-steps N --batch FILE --torch PYTHON]` (PYTHON: also `SUPERFLOW_TORCH_PYTHON`,
@@ -27,13 +35,14 @@
 #![allow(clippy::unwrap_used, clippy::expect_used)]
 
 use anyhow::Context as _;
-use burn::module::Module as _;
+use burn::module::{Module, ModuleVisitor, Param};
+use burn::tensor::Tensor;
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
-use superflow_pipeline::batch::{BatchPlan, BatchShape};
+use superflow_pipeline::batch::{BatchShape, batch_bytes};
 use superflow_pipeline::config::PipelineConfig;
 use superflow_pipeline::drive::Dataset;
 use superflow_pipeline::publish::{self, Metrics, Mode, ServiceConfig};
@@ -67,24 +76,24 @@ const PRESETS: [Preset; 3] = [
         unet: UNetPreset::Tiny,
         vit: VitPreset::Tiny,
         pixel_stride: 4,
-        steps: 5,
-        stream_steps: 6,
+        steps: 4,
+        stream_steps: 5,
     },
     Preset {
         name: "minkunet18",
         unet: UNetPreset::Minkunet18,
         vit: VitPreset::Small,
         pixel_stride: 1,
-        steps: 3,
-        stream_steps: 3,
+        steps: 1,
+        stream_steps: 2,
     },
     Preset {
         name: "minkunet34",
         unet: UNetPreset::Minkunet34,
         vit: VitPreset::Small,
         pixel_stride: 1,
-        steps: 3,
-        stream_steps: 3,
+        steps: 1,
+        stream_steps: 2,
     },
 ];
 
@@ -197,12 +206,6 @@ fn build_batch(dataset: &Dataset, config: &PipelineConfig, out: &Path) -> anyhow
         .map(|k| builder.build_keyframe(k, 0, k as u64))
         .collect::<Result<Vec<_>, _>>()?;
     let c = builder.config();
-    let shape = BatchShape {
-        height: c.image_height as usize,
-        width: c.image_width as usize,
-        levels: c.unet_levels as usize,
-    };
-    let plan = BatchPlan::new(&samples, shape)?;
     let meta = BatchMeta {
         run: "bench".into(),
         epoch: 0,
@@ -213,11 +216,7 @@ fn build_batch(dataset: &Dataset, config: &PipelineConfig, out: &Path) -> anyhow
         sample_count: BATCH_SIZE as u32,
         flags: 0,
     };
-    let header = plan.layout().header(&meta)?;
-    let mut bytes = header.as_bytes().to_vec();
-    let start = bytes.len();
-    bytes.resize(start + plan.layout().payload_len(), 0);
-    plan.write(&samples, &mut bytes[start..])?;
+    let bytes = batch_bytes(&samples, BatchShape::of(c), &meta)?;
     if let Some(dir) = out.parent() {
         std::fs::create_dir_all(dir)?;
     }
@@ -237,6 +236,40 @@ fn median(values: &[f64]) -> f64 {
     } else {
         (v[n / 2 - 1] + v[n / 2]) / 2.0
     }
+}
+
+/// Counts trainable parameters: burn's `num_params` also counts the BatchNorm running
+/// statistics (module state, not optimized), which PyTorch keeps as buffers.
+#[derive(Debug, Default)]
+struct Trainable {
+    path: Vec<String>,
+    count: usize,
+}
+
+impl ModuleVisitor for Trainable {
+    fn enter_module(&mut self, name: &str, _container_type: &str) {
+        self.path.push(name.to_owned());
+    }
+
+    fn exit_module(&mut self, _name: &str, _container_type: &str) {
+        self.path.pop();
+    }
+
+    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+        let running = matches!(
+            self.path.last().map(String::as_str),
+            Some("running_mean" | "running_var")
+        );
+        if !running {
+            self.count += param.val().dims().iter().product::<usize>();
+        }
+    }
+}
+
+fn trainable<M: Module>(module: &M) -> usize {
+    let mut visitor = Trainable::default();
+    module.visit(&mut visitor);
+    visitor.count
 }
 
 fn trainer_config(preset: &Preset) -> TrainerConfig {
@@ -299,8 +332,8 @@ fn compute(
         phases.push(outcome.phases);
     }
     Ok(Compute {
-        params_3d: trainer.model().unet.parameters(),
-        params: trainer.model().num_params(),
+        params_3d: trainable(&trainer.model().unet),
+        params: trainable(trainer.model()),
         steps,
         ms: median(&times),
         phases: median_phases(&phases),
@@ -384,13 +417,22 @@ fn torch(
 #[derive(Debug)]
 struct Stream {
     steps: usize,
+    /// From the first batch's arrival to the end of the last step.
     seconds: f64,
+    /// Blocked in `receive`, after the first batch.
     waiting: f64,
     computing: f64,
-    /// Fraction of the window the publisher was blocked on a full subscriber queue.
-    backpressure: f64,
+    /// Start-up: from the service's start to the first batch.
     first_batch_s: f64,
+    /// Shares of the service's run time its publisher spent blocked on the trainer's
+    /// full queue (backpressure) and waiting for the sample builders.
+    blocked: f64,
+    starved: f64,
+    /// Median points, pairings, level-0 voxels of the streamed batches.
+    counts: [f64; 3],
 }
+
+type Batch = superflow_trainer::subscribe::Received;
 
 fn stream(
     trainer: &mut Trainer,
@@ -411,67 +453,86 @@ fn stream(
     let stop = Arc::new(AtomicBool::new(false));
     let metrics = Arc::new(Metrics::default());
     let subscription = Subscription::open(&run, Target::Broadcast, &iox, 2)?;
-    std::thread::scope(|scope| {
+    let service_started = Instant::now();
+    let (measured, served, service_s) = std::thread::scope(|scope| {
         let server =
             scope.spawn(|| publish::serve(builder, &run, &service, &iox, (0, 0), &stop, &metrics));
-        // Whatever happens below, the service stops and its thread ends before we return.
-        let result = (|| -> anyhow::Result<Stream> {
-            let receive = |server_alive: &dyn Fn() -> bool| -> anyhow::Result<(superflow_trainer::subscribe::Received, f64)> {
-                let t = Instant::now();
-                loop {
-                    if let Some(batch) = subscription.receive(Duration::from_millis(500))? {
-                        return Ok((batch, t.elapsed().as_secs_f64()));
-                    }
-                    anyhow::ensure!(server_alive(), "the pipeline service ended");
-                    anyhow::ensure!(t.elapsed() < Duration::from_secs(300), "no batch within 300 s");
+        let receive = || -> anyhow::Result<(Batch, f64)> {
+            let t = Instant::now();
+            loop {
+                if let Some(batch) = subscription.receive(Duration::from_millis(500))? {
+                    return Ok((batch, t.elapsed().as_secs_f64()));
                 }
-            };
-            let alive = || !server.is_finished();
-            // Untimed: the first batch (pipeline start-up) and its step.
-            let (batch, first_batch_s) = receive(&alive)?;
-            trainer.step(&batch.view()?)?;
-            drop(batch);
-            eprintln!(
-                "{}: streaming, first batch after {first_batch_s:.1} s",
-                preset.name
-            );
-            let blocked_before = metrics.backpressure_nanos.load(Ordering::Relaxed);
-            let started = Instant::now();
-            let (mut waiting, mut computing) = (0.0, 0.0);
-            for i in 0..steps {
-                let (batch, wait) = receive(&alive)?;
-                let outcome = trainer.step(&batch.view()?)?;
-                drop(batch);
-                waiting += wait;
-                computing += outcome.seconds;
-                eprintln!(
-                    "{}: streamed step {}/{steps}: waited {:.0} ms, step {:.0} ms",
-                    preset.name,
-                    i + 1,
-                    wait * 1e3,
-                    outcome.seconds * 1e3
+                anyhow::ensure!(!server.is_finished(), "the pipeline service ended");
+                anyhow::ensure!(
+                    t.elapsed() < Duration::from_secs(300),
+                    "no batch within 300 s"
                 );
             }
-            let seconds = started.elapsed().as_secs_f64();
-            let blocked = metrics.backpressure_nanos.load(Ordering::Relaxed) - blocked_before;
+        };
+        let measured = (|| -> anyhow::Result<Stream> {
+            // The first batch's wait is the service's start-up, reported apart; the
+            // window starts when it arrives (the trainer is already warm).
+            let (mut batch, first_batch_s) = receive()?;
+            let started = Instant::now();
+            let (mut waiting, mut computing) = (0.0, 0.0);
+            let mut counts: [Vec<f64>; 3] = Default::default();
+            for i in 0..steps {
+                let outcome = trainer.step(&batch.view()?)?;
+                drop(batch);
+                computing += outcome.seconds;
+                for (all, c) in counts.iter_mut().zip(outcome.counts) {
+                    all.push(c as f64);
+                }
+                let [points, pairings, voxels] = outcome.counts;
+                eprintln!(
+                    "{}: streamed step {}/{steps}: {:.0} ms ({points} points, {pairings} pairings, {voxels} voxels)",
+                    preset.name,
+                    i + 1,
+                    outcome.seconds * 1e3,
+                );
+                if i + 1 == steps {
+                    break;
+                }
+                let (next, wait) = receive()?;
+                waiting += wait;
+                eprintln!(
+                    "{}: waited {:.0} ms for the next batch",
+                    preset.name,
+                    wait * 1e3
+                );
+                batch = next;
+            }
             Ok(Stream {
                 steps,
-                seconds,
+                seconds: started.elapsed().as_secs_f64(),
                 waiting,
                 computing,
-                backpressure: blocked as f64 / 1e9 / seconds,
                 first_batch_s,
+                blocked: 0.0,
+                starved: 0.0,
+                counts: counts.map(|c| median(&c)),
             })
         })();
+        // Whatever happened, the service stops (releasing its shared memory) and its
+        // thread ends before we return.
         stop.store(true, Ordering::SeqCst);
         let served = server.join();
-        let measured = result?;
-        match served {
-            Ok(Ok(())) => Ok(measured),
-            Ok(Err(e)) => Err(anyhow::anyhow!("pipeline service: {e}")),
-            Err(_) => Err(anyhow::anyhow!("the pipeline service panicked")),
-        }
-    })
+        (measured, served, service_started.elapsed().as_secs_f64())
+    });
+    drop(subscription);
+    let mut measured = measured?;
+    match served {
+        Ok(Ok(())) => {}
+        Ok(Err(e)) => anyhow::bail!("pipeline service: {e}"),
+        Err(_) => anyhow::bail!("the pipeline service panicked"),
+    }
+    let share = |nanos: &std::sync::atomic::AtomicU64| {
+        nanos.load(Ordering::Relaxed) as f64 / 1e9 / service_s
+    };
+    measured.blocked = share(&metrics.backpressure_nanos);
+    measured.starved = share(&metrics.wait_for_build_nanos);
+    Ok(measured)
 }
 
 fn ms(v: f64) -> String {
@@ -482,13 +543,17 @@ fn ms(v: f64) -> String {
     }
 }
 
+/// The first `n` load averages of `/proc/loadavg`.
+fn load_average(n: usize) -> String {
+    std::fs::read_to_string("/proc/loadavg")
+        .map(|s| s.split_whitespace().take(n).collect::<Vec<_>>().join(", "))
+        .unwrap_or_else(|_| "?".into())
+}
+
 fn main() -> anyhow::Result<()> {
     let args = Args::parse()?;
     let cores = std::thread::available_parallelism().map_or(1, |c| c.get());
-    let load = std::fs::read_to_string("/proc/loadavg")
-        .ok()
-        .and_then(|s| s.split_whitespace().next().map(str::to_owned))
-        .unwrap_or_else(|| "?".into());
+    let load = load_average(1);
     let bench_started = Instant::now();
 
     let config = PipelineConfig::default();
@@ -584,7 +649,7 @@ fn main() -> anyhow::Result<()> {
     }
     println!();
     println!(
-        "burn/PyTorch > 1: burn is slower. The burn step includes its `inputs` phase (batch → tensors, loss plan, pixel sampler), redone for every batch; PyTorch prepares its index tensors once, before the timed steps (\"prep\" below), so the last column compares the rest."
+        "burn/PyTorch > 1: burn is slower. The burn step includes its `inputs` phase (batch → tensors, loss plan, pixel sampler), redone for every batch; PyTorch prepares its index tensors once, before the timed steps (\"prep\" below), so the last column compares the rest. Parameter counts are trainable ones (burn's `num_params` also counts the BatchNorm running statistics)."
     );
     for (p, c, py, _) in &rows {
         let check = match py {
@@ -658,32 +723,53 @@ fn main() -> anyhow::Result<()> {
     );
     println!();
     println!(
-        "| preset | streamed steps | streamed steps/s | compute-only steps/s | data-stall fraction | mean wait ms | pipeline blocked (backpressure) |"
+        "| preset | streamed steps | streamed steps/s | compute-only steps/s | data-stall fraction | mean wait ms | pipeline blocked on trainer | pipeline waiting for samples |"
     );
-    println!("|---|---:|---:|---:|---:|---:|---:|");
+    println!("|---|---:|---:|---:|---:|---:|---:|---:|");
     for (p, c, _, s) in &rows {
+        let waits = s.steps.saturating_sub(1).max(1) as f64;
         println!(
-            "| {} | {} | {:.3} | {:.3} | {:.3} | {} | {:.3} |",
+            "| {} | {} | {:.3} | {:.3} | {:.3} | {} | {:.2} | {:.2} |",
             p.name,
             s.steps,
             s.steps as f64 / s.seconds,
             1e3 / c.ms,
             s.waiting / s.seconds,
-            ms(s.waiting / s.steps as f64 * 1e3),
-            s.backpressure
-        );
-    }
-    println!();
-    for (p, _, _, s) in &rows {
-        println!(
-            "- {}: first batch {:.1} s after the service started (untimed, with its step); timed window {:.1} s, {:.1} s computing, {:.1} s waiting",
-            p.name, s.first_batch_s, s.seconds, s.computing, s.waiting
+            ms(s.waiting / waits * 1e3),
+            s.blocked,
+            s.starved
         );
     }
     println!();
     println!(
-        "bench wall time {:.0} s",
-        bench_started.elapsed().as_secs_f64()
+        "data-stall fraction: time blocked in `receive` / wall time, from the first batch's arrival to the end of the last step. The pipeline columns: shares of the service's run time its publisher was blocked on the trainer's full queue (trainer-bound) or waiting for sample building (pipeline-bound). Streamed batches are the epoch's shuffled keyframes, not the compute-only batch, so their step times differ."
+    );
+    for (p, _, _, s) in &rows {
+        println!(
+            "- {}: first batch {:.2} s after the service started (start-up, not in the fraction); window {:.1} s: {:.1} s computing, {:.2} s waiting; median streamed batch {:.0} points, {:.0} pairings, {:.0} voxels",
+            p.name,
+            s.first_batch_s,
+            s.seconds,
+            s.computing,
+            s.waiting,
+            s.counts[0],
+            s.counts[1],
+            s.counts[2]
+        );
+    }
+    println!();
+    let peak = std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find_map(|l| l.strip_prefix("VmHWM:"))
+                .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<f64>().ok())
+        })
+        .map_or_else(|| "?".into(), |kb| format!("{:.1} GiB", kb / 1048576.0));
+    println!(
+        "bench wall time {:.0} s; peak memory of the burn process {peak} (PyTorch runs in its own process); load average {} at the end (1, 5, 15 min)",
+        bench_started.elapsed().as_secs_f64(),
+        load_average(3)
     );
     Ok(())
 }

@@ -36,8 +36,8 @@ Model (the Rust trainer's):
 * 3D: MinkowskiEngine's MinkUNet run on the batch's kernel maps (no sparse library).
   A 3x3x3 convolution at level l: pairs ``l{l}_nbr`` = (input row, output row), grouped
   by offset k (``starts[k]:starts[k+1]``); as ``trainer/src/sparse.rs`` does it: gather
-  ``x[in_rows]`` once, multiply each offset's slice by ``W[k]``, concatenate, one
-  ``out.index_add_(0, out_rows, ...)``. The kernel-2 stride-2 down
+  ``x[in_rows]`` once, multiply each offset's part (``split``) by ``W[k]``, concatenate,
+  one ``out.index_add_(0, out_rows, ...)``. The kernel-2 stride-2 down
   convolution uses ``l{l}_down`` (row at l, row at l+1) grouped by child position
   (``l{l}_down_starts``), the transposed up convolution the same pairs reversed. No conv
   biases. BatchNorm1d over rows (training mode, eps 1e-5, momentum 0.1), ReLU.
@@ -135,9 +135,10 @@ class SparseConv(nn.Module):
         out = x.new_zeros(n_out, self.weight.shape[2])
         if rows_in.numel() == 0:
             return out
-        gathered = x[rows_in]
-        parts = [gathered[s:e] @ self.weight[k]
-                 for k, (s, e) in enumerate(zip(starts[:-1], starts[1:])) if e > s]
+        # split, not slices: a slice's backward fills a zero tensor of the whole gather.
+        sizes = [e - s for s, e in zip(starts[:-1], starts[1:])]
+        parts = [g @ self.weight[k]
+                 for k, g in enumerate(torch.index_select(x, 0, rows_in).split(sizes)) if g.shape[0]]
         return out.index_add_(0, rows_out, torch.cat(parts))
 
 
