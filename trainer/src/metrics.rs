@@ -136,14 +136,14 @@ pub fn plot_svg(records: &[StepRecord], path: &Path) -> anyhow::Result<()> {
         let (xv, yv) = (x0 + (x1 - x0) * f64::from(i) / 5.0, y1 * f64::from(i) / 5.0);
         writeln!(
             svg,
-            r#"<text x="{}" y="{}" text-anchor="middle">{:.0}</text>"#,
+            r#"<text x="{:.1}" y="{:.1}" text-anchor="middle">{:.0}</text>"#,
             px(xv),
             h - bottom + 18.0,
             xv
         )?;
         writeln!(
             svg,
-            r#"<text x="{}" y="{}" text-anchor="end">{:.3}</text>"#,
+            r#"<text x="{:.1}" y="{:.1}" text-anchor="end">{:.3}</text>"#,
             left - 6.0,
             py(yv) + 4.0,
             yv
@@ -151,9 +151,15 @@ pub fn plot_svg(records: &[StepRecord], path: &Path) -> anyhow::Result<()> {
     }
     writeln!(
         svg,
-        r#"<text x="{}" y="{}" text-anchor="middle">step</text>"#,
+        r#"<text x="{:.1}" y="{:.1}" text-anchor="middle">step</text>"#,
         (left + w - right) / 2.0,
         h - 12.0
+    )?;
+    writeln!(
+        svg,
+        r#"<text x="16" y="{:.1}" transform="rotate(-90 16 {:.1})" text-anchor="middle">loss</text>"#,
+        (top + h - bottom) / 2.0,
+        (top + h - bottom) / 2.0
     )?;
     for (i, (name, value, color)) in series.iter().enumerate() {
         let points: Vec<String> = records
