@@ -348,7 +348,7 @@ impl LossPlan {
         })
     }
 
-    /// Sampled pixels per image row/column step and in total.
+    /// Pixels the superpixel pooling samples, over all images.
     pub fn sampled_pixels(&self) -> usize {
         self.pixels.len()
     }

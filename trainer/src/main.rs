@@ -126,8 +126,8 @@ impl Args {
     }
 }
 
+#[cfg_attr(not(feature = "cuda"), allow(unused_variables))]
 fn device(backend: &str, index: usize) -> anyhow::Result<burn::tensor::Device> {
-    let _ = index;
     match backend {
         "flex" => Ok(burn::tensor::Device::flex()),
         // wgpu picks the best adapter (override with CUBECL_WGPU_DEFAULT_DEVICE).

@@ -59,8 +59,6 @@ pub struct KernelPairs {
     pub second_all: Tensor<1, Int>,
     /// First column of all pairs, offset by offset.
     pub first_all: Tensor<1, Int>,
-    /// Pairs in all.
-    pub len: usize,
 }
 
 impl KernelPairs {
@@ -85,13 +83,7 @@ impl KernelPairs {
             second,
             second_all,
             first_all,
-            len: pairs.len() / 2,
         }
-    }
-
-    /// Offsets of the kernel.
-    pub fn offsets(&self) -> usize {
-        self.first.len()
     }
 }
 
@@ -490,11 +482,6 @@ impl SparseUNet {
             }
         }
         l2_normalize(self.head.forward(x))
-    }
-
-    /// Trainable parameter count.
-    pub fn parameters(&self) -> usize {
-        self.num_params()
     }
 }
 
