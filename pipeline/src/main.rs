@@ -38,6 +38,14 @@ struct Args {
     /// Ranks in shard mode (overrides `[service] world_size`).
     #[arg(long)]
     world_size: Option<u32>,
+    /// This host's rank for multi-host sharding (overrides `[service] host_rank`):
+    /// host h of N gets a disjoint share of every epoch's keyframes.
+    #[arg(long, env = "SUPERFLOW_HOST_RANK")]
+    host_rank: Option<u32>,
+    /// Hosts sharing each epoch, each running its own pipeline on the same drives and
+    /// configuration (overrides `[service] host_count`).
+    #[arg(long, env = "SUPERFLOW_HOST_COUNT")]
+    host_count: Option<u32>,
     /// Samples per batch (overrides `[service] batch_size`).
     #[arg(long)]
     batch_size: Option<u32>,
@@ -259,6 +267,12 @@ fn serve(args: &Args) -> anyhow::Result<()> {
     }
     if let Some(b) = args.batch_size {
         config.service.batch_size = b;
+    }
+    if let Some(h) = args.host_rank {
+        config.service.host_rank = h;
+    }
+    if let Some(n) = args.host_count {
+        config.service.host_count = n;
     }
     if let Some(e) = args.epochs {
         config.service.epochs = e;

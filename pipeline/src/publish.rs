@@ -1,10 +1,13 @@
 //! The service: an endless (or bounded) stream of batches over iceoryx2.
 //!
 //! * [`Schedule`] says which keyframes form batch `step` of `epoch` for stream `rank`:
-//!   the epoch's seeded shuffle, dealt round-robin to `world_size` ranks, cut into
-//!   batches of `batch_size` (the last one of an epoch may be short — no keyframe is
-//!   dropped). A sample's draws are keyed by its position in the epoch, so the same
-//!   keyframe gets the same sample whatever the world size.
+//!   the epoch's seeded shuffle, dealt round-robin to `host_count × streams` global
+//!   ranks (host `h` owns global ranks `h·streams .. (h+1)·streams`), cut into batches
+//!   of `batch_size` (the last one of an epoch may be short — no keyframe is dropped).
+//!   Every host computes the same shuffle from the seed, so hosts get disjoint shares
+//!   that together cover each epoch exactly once, without talking to each other. A
+//!   sample's draws are keyed by its position in the epoch, so the same keyframe gets
+//!   the same sample whatever the world size or host count.
 //! * A producer thread builds batches ahead (`prefetch`) with rayon; the publisher loop
 //!   (the calling thread) writes each one in place into a loaned iceoryx2 slice, sends
 //!   it and wakes subscribers through the ready event.
@@ -47,8 +50,13 @@ pub enum Mode {
 pub struct ServiceConfig {
     /// Broadcast or shard.
     pub mode: Mode,
-    /// Ranks in shard mode.
+    /// Ranks in shard mode (on this host).
     pub world_size: u32,
+    /// This host's rank among `host_count` hosts (multi-host sharding).
+    pub host_rank: u32,
+    /// Hosts sharing each epoch; each runs its own pipeline with the same drives and
+    /// configuration, and gets a disjoint share of every epoch's keyframes.
+    pub host_count: u32,
     /// Samples per batch (4, the paper's per-GPU batch).
     pub batch_size: u32,
     /// Batches built ahead of the one being published.
@@ -70,6 +78,8 @@ impl Default for ServiceConfig {
         Self {
             mode: Mode::Broadcast,
             world_size: 1,
+            host_rank: 0,
+            host_count: 1,
             batch_size: 4,
             prefetch: 2,
             epochs: 0,
@@ -87,6 +97,18 @@ impl ServiceConfig {
             return Err(format!(
                 "service.world_size = {} must be 1..=1024",
                 self.world_size
+            ));
+        }
+        if !(1..=4096).contains(&self.host_count) {
+            return Err(format!(
+                "service.host_count = {} must be 1..=4096",
+                self.host_count
+            ));
+        }
+        if self.host_rank >= self.host_count {
+            return Err(format!(
+                "service.host_rank = {} must be below service.host_count = {}",
+                self.host_rank, self.host_count
             ));
         }
         if self.mode == Mode::Broadcast && self.world_size != 1 {
@@ -130,7 +152,12 @@ impl ServiceConfig {
 pub struct Schedule {
     keyframes: usize,
     batch_size: usize,
+    /// Streams of this host.
     streams: usize,
+    /// Global rank of this host's stream 0.
+    first_rank: usize,
+    /// Streams of all hosts together.
+    total_streams: usize,
     seed: u64,
 }
 
@@ -138,21 +165,40 @@ pub struct Schedule {
 pub type Slot = (u32, u64);
 
 impl Schedule {
-    /// A schedule over `keyframes` keyframes.
+    /// A schedule over `keyframes` keyframes for one host.
     pub fn new(keyframes: usize, batch_size: usize, streams: usize, seed: u64) -> Self {
+        Self::for_host(keyframes, batch_size, streams, (0, 1), seed)
+    }
+
+    /// The schedule of host `host.0` of `host.1`, each with `streams` streams: global
+    /// rank `host.0 · streams + rank` of `host.1 · streams`.
+    pub fn for_host(
+        keyframes: usize,
+        batch_size: usize,
+        streams: usize,
+        host: (u32, u32),
+        seed: u64,
+    ) -> Self {
+        let streams = streams.max(1);
+        let hosts = (host.1 as usize).max(1);
         Self {
             keyframes,
             batch_size: batch_size.max(1),
-            streams: streams.max(1),
+            streams,
+            first_rank: (host.0 as usize).min(hosts - 1) * streams,
+            total_streams: hosts * streams,
             seed,
         }
     }
 
+    /// Keyframes per epoch of this host's stream `rank`.
     fn share(&self, rank: usize) -> usize {
         if rank >= self.streams {
             return 0;
         }
-        self.keyframes / self.streams + usize::from(rank < self.keyframes % self.streams)
+        let global = self.first_rank + rank;
+        self.keyframes / self.total_streams
+            + usize::from(global < self.keyframes % self.total_streams)
     }
 
     /// Batches per epoch of stream `rank`.
@@ -172,7 +218,7 @@ impl Schedule {
         Some(
             (first..last)
                 .map(|j| {
-                    let position = j * self.streams + rank;
+                    let position = j * self.total_streams + self.first_rank + rank;
                     (order[position], position as u64)
                 })
                 .collect(),
@@ -406,15 +452,18 @@ pub fn serve(
         return Err(ServiceError::NoKeyframes);
     }
     let streams = config.streams();
-    if streams as usize > keyframes {
+    let total = streams as usize * config.host_count as usize;
+    if total > keyframes {
         return Err(ServiceError::Config(format!(
-            "world size {streams} exceeds the {keyframes} keyframes of the drives: some ranks would get nothing"
+            "{streams} stream(s) on each of {} host(s) exceed the {keyframes} keyframes of the drives: some ranks would get nothing",
+            config.host_count
         )));
     }
-    let schedule = Schedule::new(
+    let schedule = Schedule::for_host(
         keyframes,
         config.batch_size as usize,
         streams as usize,
+        (config.host_rank, config.host_count),
         builder.config().seed,
     );
     let node = NodeBuilder::new()
@@ -487,6 +536,8 @@ pub fn serve(
     tracing::info!(
         services = %service_names.join(", "),
         keyframes,
+        host = config.host_rank,
+        hosts = config.host_count,
         steps_per_epoch = schedule.steps(0),
         batch_size = config.batch_size,
         "publishing"
@@ -1014,5 +1065,51 @@ mod tests {
             assert!(seen.iter().all(|c| *c == 1), "{n} {b} {w}: {seen:?}");
             assert!(positions.iter().all(|c| *c == 1));
         }
+    }
+
+    #[test]
+    fn hosts_get_disjoint_shares_that_cover_each_epoch() {
+        for (n, b, w, hosts) in [
+            (12usize, 2usize, 1usize, 2u32),
+            (13, 3, 2, 2),
+            (10, 4, 1, 3),
+            (17, 2, 3, 2),
+            (8, 1, 2, 4),
+        ] {
+            let order: Vec<u32> = (0..n as u32).map(|i| (i * 5 + 3) % n as u32).collect();
+            let mut positions = vec![0; n];
+            let mut per_host = vec![0usize; hosts as usize];
+            for host in 0..hosts {
+                let schedule = Schedule::for_host(n, b, w, (host, hosts), 7);
+                for rank in 0..w {
+                    for step in 0..schedule.steps(rank) {
+                        for (keyframe, position) in schedule.batch(&order, rank, step).unwrap() {
+                            positions[position as usize] += 1;
+                            per_host[host as usize] += 1;
+                            assert_eq!(order[position as usize], keyframe);
+                        }
+                    }
+                    assert!(schedule.batch(&order, rank, schedule.steps(rank)).is_none());
+                }
+            }
+            assert!(positions.iter().all(|c| *c == 1), "{n} {b} {w} {hosts}: {positions:?}");
+            // Balanced: hosts differ by at most one keyframe per stream.
+            let (lo, hi) = (per_host.iter().min().unwrap(), per_host.iter().max().unwrap());
+            assert!(hi - lo <= w, "{per_host:?}");
+        }
+        // One host of one is the single-host schedule.
+        let order: Vec<u32> = (0..9).collect();
+        let (a, b) = (Schedule::new(9, 2, 3, 1), Schedule::for_host(9, 2, 3, (0, 1), 1));
+        for rank in 0..3 {
+            assert_eq!(a.batch(&order, rank, 1), b.batch(&order, rank, 1));
+        }
+        let mut bad = ServiceConfig {
+            host_count: 2,
+            host_rank: 2,
+            ..ServiceConfig::default()
+        };
+        assert!(bad.validate().unwrap_err().contains("host_rank"));
+        bad.host_rank = 1;
+        assert!(bad.validate().is_ok());
     }
 }
