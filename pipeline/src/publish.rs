@@ -1092,14 +1092,23 @@ mod tests {
                     assert!(schedule.batch(&order, rank, schedule.steps(rank)).is_none());
                 }
             }
-            assert!(positions.iter().all(|c| *c == 1), "{n} {b} {w} {hosts}: {positions:?}");
+            assert!(
+                positions.iter().all(|c| *c == 1),
+                "{n} {b} {w} {hosts}: {positions:?}"
+            );
             // Balanced: hosts differ by at most one keyframe per stream.
-            let (lo, hi) = (per_host.iter().min().unwrap(), per_host.iter().max().unwrap());
+            let (lo, hi) = (
+                per_host.iter().min().unwrap(),
+                per_host.iter().max().unwrap(),
+            );
             assert!(hi - lo <= w, "{per_host:?}");
         }
         // One host of one is the single-host schedule.
         let order: Vec<u32> = (0..9).collect();
-        let (a, b) = (Schedule::new(9, 2, 3, 1), Schedule::for_host(9, 2, 3, (0, 1), 1));
+        let (a, b) = (
+            Schedule::new(9, 2, 3, 1),
+            Schedule::for_host(9, 2, 3, (0, 1), 1),
+        );
         for rank in 0..3 {
             assert_eq!(a.batch(&order, rank, 1), b.batch(&order, rank, 1));
         }

@@ -205,6 +205,7 @@ fn run(args: &Args) -> anyhow::Result<()> {
     let mut trainer = Trainer::new(config, &device)?;
 
     let metrics_path = out.join("metrics.jsonl");
+    let mut resumed_at = None;
     if args.resume {
         match trainer.restore_latest(&ckpt_dir)? {
             Some(state) => {
@@ -231,6 +232,15 @@ fn run(args: &Args) -> anyhow::Result<()> {
                     batch = state.next_batch,
                     "resuming: the pipeline continues at the checkpoint's next batch"
                 );
+                let redone = metrics::truncate_after(&metrics_path, state.step)?;
+                if redone > 0 {
+                    tracing::warn!(
+                        steps = redone,
+                        after = state.step,
+                        "steps trained after the checkpoint are lost and will be redone on the same batches; their metrics lines are dropped"
+                    );
+                }
+                resumed_at = Some((state.next_epoch, state.next_batch));
             }
             None => {
                 tracing::warn!(dir = %ckpt_dir.display(), "--resume: no checkpoint yet, starting fresh")
@@ -258,7 +268,12 @@ fn run(args: &Args) -> anyhow::Result<()> {
     let started = Instant::now();
     let (mut waiting, mut computing) = (0.0_f64, 0.0_f64);
     let mut last = None;
-    let mut next = (0, 0);
+    // The stream position of the next batch to train on, once known, and the pipeline
+    // (publisher) that sends it.
+    let mut next: (u64, u64) = resumed_at.unwrap_or((0, 0));
+    let mut expecting = resumed_at.is_some();
+    let mut origin: Option<u128> = None;
+    let mut skipped = 0u64;
     tracing::info!(run = %args.run, ?target, steps, out = %out.display(), "training");
     while trainer.step_count() < steps {
         let t = Instant::now();
@@ -267,6 +282,50 @@ fn run(args: &Args) -> anyhow::Result<()> {
             &args.run,
             Duration::from_secs(args.timeout_secs),
         )?;
+        let position = (batch.header().epoch, batch.header().step);
+        let restarted = origin.is_some_and(|o| o != batch.origin());
+        // Broadcast: another trainer's resume moved the shared stream past this one.
+        let gap = position.0 == next.0 && position.1 > next.1;
+        if expecting && position != next && (restarted || gap) {
+            // A new pipeline (the old one died and was restarted) began elsewhere, or
+            // the stream jumped ahead: ask it to continue where this trainer is.
+            tracing::warn!(
+                got_epoch = position.0,
+                got_batch = position.1,
+                epoch = next.0,
+                batch = next.1,
+                restarted,
+                "the stream is not at this trainer's next batch (a restarted pipeline, or another trainer's resume); asking it to continue there"
+            );
+            drop(batch);
+            let reply = subscription
+                .resume(next.0, next.1, Duration::from_secs(args.timeout_secs))
+                .with_context(|| format!("asking run {} to resume", args.run))?;
+            if reply.accepted != 1 {
+                anyhow::bail!(
+                    "the restarted pipeline of run {} refused to continue at epoch {} batch {} (reason {})",
+                    args.run,
+                    next.0,
+                    next.1,
+                    reply.reason
+                );
+            }
+            origin = Some(reply.publisher());
+            continue;
+        }
+        if expecting && position < next {
+            // Broadcast: another subscriber rewound the shared stream (its resume).
+            skipped += 1;
+            tracing::warn!(
+                epoch = position.0,
+                batch = position.1,
+                skipped,
+                "already trained on this batch: skipped"
+            );
+            continue;
+        }
+        origin = Some(batch.origin());
+        expecting = true;
         let wait = t.elapsed().as_secs_f64();
         let view = batch.view().context("invalid batch")?;
         let meta = view.meta().clone();

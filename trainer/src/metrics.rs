@@ -1,5 +1,5 @@
 //! Per-step metrics: one JSON object per line (`superflow.metrics/1`), and an optional
-//! PNG of the loss curves at the end of a run.
+//! SVG of the loss curves at the end of a run.
 
 use serde::{Deserialize, Serialize};
 use std::fs::{File, OpenOptions};
@@ -7,7 +7,7 @@ use std::io::{BufWriter, Write as _};
 use std::path::{Path, PathBuf};
 
 /// One training step.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 pub struct StepRecord {
     /// Optimizer step (1-based: the number of steps taken after this one).
     pub step: u64,
@@ -75,6 +75,42 @@ impl MetricsWriter {
             .flush()
             .map_err(|e| anyhow::anyhow!("writing {}: {e}", self.path.display()))
     }
+}
+
+/// Keeps the records of steps `..= step` of a metrics file and drops the rest: a run
+/// resumed from its checkpoint at `step` redoes the later steps, so the file keeps one
+/// record per trained step (the lineage of the model). A last line cut short by a
+/// kill is dropped too. Returns how many records were dropped; the file is replaced
+/// atomically (written aside, then renamed).
+pub fn truncate_after(path: &Path, step: u64) -> anyhow::Result<usize> {
+    let text = match std::fs::read_to_string(path) {
+        Ok(text) => text,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(0),
+        Err(e) => anyhow::bail!("reading {}: {e}", path.display()),
+    };
+    let lines: Vec<&str> = text.lines().filter(|l| !l.trim().is_empty()).collect();
+    let mut kept = String::with_capacity(text.len());
+    let mut dropped = 0;
+    for (i, line) in lines.iter().enumerate() {
+        match serde_json::from_str::<StepRecord>(line) {
+            Ok(record) if record.step <= step => {
+                kept.push_str(line);
+                kept.push('\n');
+            }
+            Ok(_) => dropped += 1,
+            // Only the last line can be partial (each line is flushed whole).
+            Err(_) if i + 1 == lines.len() && !text.ends_with('\n') => dropped += 1,
+            Err(e) => anyhow::bail!("{}:{}: {e}", path.display(), i + 1),
+        }
+    }
+    if dropped > 0 {
+        let aside = path.with_extension("jsonl.tmp");
+        std::fs::write(&aside, kept)
+            .map_err(|e| anyhow::anyhow!("writing {}: {e}", aside.display()))?;
+        std::fs::rename(&aside, path)
+            .map_err(|e| anyhow::anyhow!("replacing {}: {e}", path.display()))?;
+    }
+    Ok(dropped)
 }
 
 /// Reads a metrics file (for plots and tests).
@@ -183,4 +219,41 @@ pub fn plot_svg(records: &[StepRecord], path: &Path) -> anyhow::Result<()> {
     }
     writeln!(svg, "</svg>")?;
     std::fs::write(path, svg).map_err(|e| anyhow::anyhow!("writing {}: {e}", path.display()))
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+    use super::*;
+
+    #[test]
+    fn truncation_keeps_the_lineage_up_to_the_checkpoint() {
+        let dir = std::env::temp_dir().join(format!("sf-metrics-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("metrics.jsonl");
+        let _ = std::fs::remove_file(&path);
+        assert_eq!(truncate_after(&path, 3).unwrap(), 0, "no file yet");
+        let mut w = MetricsWriter::open(&path).unwrap();
+        for step in 1..=5 {
+            w.write(&StepRecord {
+                step,
+                sample_ids: vec![[0, step]],
+                ..StepRecord::default()
+            })
+            .unwrap();
+        }
+        drop(w);
+        // A kill in the middle of a line.
+        let mut f = OpenOptions::new().append(true).open(&path).unwrap();
+        f.write_all(b"{\"step\":6,\"epo").unwrap();
+        drop(f);
+        assert_eq!(truncate_after(&path, 3).unwrap(), 3);
+        let steps: Vec<u64> = read(&path).unwrap().iter().map(|r| r.step).collect();
+        assert_eq!(steps, [1, 2, 3]);
+        assert_eq!(truncate_after(&path, 3).unwrap(), 0);
+        // A damaged line in the middle is an error, not a silent loss.
+        std::fs::write(&path, "{\"bad\n{\"step\":1}\n").unwrap();
+        assert!(truncate_after(&path, 3).is_err());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 }
