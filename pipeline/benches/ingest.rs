@@ -4,33 +4,24 @@
 //!
 //! `cargo bench -p superflow-pipeline --bench ingest` (add `-- --runs N`, default 5).
 
-use std::path::PathBuf;
-use std::time::{Duration, Instant};
+#[allow(dead_code)]
+#[path = "../../tests/src/bench/common.rs"]
+mod common;
+
+use common::{DRIVES, arg_count, drive_path, median};
+use std::time::Instant;
 use superflow_pipeline::drive::{Drive, IngestConfig};
 use superflow_pipeline::source::ChunkCache;
 
-fn median(mut v: Vec<Duration>) -> Duration {
-    v.sort();
-    v[v.len() / 2]
-}
-
 fn main() -> anyhow::Result<()> {
-    let args: Vec<String> = std::env::args().collect();
-    let runs = args
-        .iter()
-        .position(|a| a == "--runs")
-        .and_then(|i| args.get(i + 1))
-        .and_then(|r| r.parse().ok())
-        .unwrap_or(5usize)
-        .max(1);
-    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..");
+    let runs = arg_count("--runs")?.unwrap_or(5);
     println!("ingest throughput, median of {runs} runs, 1 thread");
     println!(
         "| drive | MB | index ms | index MB/s | sweeps | points | read+decode sweeps/s | decode Mpoints/s |"
     );
     println!("|---|---:|---:|---:|---:|---:|---:|---:|");
-    for name in ["street_foxglove", "street_ros2"] {
-        let path = root.join(format!("recordings/drives/{name}.mcap"));
+    for name in DRIVES {
+        let path = drive_path(name);
         let bytes = std::fs::metadata(&path)?.len() as f64;
         let mut index_times = Vec::new();
         let mut drive = None;
@@ -40,7 +31,7 @@ fn main() -> anyhow::Result<()> {
                 std::slice::from_ref(&path),
                 &IngestConfig::default(),
             )?);
-            index_times.push(started.elapsed());
+            index_times.push(started.elapsed().as_secs_f64());
         }
         let drive = drive.ok_or_else(|| anyhow::anyhow!("no run"))?;
         let lidar = drive
@@ -57,10 +48,10 @@ fn main() -> anyhow::Result<()> {
                 let cloud = drive.read_sweep(sweep, &mut cache)?;
                 total_points += cloud.cloud.len();
             }
-            decode_times.push(started.elapsed());
+            decode_times.push(started.elapsed().as_secs_f64());
         }
-        let index = median(index_times).as_secs_f64();
-        let decode = median(decode_times).as_secs_f64();
+        let index = median(&index_times);
+        let decode = median(&decode_times);
         println!(
             "| {name} | {:.1} | {:.1} | {:.0} | {} | {} | {:.0} | {:.1} |",
             bytes / 1e6,

@@ -1,6 +1,8 @@
 //! Shared helpers of the end-to-end tests: where the sample drives are, their ground
-//! truth, and the transforms and calibrations a drive records.
+//! truth, the transforms and calibrations a drive records, and ([`bench`]) the
+//! measurement code of the benchmarks.
 
+pub mod bench;
 pub mod process;
 
 use anyhow::{Context as _, bail};

@@ -1,0 +1,53 @@
+//! Sample-building throughput: samples/s of a [`SampleBuilder`] on a rayon pool of a
+//! given size, and the CPU time per stage.
+//!
+//! Used by `cargo bench -p superflow-pipeline --bench sample` (through `#[path]`) and by
+//! the summary bench of `superflow-tests`.
+
+use rayon::prelude::*;
+use std::time::Instant;
+use superflow_pipeline::sample::SampleBuilder;
+use superflow_pipeline::sample::builder::StageTimes;
+
+/// Builds `n` samples (epoch-major over the plan) on `threads` threads; returns
+/// samples/s and the summed stage times.
+pub fn throughput(
+    builder: &SampleBuilder<'_>,
+    n: usize,
+    threads: usize,
+) -> anyhow::Result<(f64, StageTimes)> {
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()?;
+    let per_epoch = builder.plan().keyframes.len();
+    let started = Instant::now();
+    let times = pool.install(|| {
+        (0..n)
+            .into_par_iter()
+            .map(|i| {
+                builder
+                    .build((i / per_epoch) as u64, (i % per_epoch) as u64)
+                    .map(|s| s.times)
+            })
+            .collect::<Result<Vec<_>, _>>()
+    })?;
+    let secs = started.elapsed().as_secs_f64();
+    let mut total = StageTimes::default();
+    for t in &times {
+        total.add(t);
+    }
+    Ok((n as f64 / secs, total))
+}
+
+/// Samples/s on one core and on `cores` cores after a warm-up epoch (page cache,
+/// allocator), and the stage times of the one-core run.
+pub fn one_and_all(
+    builder: &SampleBuilder<'_>,
+    n: usize,
+    cores: usize,
+) -> anyhow::Result<(f64, f64, StageTimes)> {
+    throughput(builder, builder.plan().keyframes.len(), cores)?;
+    let (one, times) = throughput(builder, n, 1)?;
+    let (all, _) = throughput(builder, n, cores)?;
+    Ok((one, all, times))
+}
