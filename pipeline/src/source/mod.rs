@@ -453,7 +453,7 @@ impl McapFile {
                                 offset: pos,
                                 record_len: 9 + body_len,
                             });
-                            match decode_chunk(header, &data) {
+                            match decode_chunk(&header, &data, &body) {
                                 Ok((decoded, schemas, channels)) => {
                                     for (id, name, encoding, data) in schemas {
                                         this.add_schema(id, &name, &encoding, &data);
@@ -708,7 +708,7 @@ impl McapFile {
                 else {
                     return Err(chunk_error("not a chunk record".into()));
                 };
-                let (decoded, _, _) = decode_chunk(header, &data).map_err(chunk_error)?;
+                let (decoded, _, _) = decode_chunk(&header, &data, &body).map_err(chunk_error)?;
                 Ok(decoded.messages)
             }
         }
@@ -738,31 +738,91 @@ type SchemaRecord = (u16, String, String, Vec<u8>);
 
 /// Decompresses a chunk and splits it into records; the whole chunk is rejected if
 /// anything in it fails (CRC, decompression, a record), so corrupt bytes never reach a
-/// decoder.
+/// decoder. `header` and `records` are the parsed chunk record, `body` its whole body
+/// (after opcode and length).
+///
+/// Two checks that mcap's `ChunkReader` lacks (the fuzz target `mcap_drive` found both):
+/// no record inside a chunk is longer than the chunk's uncompressed size (the chunk is
+/// read by a linear reader with that record length limit; `ChunkReader` sized its buffer
+/// from a corrupt length before decompressing and asked for exabytes), and the records
+/// of an uncompressed chunk are framed within it (mcap subtracts each record's length
+/// from what remains unchecked: an overflow panic in debug builds).
 fn decode_chunk(
-    header: ChunkHeader,
-    data: &[u8],
+    header: &ChunkHeader,
+    records: &[u8],
+    body: &[u8],
 ) -> Result<(Decoded, Vec<SchemaRecord>, Vec<records::Channel>), String> {
+    use mcap::sans_io::{LinearReadEvent, LinearReader, LinearReaderOptions};
     if header.uncompressed_size > MAX_RECORD_BYTES {
         return Err(format!(
             "declared uncompressed size {} is implausible",
             header.uncompressed_size
         ));
     }
-    let reader = mcap::read::ChunkReader::new(header, data).map_err(|e| e.to_string())?;
+    if header.compression.is_empty() {
+        let mut at = 0usize;
+        while let Some(rest) = records.get(at..).filter(|r| !r.is_empty()) {
+            let Some(&[_, l0, l1, l2, l3, l4, l5, l6, l7]) = rest.get(..9) else {
+                return Err(format!(
+                    "{} stray bytes after the last record of the chunk",
+                    rest.len()
+                ));
+            };
+            let len = u64::from_le_bytes([l0, l1, l2, l3, l4, l5, l6, l7]);
+            if len > (rest.len() - 9) as u64 {
+                return Err(format!(
+                    "record of {len} bytes at byte {at} of the chunk's {} bytes of records runs past its end",
+                    records.len()
+                ));
+            }
+            at += 9 + len as usize;
+        }
+    }
+    // The limit also bounds the chunk's own header and padding: at least the body length.
+    let limit = header
+        .uncompressed_size
+        .max(body.len() as u64)
+        .min(MAX_RECORD_BYTES);
+    let mut reader = LinearReader::new_with_options(
+        LinearReaderOptions::default()
+            .with_skip_start_magic(true)
+            .with_skip_end_magic(true)
+            .with_validate_chunk_crcs(true)
+            .with_record_length_limit(limit as usize),
+    );
+    // The reader is fed the chunk record: opcode and length, then the body.
+    let mut prefix = [0u8; 9];
+    prefix[0] = op::CHUNK;
+    prefix[1..].copy_from_slice(&(body.len() as u64).to_le_bytes());
+    let mut input: [&[u8]; 2] = [&prefix, body];
     let mut messages = Vec::new();
     let mut schemas = Vec::new();
     let mut channels = Vec::new();
-    for record in reader {
-        match record.map_err(|e| e.to_string())? {
-            records::Record::Message { header, data } => {
-                messages.push((header.channel_id, header, data.into_owned()))
+    while let Some(event) = reader.next_event() {
+        match event.map_err(|e| e.to_string())? {
+            LinearReadEvent::ReadRequest(need) => {
+                let source = if input[0].is_empty() {
+                    &mut input[1]
+                } else {
+                    &mut input[0]
+                };
+                let n = need.min(source.len());
+                reader.insert(n).copy_from_slice(&source[..n]);
+                reader.notify_read(n);
+                *source = &source[n..];
             }
-            records::Record::Schema { header, data } => {
-                schemas.push((header.id, header.name, header.encoding, data.into_owned()))
+            LinearReadEvent::Record { data, opcode } => {
+                match mcap::parse_record(opcode, data).map_err(|e| e.to_string())? {
+                    records::Record::Message { header, data } => {
+                        messages.push((header.channel_id, header, data.into_owned()))
+                    }
+                    records::Record::Schema { header, data } => {
+                        schemas.push((header.id, header.name, header.encoding, data.into_owned()))
+                    }
+                    records::Record::Channel(c) => channels.push(c),
+                    _ => {}
+                }
             }
-            records::Record::Channel(c) => channels.push(c),
-            _ => {}
         }
     }
     Ok((Decoded { messages }, schemas, channels))
@@ -847,6 +907,125 @@ mod tests {
                 index: 0,
             };
             assert!(file.read_message(missing, &mut cache).is_err());
+        }
+    }
+
+    /// A zstd frame holding `content` in one stored (raw) block.
+    fn zstd_stored(content: &[u8]) -> Vec<u8> {
+        let size = u8::try_from(content.len()).unwrap();
+        // Magic, single-segment frame with a 1-byte content size, then the block header:
+        // last block, type raw, its size.
+        let mut frame = vec![0x28, 0xb5, 0x2f, 0xfd, 0x20, size];
+        let block = (u32::from(size) << 3) | 1;
+        frame.extend_from_slice(&block.to_le_bytes()[..3]);
+        frame.extend_from_slice(content);
+        frame
+    }
+
+    /// A chunk record (opcode, length, body) around `compressed` data.
+    fn chunk_record(compression: &str, uncompressed_size: u64, compressed: &[u8]) -> Vec<u8> {
+        padded_chunk_record(compression, uncompressed_size, compressed, 0)
+    }
+
+    /// [`chunk_record`] with `padding` zero bytes after the compressed data.
+    fn padded_chunk_record(
+        compression: &str,
+        uncompressed_size: u64,
+        compressed: &[u8],
+        padding: usize,
+    ) -> Vec<u8> {
+        let mut body = Vec::new();
+        body.extend_from_slice(&0u64.to_le_bytes()); // message start time
+        body.extend_from_slice(&0u64.to_le_bytes()); // message end time
+        body.extend_from_slice(&uncompressed_size.to_le_bytes());
+        body.extend_from_slice(&0u32.to_le_bytes()); // CRC: not checked
+        body.extend_from_slice(&(compression.len() as u32).to_le_bytes());
+        body.extend_from_slice(compression.as_bytes());
+        body.extend_from_slice(&(compressed.len() as u64).to_le_bytes());
+        body.extend_from_slice(compressed);
+        body.resize(body.len() + padding, 0);
+        let mut record = vec![op::CHUNK];
+        record.extend_from_slice(&(body.len() as u64).to_le_bytes());
+        record.extend_from_slice(&body);
+        record
+    }
+
+    /// Found by the `mcap_drive` fuzz target: a record inside a compressed chunk that
+    /// declares an absurd length made mcap's chunk reader allocate that many bytes
+    /// before decompressing (the process aborted). Now the chunk is reported as bad.
+    #[test]
+    fn a_huge_record_length_inside_a_compressed_chunk_is_a_bad_chunk() {
+        let mut content = vec![op::MESSAGE];
+        content.extend_from_slice(&0x6161_6161_6161_6161u64.to_le_bytes());
+        content.extend_from_slice(b"the rest of the chunk");
+        for uncompressed_size in [content.len() as u64, MAX_RECORD_BYTES] {
+            let mut bytes = MAGIC.to_vec();
+            bytes.extend(chunk_record(
+                "zstd",
+                uncompressed_size,
+                &zstd_stored(&content),
+            ));
+            let (file, seen) = scan_bytes("huge_record_in_chunk.mcap", &bytes);
+            assert!(seen.is_empty());
+            assert!(
+                file.damage
+                    .iter()
+                    .any(|d| matches!(d, Damage::BadChunk { offset: 8, .. })),
+                "{:?}",
+                file.damage
+            );
+        }
+        // The same chunk holding a well-formed record (a schema) still reads.
+        let schema = b"\x01\x00\x01\x00\x00\x00s\x03\x00\x00\x00raw\x00\x00\x00\x00";
+        let mut content = vec![op::SCHEMA];
+        content.extend_from_slice(&(schema.len() as u64).to_le_bytes());
+        content.extend_from_slice(schema);
+        let mut bytes = MAGIC.to_vec();
+        bytes.extend(chunk_record(
+            "zstd",
+            content.len() as u64,
+            &zstd_stored(&content),
+        ));
+        let (file, _) = scan_bytes("sane_chunk.mcap", &bytes);
+        assert_eq!(file.chunks.len(), 1);
+        assert!(
+            !file
+                .damage
+                .iter()
+                .any(|d| matches!(d, Damage::BadChunk { .. })),
+            "{:?}",
+            file.damage
+        );
+        assert_eq!(file.schemas.get(&1).map(|s| s.name.as_str()), Some("s"));
+    }
+
+    /// Found by the `mcap_drive` fuzz target: a record of an uncompressed chunk longer
+    /// than what remains of the chunk made mcap's reader overflow a subtraction (a panic
+    /// in debug builds). Now the chunk is reported as bad.
+    #[test]
+    fn a_record_running_past_an_uncompressed_chunk_is_a_bad_chunk() {
+        // A record claiming 100 bytes where 5 remain.
+        let mut overlong = vec![op::MESSAGE];
+        overlong.extend_from_slice(&100u64.to_le_bytes());
+        overlong.extend_from_slice(b"short");
+        // An empty record, then 3 stray bytes.
+        let mut stray = vec![op::MESSAGE];
+        stray.extend_from_slice(&0u64.to_le_bytes());
+        stray.extend_from_slice(&[op::MESSAGE, 1, 0]);
+        for chunk in [overlong, stray] {
+            let mut bytes = MAGIC.to_vec();
+            // Padding after the records, as a writer may leave: the overlong record
+            // would reach into it.
+            bytes.extend(padded_chunk_record("", chunk.len() as u64, &chunk, 128));
+            let (file, seen) = scan_bytes("record_past_chunk.mcap", &bytes);
+            assert!(seen.is_empty());
+            assert!(
+                file.damage
+                    .iter()
+                    .any(|d| matches!(d, Damage::BadChunk { offset: 8, .. })),
+                "{:?}",
+                file.damage
+            );
         }
     }
 
