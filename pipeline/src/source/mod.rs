@@ -338,12 +338,15 @@ impl McapFile {
         };
         let summary = this.read_summary();
         // Chunk offsets from the summary's index: where to resume after a corrupt record.
+        // Only offsets inside the file (a corrupt index pointing past its end made the
+        // scan compute `len - pos` with `pos > len`: found by the fuzz target).
         let mut indexed_chunks: Vec<u64> = summary
             .as_ref()
             .map(|s| {
                 s.chunk_indexes
                     .iter()
                     .map(|c| c.chunk_start_offset)
+                    .filter(|offset| (8..len).contains(offset))
                     .collect()
             })
             .unwrap_or_default();
@@ -1027,6 +1030,49 @@ mod tests {
                 file.damage
             );
         }
+    }
+
+    /// Found by the `mcap_drive` fuzz target: a summary whose chunk index points past
+    /// the end of the file made the scan resume there after a corrupt record and
+    /// underflow `len - pos` (a panic in debug builds). Such offsets are ignored now.
+    #[test]
+    fn a_chunk_index_past_the_end_of_the_file_is_ignored() {
+        let bytes = sample_file(true, 12);
+        let (file, _) = scan_bytes("index_past_end.mcap", &bytes);
+        assert!(file.damage.is_empty(), "{:?}", file.damage);
+        // Point every chunk index entry (chunk_start_offset follows the two 8-byte
+        // times) far past the end, and corrupt the first chunk record so that the scan
+        // looks for a place to resume.
+        let mut corrupt = bytes.clone();
+        let first_chunk = file.chunks[0].offset as usize;
+        let summary_start = file
+            .chunks
+            .last()
+            .map_or(0, |c| (c.offset + c.record_len) as usize);
+        let mut at = summary_start;
+        while at + 9 <= corrupt.len() {
+            let opcode = corrupt[at];
+            let len = u64::from_le_bytes(corrupt[at + 1..at + 9].try_into().unwrap()) as usize;
+            if opcode == op::CHUNK_INDEX {
+                let offset = at + 9 + 16;
+                corrupt[offset..offset + 8].copy_from_slice(&(u64::MAX - 4).to_le_bytes());
+            }
+            if opcode == op::FOOTER {
+                // No summary CRC: the edited summary must still be read.
+                corrupt[at + 9 + 16..at + 9 + 20].fill(0);
+                break;
+            }
+            at += 9 + len;
+        }
+        corrupt[first_chunk] = 0xee;
+        let (file, _) = scan_bytes("index_past_end.mcap", &corrupt);
+        assert!(
+            file.damage.iter().any(
+                |d| matches!(d, Damage::BadRecord { offset, .. } if *offset == first_chunk as u64)
+            ),
+            "{:?}",
+            file.damage
+        );
     }
 
     #[test]
