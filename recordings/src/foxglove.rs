@@ -66,6 +66,7 @@ fn schema<T: Encode>() -> anyhow::Result<(String, String, Vec<u8>)> {
 /// Writes the drive; returns the MCAP bytes and the ground truth.
 pub fn write(sim: &Simulation) -> anyhow::Result<GeneratedDrive> {
     let mut out = McapOut::default();
+    out.set_chunk_size(sim.options.chunk_size);
     let none = BTreeMap::new;
     let (pc_name, pc_enc, pc_data) = schema::<PointCloud>()?;
     let (ci_name, ci_enc, ci_data) = schema::<CompressedImage>()?;
@@ -315,13 +316,15 @@ pub fn write(sim: &Simulation) -> anyhow::Result<GeneratedDrive> {
         stamp = stamp.add_nanos(100_000_000);
     }
 
+    let description = format!(
+        "superflow synthetic street, {} s, {} cameras, 16-beam LiDAR",
+        sim.options.duration_secs(),
+        sim.rig.cameras.len()
+    );
     out.metadata(
         "scene-info",
         &[
-            (
-                "description",
-                "superflow synthetic street, 3 s, 6 cameras, 16-beam LiDAR",
-            ),
+            ("description", &description),
             ("name", "street_foxglove"),
             ("location", "procedural"),
             ("vehicle", "superflow-sim"),

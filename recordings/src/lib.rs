@@ -18,6 +18,7 @@
 //! # Ok::<(), anyhow::Error>(())
 //! ```
 
+pub mod damaged;
 pub mod foxglove;
 pub mod out;
 pub mod ros2;
@@ -42,6 +43,55 @@ pub const SCENE_SEED: u64 = 20_240_705;
 pub const IMAGE_SIZE: (u32, u32) = (480, 270);
 /// JPEG quality of the camera images.
 pub const JPEG_QUALITY: u8 = 80;
+
+/// What to simulate: the sample drives use [`DriveOptions::default`]; shorter, smaller
+/// drives (the source of `recordings/damaged/`) change it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DriveOptions {
+    /// Length of the drive, nanoseconds (3 s for the sample drives).
+    pub duration_nanos: i64,
+    /// The first this many cameras of the rig, in nuScenes order (6 for the sample drives).
+    pub cameras: usize,
+    /// Camera image size (480×270 for the sample drives; K scales with it).
+    pub image_size: (u32, u32),
+    /// LiDAR firings per revolution (300 for the sample drives).
+    pub lidar_columns: usize,
+    /// MCAP chunk size, bytes (512 KiB for the sample drives).
+    pub chunk_size: u64,
+}
+
+impl Default for DriveOptions {
+    /// The sample drives of `recordings/drives/`.
+    fn default() -> Self {
+        Self {
+            duration_nanos: 3_000_000_000,
+            cameras: 6,
+            image_size: IMAGE_SIZE,
+            lidar_columns: 300,
+            chunk_size: 512 * 1024,
+        }
+    }
+}
+
+impl DriveOptions {
+    /// A short, small drive: 1.5 s (3 keyframes at 0.5 s), the front and front-right
+    /// cameras at 240×136, 60 LiDAR columns, 32 KiB chunks (so that damage to one chunk
+    /// costs a small part of the file). About 0.4 MB per dialect.
+    pub fn short() -> Self {
+        Self {
+            duration_nanos: 1_500_000_000,
+            cameras: 2,
+            image_size: (240, 136),
+            lidar_columns: 60,
+            chunk_size: 32 * 1024,
+        }
+    }
+
+    /// The drive length in seconds, as the writers' descriptions spell it.
+    pub fn duration_secs(&self) -> f64 {
+        self.duration_nanos as f64 * 1e-9
+    }
+}
 
 /// The MCAP layouts the generator writes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -73,11 +123,11 @@ impl Dialect {
         format!("street_{}", self.name())
     }
 
-    /// The timing of the drive in this dialect.
+    /// The timing of the sample drive in this dialect.
     pub fn timing(self) -> DriveTiming {
         DriveTiming {
             start: Stamp::from_nanos(1_700_000_000_123_456_000),
-            duration_nanos: 3_000_000_000,
+            duration_nanos: DriveOptions::default().duration_nanos,
             sweep_nanos: 50_000_000,
             camera_period_nanos: 83_333_333,
             quantum_nanos: match self {
@@ -133,6 +183,8 @@ pub struct Simulation {
     pub frames: Vec<Vec<CameraFrame>>,
     /// Landmarks with expected pixels.
     pub landmarks: Vec<Landmark>,
+    /// What was asked for.
+    pub options: DriveOptions,
 }
 
 impl Simulation {
@@ -210,12 +262,20 @@ impl Simulation {
     }
 }
 
-/// Simulates the drive as `dialect` records it (timing resolution, lens distortion).
+/// Simulates the sample drive as `dialect` records it (timing resolution, lens distortion).
 pub fn simulate(dialect: Dialect) -> Simulation {
+    simulate_with(dialect, &DriveOptions::default())
+}
+
+/// Simulates a drive of `options` as `dialect` records it.
+pub fn simulate_with(dialect: Dialect, options: &DriveOptions) -> Simulation {
     let scene = Scene::street(SCENE_SEED);
-    let (width, height) = IMAGE_SIZE;
-    let rig = Rig::new(width, height, dialect.distortion());
-    let timing = dialect.timing();
+    let (width, height) = options.image_size;
+    let mut rig = Rig::new(width, height, dialect.distortion());
+    rig.cameras.truncate(options.cameras);
+    rig.columns = options.lidar_columns;
+    let mut timing = dialect.timing();
+    timing.duration_nanos = options.duration_nanos;
     let sweeps: Vec<Vec<Return>> = (0..timing.sweep_count())
         .into_par_iter()
         .map(|k| sim::simulate_sweep(&scene, &rig, &timing, k))
@@ -243,6 +303,7 @@ pub fn simulate(dialect: Dialect) -> Simulation {
         camera_stamps,
         frames,
         landmarks: Vec::new(),
+        options: options.clone(),
     };
     simulation.landmarks = landmarks(&simulation);
     simulation
@@ -294,7 +355,7 @@ fn observe(sim: &Simulation, camera: usize, point: &Point3<f64>) -> Option<Obser
 fn landmarks(sim: &Simulation) -> Vec<Landmark> {
     let mut chosen: Vec<(String, Point3<f64>)> = Vec::new();
     for camera in 0..sim.rig.cameras.len() {
-        let (w, h) = IMAGE_SIZE;
+        let (w, h) = sim.options.image_size;
         let mut found = 0;
         for b in sim.scene.boxes.iter().filter(|b| b.motion.is_none()) {
             if found == 2 {
@@ -348,9 +409,14 @@ pub fn encode_jpeg(image: &superflow_schemas::sensor::Image) -> anyhow::Result<V
     Ok(out)
 }
 
-/// Simulates and writes a drive in `dialect`.
+/// Simulates and writes the sample drive in `dialect`.
 pub fn generate(dialect: Dialect) -> anyhow::Result<GeneratedDrive> {
-    let simulation = simulate(dialect);
+    generate_with(dialect, &DriveOptions::default())
+}
+
+/// Simulates and writes a drive of `options` in `dialect`.
+pub fn generate_with(dialect: Dialect, options: &DriveOptions) -> anyhow::Result<GeneratedDrive> {
+    let simulation = simulate_with(dialect, options);
     match dialect {
         Dialect::Foxglove => foxglove::write(&simulation),
         Dialect::Ros2 => ros2::write(&simulation),

@@ -1,9 +1,10 @@
-//! `superflow-recordings --out DIR`: writes the sample drives and their ground truth.
+//! `superflow-recordings --out DIR`: writes the sample drives and their ground truth;
+//! `superflow-recordings --damaged DIR`: writes the damaged recordings.
 
 use anyhow::Context as _;
 use clap::Parser;
 use std::path::PathBuf;
-use superflow_recordings::{Dialect, generate};
+use superflow_recordings::{Dialect, DriveOptions, damaged, generate_with};
 
 /// Generates the sample drives of `recordings/` (deterministic: same bytes every run).
 #[derive(Debug, Parser)]
@@ -15,6 +16,16 @@ struct Args {
     /// Only this dialect (`foxglove` or `ros2`); both by default.
     #[arg(long)]
     dialect: Option<String>,
+    /// Length of the drive in seconds (the sample drives: 3).
+    #[arg(long)]
+    duration_secs: Option<f64>,
+    /// Cameras of the rig, the first N in nuScenes order (the sample drives: 6).
+    #[arg(long)]
+    cameras: Option<usize>,
+    /// Write the damaged recordings (`recordings/damaged/`, from a short drive) into this
+    /// directory instead of the sample drives.
+    #[arg(long, value_name = "DIR")]
+    damaged: Option<PathBuf>,
 }
 
 fn main() -> anyhow::Result<()> {
@@ -24,6 +35,26 @@ fn main() -> anyhow::Result<()> {
         )
         .init();
     let args = Args::parse();
+    if let Some(dir) = &args.damaged {
+        for file in damaged::write_damaged(dir)? {
+            tracing::info!(
+                file = %dir.join(&file.name).display(),
+                bytes = file.bytes.len(),
+                damage = %file.damage,
+                "wrote damaged recording"
+            );
+        }
+        return Ok(());
+    }
+    let mut options = DriveOptions::default();
+    if let Some(secs) = args.duration_secs {
+        anyhow::ensure!(secs > 0.0, "--duration-secs must be positive");
+        options.duration_nanos = (secs * 1e9).round() as i64;
+    }
+    if let Some(cameras) = args.cameras {
+        anyhow::ensure!((1..=6).contains(&cameras), "--cameras must be 1..=6");
+        options.cameras = cameras;
+    }
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
     for dialect in Dialect::ALL {
@@ -31,7 +62,7 @@ fn main() -> anyhow::Result<()> {
             continue;
         }
         let started = std::time::Instant::now();
-        let drive = generate(dialect)?;
+        let drive = generate_with(dialect, &options)?;
         let mcap_path = args.out.join(format!("{}.mcap", dialect.drive_name()));
         let truth_path = args
             .out

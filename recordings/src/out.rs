@@ -28,6 +28,8 @@ pub struct McapOut {
     channels: Vec<ChannelSpec>,
     messages: Vec<Pending>,
     metadata: Vec<mcap::records::Metadata>,
+    chunk_size: Option<u64>,
+    unsorted: bool,
 }
 
 impl McapOut {
@@ -78,6 +80,17 @@ impl McapOut {
         });
     }
 
+    /// Sets the chunk size (512 KiB unless set).
+    pub fn set_chunk_size(&mut self, bytes: u64) {
+        self.chunk_size = Some(bytes);
+    }
+
+    /// Whether [`McapOut::finish`] sorts the messages by log time (the default) or writes
+    /// them in the order queued (as converters that append blocks do).
+    pub fn set_sorted(&mut self, sorted: bool) {
+        self.unsorted = !sorted;
+    }
+
     /// Writes everything, messages sorted by log time (ties in the order queued).
     pub fn finish(
         mut self,
@@ -88,7 +101,7 @@ impl McapOut {
             .profile(profile)
             .library(format!("superflow-recordings/{}", crate::GENERATOR_VERSION))
             .compression(compression)
-            .chunk_size(Some(512 * 1024));
+            .chunk_size(Some(self.chunk_size.unwrap_or(512 * 1024)));
         let mut writer = options.create(Cursor::new(Vec::new()))?;
         let mut schema_ids: BTreeMap<(String, String), u16> = BTreeMap::new();
         let mut channel_ids = Vec::with_capacity(self.channels.len());
@@ -112,7 +125,9 @@ impl McapOut {
                 &spec.metadata,
             )?);
         }
-        self.messages.sort_by_key(|m| m.log_time);
+        if !self.unsorted {
+            self.messages.sort_by_key(|m| m.log_time);
+        }
         let mut sequences = vec![0u32; self.channels.len()];
         for m in &self.messages {
             sequences[m.channel] += 1;

@@ -106,6 +106,7 @@ const TRANSPORT_NANOS: i64 = 400_000;
 /// Writes the drive; returns the MCAP bytes and the ground truth.
 pub fn write(sim: &Simulation) -> anyhow::Result<GeneratedDrive> {
     let mut out = McapOut::default();
+    out.set_chunk_size(sim.options.chunk_size);
     let enc = ros2::MESSAGE_ENCODING;
     let start = sim.timing.start;
     let end = start.add_nanos(sim.timing.duration_nanos);

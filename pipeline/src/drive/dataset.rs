@@ -180,6 +180,8 @@ struct TopicData {
     count: u64,
     frame_id: Option<String>,
     frames: Vec<FrameRef>,
+    /// Log time of each of `frames`, until the stamps are checked against them.
+    frame_logs: Vec<u64>,
     calibrations: Vec<CameraCalibration>,
     first_log: u64,
     last_log: u64,
@@ -460,12 +462,14 @@ impl Drive {
         }
         let frozen_edges = tf.freeze_constant_edges();
         for t in topics.values_mut() {
-            let repeated = sort_frames(&mut t.frames);
-            for _ in 0..repeated {
+            drop_stamps_far_from_log_time(t, files, &mut skipped);
+            for repeated in sort_frames(&mut t.frames) {
                 skipped.add(format!("repeated stamp: {}", t.channel.topic), || {
                     format!(
-                        "{}: a message repeats the stamp of another; the first is kept",
-                        t.channel.topic
+                        "{}: {} at {}: repeats the stamp of an earlier message; the first is kept",
+                        file_name(files, repeated.file),
+                        t.channel.topic,
+                        repeated.stamp
                     )
                 });
             }
@@ -649,6 +653,10 @@ impl Drive {
             }
         }
         match (&self.ego_frame, &self.map_frame) {
+            (Some(ego), Some(_)) if self.ego_poses_missing() => problems.push(format!(
+                "no ego poses: no transform places `{ego}` in a map or odom frame (it is the \
+                 root of its transform tree; is `/tf` missing?)"
+            )),
             (Some(ego), Some(_)) => {
                 let sensors = self
                     .lidar
@@ -661,6 +669,11 @@ impl Drive {
                     }
                 }
             }
+            _ if self.tf.frames().is_empty() => problems.push(
+                "no transforms: no readable /tf or /tf_static message, so no ego pose and no \
+                 sensor extrinsics"
+                    .to_string(),
+            ),
             _ => problems.push(format!(
                 "no ego frame (tried base_link, ego, ego_vehicle, vehicle, base_footprint) in the transforms; frames: {}",
                 self.tf.frames().join(", ")
@@ -674,6 +687,17 @@ impl Drive {
                 problems: problems.join("; "),
             })
         }
+    }
+
+    /// Whether the ego frame is its own map: nothing in the transforms moves it (the
+    /// ego frame is the root of its tree, e.g. only `/tf_static` was recorded) and no
+    /// `map_frame` was configured. Every pose lookup would then answer the identity.
+    pub fn ego_poses_missing(&self) -> bool {
+        self.config.map_frame.is_none()
+            && self
+                .ego_frame
+                .as_ref()
+                .is_some_and(|ego| self.map_frame.as_ref() == Some(ego))
     }
 
     /// First and last LiDAR stamps.
@@ -690,6 +714,9 @@ impl Drive {
         else {
             return Vec::new();
         };
+        if self.ego_poses_missing() {
+            return Vec::new();
+        }
         let mut out = Vec::new();
         let mut last: Option<Stamp> = None;
         for (i, sweep) in lidar.sweeps.iter().enumerate() {
@@ -747,6 +774,7 @@ fn index_message(
             count: 0,
             frame_id: None,
             frames: Vec::new(),
+            frame_logs: Vec::new(),
             calibrations: Vec::new(),
             first_log: m.log_time,
             last_log: m.log_time,
@@ -776,6 +804,7 @@ fn index_message(
                         file,
                         loc: m.loc,
                     });
+                    topic.frame_logs.push(m.log_time);
                 }
                 Ok(_) => skipped.add(format!("zero stamp: {}", m.channel.topic), || where_(None)),
                 Err(e) => skipped.add(format!("undecodable: {}", m.channel.topic), || {
@@ -855,12 +884,74 @@ fn index_message(
     }
 }
 
-/// Sorts a topic's frames by stamp and drops repeated stamps (counted).
-fn sort_frames(frames: &mut Vec<FrameRef>) -> usize {
+/// Sorts a topic's frames by stamp and drops repeated stamps; returns the dropped ones.
+fn sort_frames(frames: &mut Vec<FrameRef>) -> Vec<FrameRef> {
     frames.sort_by_key(|f| (f.stamp, f.file, f.loc));
-    let before = frames.len();
-    frames.dedup_by_key(|f| f.stamp);
-    before - frames.len()
+    let mut repeated = Vec::new();
+    let mut kept: Vec<FrameRef> = Vec::with_capacity(frames.len());
+    for f in frames.drain(..) {
+        if kept.last().is_some_and(|k| k.stamp == f.stamp) {
+            repeated.push(f);
+        } else {
+            kept.push(f);
+        }
+    }
+    *frames = kept;
+    repeated
+}
+
+/// How far a sensor stamp may stray from its channel's usual stamp-to-log-time offset.
+/// Recorder latency, buffering and the nuScenes converter's keyframe log times stay far
+/// below it; a sensor clock that was never synchronised (seconds since boot) or a
+/// clock jump does not.
+pub const STAMP_LOG_TOLERANCE_NANOS: i64 = 10_000_000_000;
+
+fn file_name(files: &[PathBuf], file: u32) -> String {
+    files
+        .get(file as usize)
+        .map_or_else(|| "?".to_string(), |p| p.display().to_string())
+}
+
+/// Drops (and counts, as `stamp far from log time: <topic>`) the frames whose sensor
+/// stamp is more than [`STAMP_LOG_TOLERANCE_NANOS`] off the channel's median
+/// stamp-to-log-time offset. A channel whose every stamp is offset alike (a replayed bag,
+/// an unsynchronised but steady sensor clock) keeps everything.
+fn drop_stamps_far_from_log_time(t: &mut TopicData, files: &[PathBuf], skipped: &mut SkipReport) {
+    let logs = std::mem::take(&mut t.frame_logs);
+    if logs.len() != t.frames.len() || t.frames.is_empty() {
+        return;
+    }
+    let offsets: Vec<i128> = t
+        .frames
+        .iter()
+        .zip(&logs)
+        .map(|(f, log)| i128::from(f.stamp.nanos()) - i128::from(*log))
+        .collect();
+    let mut sorted = offsets.clone();
+    sorted.sort_unstable();
+    let median = sorted[sorted.len() / 2];
+    let mut keep = Vec::with_capacity(t.frames.len());
+    for ((frame, log), offset) in t.frames.iter().zip(&logs).zip(&offsets) {
+        if (offset - median).abs() <= i128::from(STAMP_LOG_TOLERANCE_NANOS) {
+            keep.push(*frame);
+            continue;
+        }
+        skipped.add(
+            format!("stamp far from log time: {}", t.channel.topic),
+            || {
+                format!(
+                    "{}: {} at {} (log time {log}): the stamp is {:.3} s off the channel's usual \
+                 stamp-to-log-time offset ({:.3} s); the message is skipped",
+                    file_name(files, frame.file),
+                    t.channel.topic,
+                    frame.stamp,
+                    (offset - median) as f64 * 1e-9,
+                    median as f64 * 1e-9,
+                )
+            },
+        );
+    }
+    t.frames = keep;
 }
 
 impl Drive {
@@ -903,7 +994,8 @@ pub enum ReadError {
 }
 
 impl Drive {
-    fn decode_error(
+    /// A [`ReadError::Decode`] naming the file, topic and stamp of `frame`.
+    pub(crate) fn decode_error(
         &self,
         frame: &FrameRef,
         topic: &str,
@@ -975,5 +1067,153 @@ impl Drive {
         let topic = message.channel.topic.clone();
         crate::decode::points::decode_message(&message, None)
             .map_err(|e| self.decode_error(frame, &topic, e))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::source::MessageLoc;
+    use nalgebra::Isometry3;
+    use superflow_schemas::sensor::StampedTransform;
+
+    fn frame(stamp: i64, index: u32) -> FrameRef {
+        FrameRef {
+            stamp: Stamp::from_nanos(stamp),
+            file: 0,
+            loc: MessageLoc::Chunk { chunk: 0, index },
+        }
+    }
+
+    fn topic(frames: &[(i64, u64)]) -> TopicData {
+        TopicData {
+            channel: ChannelInfo {
+                id: 1,
+                topic: "/lidar".into(),
+                schema: None,
+                message_encoding: "cdr".into(),
+                metadata: BTreeMap::new(),
+            },
+            kind: None,
+            count: frames.len() as u64,
+            frame_id: None,
+            frames: frames
+                .iter()
+                .enumerate()
+                .map(|(i, (s, _))| frame(*s, i as u32))
+                .collect(),
+            frame_logs: frames.iter().map(|(_, l)| *l).collect(),
+            calibrations: Vec::new(),
+            first_log: 0,
+            last_log: 0,
+        }
+    }
+
+    #[test]
+    fn repeated_stamps_are_returned_with_where_they_are() {
+        let mut frames = vec![frame(30, 0), frame(10, 1), frame(30, 2), frame(20, 3)];
+        let repeated = sort_frames(&mut frames);
+        assert_eq!(
+            frames.iter().map(|f| f.stamp.nanos()).collect::<Vec<_>>(),
+            [10, 20, 30]
+        );
+        assert_eq!(repeated, [frame(30, 2)]);
+    }
+
+    #[test]
+    fn a_stamp_far_from_its_log_time_is_skipped_and_counted() {
+        let files = [PathBuf::from("drive.mcap")];
+        let s = 1_000_000_000i64;
+        // Latency 60 ms, one message stamped by a clock since boot, one 1 s late.
+        let mut t = topic(&[
+            (1_700_000_000 * s, (1_700_000_000 * s + 60_000_000) as u64),
+            (1_234 * s, (1_700_000_000 * s + 110_000_000) as u64),
+            (
+                1_700_000_000 * s + 100_000_000,
+                (1_700_000_000 * s + 160_000_000) as u64,
+            ),
+            (
+                1_700_000_000 * s + 150_000_000,
+                (1_700_000_001 * s + 210_000_000) as u64,
+            ),
+        ]);
+        let mut skipped = SkipReport::default();
+        drop_stamps_far_from_log_time(&mut t, &files, &mut skipped);
+        assert_eq!(t.frames.len(), 3);
+        assert!(t.frames.iter().all(|f| f.stamp.nanos() > 1_234 * s));
+        let entry = &skipped.entries["stamp far from log time: /lidar"];
+        assert_eq!(entry.count, 1);
+        assert!(
+            entry.first.contains("drive.mcap: /lidar at ")
+                && entry.first.contains("off the channel's usual"),
+            "{}",
+            entry.first
+        );
+    }
+
+    #[test]
+    fn a_steady_offset_between_stamps_and_log_times_is_kept() {
+        // A replayed bag: stamps from the original drive, log times from today.
+        let files = [PathBuf::from("replay.mcap")];
+        let mut t = topic(&[
+            (1_500_000_000_000_000_000, 1_700_000_000_000_000_000),
+            (1_500_000_000_100_000_000, 1_700_000_000_100_000_000),
+        ]);
+        let mut skipped = SkipReport::default();
+        drop_stamps_far_from_log_time(&mut t, &files, &mut skipped);
+        assert_eq!(t.frames.len(), 2);
+        assert_eq!(skipped.total(), 0);
+    }
+
+    fn drive(tf: TransformTree) -> Drive {
+        let ego_frame = ["base_link"]
+            .iter()
+            .find(|f| tf.contains(f))
+            .map(|f| f.to_string());
+        let map_frame = ego_frame.as_deref().and_then(|e| tf.root_of(e).ok());
+        Drive {
+            files: Vec::new(),
+            channels: Vec::new(),
+            lidar: None,
+            cameras: Vec::new(),
+            tf,
+            frozen_edges: Vec::new(),
+            map_frame,
+            ego_frame,
+            skipped: SkipReport::default(),
+            config: IngestConfig::default(),
+        }
+    }
+
+    #[test]
+    fn extrinsics_without_ego_poses_are_not_trainable() {
+        let mut tf = TransformTree::new(0);
+        tf.insert(StampedTransform {
+            stamp: Stamp::from_nanos(1),
+            parent_frame: "base_link".into(),
+            child_frame: "lidar_top".into(),
+            parent_from_child: Isometry3::identity(),
+            is_static: true,
+        })
+        .unwrap_or_else(|e| panic!("{e}"));
+        let only_static = drive(tf);
+        assert!(only_static.ego_poses_missing());
+        let err = only_static
+            .check_sensors()
+            .err()
+            .map(|e| e.to_string())
+            .unwrap_or_default();
+        assert!(
+            err.contains("no ego poses") && err.contains("`base_link`") && err.contains("/tf"),
+            "{err}"
+        );
+
+        let none = drive(TransformTree::new(0));
+        let err = none
+            .check_sensors()
+            .err()
+            .map(|e| e.to_string())
+            .unwrap_or_default();
+        assert!(err.contains("no transforms"), "{err}");
     }
 }

@@ -408,6 +408,9 @@ pub struct Sample {
     /// Earlier sweeps the recipe asked for that the drive could not give (drive start,
     /// missing pose).
     pub dense_missing: u32,
+    /// Non-finite points dropped when decoding the dense cloud's earlier sweeps (the
+    /// keyframe's own are in its [`Frame::dropped_non_finite`]).
+    pub dense_dropped_non_finite: u64,
     /// Superpixels came from the recording's class maps (else SLIC).
     pub class_superpixels: bool,
     /// Time per stage.
@@ -566,6 +569,7 @@ impl<'d> SampleBuilder<'d> {
         let mut times = StageTimes::default();
         let mut dense_stamps = Vec::new();
         let mut dense_missing = cfg.dense_sweeps - earlier.len() as u32;
+        let mut dense_dropped_non_finite = 0;
         let key_inputs = &frames[key_frame];
         // The dense cloud: keyframe points (source 0), then earlier sweeps.
         let mut dense_cloud = key_inputs.sweep.cloud.clone();
@@ -575,6 +579,7 @@ impl<'d> SampleBuilder<'d> {
             match part {
                 Ok(sweep) => {
                     times.add(&sweep.times);
+                    dense_dropped_non_finite += sweep.dropped;
                     dense_stamps.push(sweep.cloud.stamp);
                     source_sweep.extend(std::iter::repeat_n((j + 1) as u8, sweep.cloud.len()));
                     dense_cloud.xyz.extend_from_slice(&sweep.cloud.xyz);
@@ -651,6 +656,7 @@ impl<'d> SampleBuilder<'d> {
             dense,
             dense_stamps,
             dense_missing,
+            dense_dropped_non_finite,
             class_superpixels,
             times,
         })
@@ -676,6 +682,19 @@ impl<'d> SampleBuilder<'d> {
         let t = Instant::now();
         let decoded = with_cache(|cache| drive.read_sweep(frame, cache))?;
         times.decode += elapsed(t);
+        if decoded.cloud.is_empty() {
+            // Nothing to pair, voxelize or contrast: refuse rather than train on it.
+            return Err(drive
+                .decode_error(
+                    frame,
+                    &lidar.topic,
+                    format!(
+                        "the sweep has no finite point ({} non-finite dropped)",
+                        decoded.dropped_non_finite
+                    ),
+                )
+                .into());
+        }
         let mut cloud = decoded.cloud;
         if self.config.deskew && cloud.time_offset_secs.is_some() {
             let t = Instant::now();

@@ -297,6 +297,7 @@ pub fn write_sample(
             .collect::<Vec<_>>()
     );
     dense["missing_sweeps"] = json!(sample.dense_missing);
+    dense["dropped_non_finite"] = json!(sample.dense_dropped_non_finite);
     dense["points_per_sweep"] = json!(
         (0..sample.dense_stamps.len())
             .map(|s| sample
