@@ -1,22 +1,61 @@
 #!/usr/bin/env bash
-# Soak: the pipeline streams to two trainers (shard mode, tiny presets) for a set time;
-# the resident memory (RSS) of every process and the bytes in /dev/shm are recorded
-# every interval, then a straight line is fitted to each process's RSS after the
-# warm-up. Memory is flat when no process grows by more than max(5 % of its mean,
-# 16 MiB) over the run (the fitted slope times the measured span); otherwise it exits 1.
-# Not part of `cargo test`.
+# Soak: the pipeline streams to two trainers (shard mode, tiny presets) for a set time.
+# Every process's resident memory (RSS) is read every 5 s and its peak over each
+# interval (default a minute) is recorded, with the bytes held in /dev/shm and the
+# steps trained. Training memory is a sawtooth (batches alternate ~106k / ~55k points),
+# so growth is judged on peaks: memory is flat when no process's peak in the second half
+# of the run (after the warm-up) exceeds its peak in the first half by more than
+# max(5 % of that peak, 16 MiB). A least-squares slope is printed too. Exits 1 when a
+# process grows, dies, or leaves files in /dev/shm. Not part of `cargo test`.
 #
-# Usage: tests/soak.sh [MINUTES]   (default 30)
-#   SOAK_INTERVAL_SECS=60  sampling interval
-#   SOAK_WARMUP_MINUTES=3  samples before this are not fitted (allocators and caches fill)
+# Usage: tests/soak.sh [MINUTES]            (default 30)
+#        tests/soak.sh --analyze rss.csv    (the verdict on a recorded run)
+#   SOAK_INTERVAL_SECS=60  recording interval
+#   SOAK_WARMUP_MINUTES=3  not judged before this (allocators and caches fill)
 #   SOAK_DRIVES="recordings/drives"  what the pipeline streams
 #   SOAK_OUT=runs/soak     rss.csv, summary.txt, the processes' logs and outputs
-#   SOAK_NICE=0            niceness of the processes (e.g. 19 on a shared machine)
+#   SOAK_NICE=0            niceness of the processes (e.g. 10 on a shared machine)
 set -euo pipefail
 cd "$(dirname "$0")/.."
+warmup="${SOAK_WARMUP_MINUTES:-3}"
+
+# The verdict: columns 2..5 of the CSV (minute, then one KiB column per process).
+analyze() { # CSV LEFT_IN_SHM
+    awk -F, -v warmup="$warmup" -v left="$2" '
+    NR == 1 { for (i = 2; i <= 5; i++) name[i] = $i; next }
+    $1 >= warmup { n++; x[n] = $1; for (i = 2; i <= 5; i++) y[n, i] = $i / 1024 }
+    END {
+        if (n < 4) { print "soak: fewer than 4 samples after the warm-up; run longer"; exit 1 }
+        half = int(n / 2); bad = 0
+        printf "%-12s %9s %9s %13s %13s %12s %12s  %s\n", "process", "min MiB", "max MiB",
+            "peak 1st half", "peak 2nd half", "growth MiB", "slope MiB/h", "verdict"
+        for (i = 2; i <= 5; i++) {
+            lo = hi = y[1, i]; p1 = p2 = 0; sx = sy = sxx = sxy = 0
+            for (k = 1; k <= n; k++) {
+                v = y[k, i]; if (v < lo) lo = v; if (v > hi) hi = v
+                if (k <= half) { if (v > p1) p1 = v } else { if (v > p2) p2 = v }
+                sx += x[k]; sy += v; sxx += x[k] * x[k]; sxy += x[k] * v
+            }
+            d = n * sxx - sx * sx; slope = d > 0 ? (n * sxy - sx * sy) / d : 0
+            growth = p2 - p1; limit = p1 * 0.05 > 16 ? p1 * 0.05 : 16
+            verdict = growth <= limit ? "flat" : "GROWS"; if (growth > limit) bad = 1
+            printf "%-12s %9.1f %9.1f %13.1f %13.1f %12.1f %12.1f  %s (limit %.1f)\n",
+                name[i], lo, hi, p1, p2, growth, slope * 60, verdict, limit
+        }
+        printf "judged %d samples from minute %.1f to %.1f (warm-up %s min); files left in /dev/shm: %s\n",
+            n, x[1], x[n], warmup, left
+        if (left != "" && left > 0) bad = 1
+        exit bad
+    }' "$1"
+}
+
+if [ "${1:-}" = "--analyze" ]; then
+    analyze "${2:?usage: $0 --analyze rss.csv}" ""
+    exit
+fi
+
 minutes="${1:-30}"
 interval="${SOAK_INTERVAL_SECS:-60}"
-warmup="${SOAK_WARMUP_MINUTES:-3}"
 out="${SOAK_OUT:-runs/soak}"
 read -r -a drives <<< "${SOAK_DRIVES:-recordings/drives}"
 niceness="${SOAK_NICE:-0}"
@@ -38,58 +77,49 @@ for rank in 0 1; do
         --out "$out/rank$rank" 2> "$out/rank$rank.log" &
     trainers+=($!)
 done
+# Trainers first (SIGTERM: the step in progress, a checkpoint, a clean exit), then the
+# pipeline (SIGTERM: the batch in flight, then its shared memory is released).
 stop() {
-    kill -KILL "${trainers[@]}" 2>/dev/null || true
+    kill -TERM "${trainers[@]}" 2>/dev/null || true
+    for pid in "${trainers[@]}"; do wait "$pid" 2>/dev/null || true; done
     kill -TERM "$pipeline" 2>/dev/null || true
     wait "$pipeline" 2>/dev/null || true
 }
 trap stop EXIT
 
 rss_kib() { awk '/^VmRSS:/ { print $2 }' "/proc/$1/status" 2>/dev/null || echo 0; }
-shm_kib() { du -sk --apparent-size /dev/shm/"$SUPERFLOW_IOX_PREFIX"_* 2>/dev/null | awk '{ s += $1 } END { print s + 0 }'; }
+# Pages actually held by this run's shared memory (tmpfs blocks, not the reserved size).
+shm_kib() { du -sk /dev/shm/"$SUPERFLOW_IOX_PREFIX"_* 2>/dev/null | awk '{ s += $1 } END { print s + 0 }'; }
 steps() { grep -c '}$' "$out/rank$1/metrics.jsonl" 2>/dev/null || echo 0; }
 
 echo "minute,pipeline_kib,rank0_kib,rank1_kib,shm_kib,rank0_steps,rank1_steps" > "$out/rss.csv"
-echo "soak: $minutes min, a sample every $interval s -> $out/rss.csv"
+echo "soak: $minutes min, peaks every $interval s -> $out/rss.csv"
 start=$(date +%s)
 end=$((start + minutes * 60))
+next=$start
+declare -a peak=(0 0 0 0)
 while :; do
     now=$(date +%s)
-    for pid in "$pipeline" "${trainers[@]}"; do
-        kill -0 "$pid" 2>/dev/null || { echo "process $pid died; see $out/*.log" >&2; exit 1; }
+    pids=("$pipeline" "${trainers[@]}")
+    for k in 0 1 2; do
+        kill -0 "${pids[$k]}" 2>/dev/null || { echo "process ${pids[$k]} died; see $out/*.log" >&2; exit 1; }
+        v=$(rss_kib "${pids[$k]}")
+        [ "$v" -le "${peak[$k]}" ] || peak[k]=$v
     done
-    minute=$(awk -v s=$((now - start)) 'BEGIN { printf "%.2f", s / 60 }')
-    line="$minute,$(rss_kib "$pipeline"),$(rss_kib "${trainers[0]}"),$(rss_kib "${trainers[1]}"),$(shm_kib),$(steps 0),$(steps 1)"
-    echo "$line" >> "$out/rss.csv"
-    echo "  $line"
-    [ "$now" -lt "$end" ] || break
-    sleep $((interval < end - now ? interval : end - now))
+    v=$(shm_kib)
+    [ "$v" -le "${peak[3]}" ] || peak[3]=$v
+    if [ "$now" -ge "$next" ]; then
+        minute=$(awk -v s=$((now - start)) 'BEGIN { printf "%.2f", s / 60 }')
+        line="$minute,${peak[0]},${peak[1]},${peak[2]},${peak[3]},$(steps 0),$(steps 1)"
+        echo "$line" >> "$out/rss.csv"
+        echo "  $line"
+        peak=(0 0 0 0)
+        next=$((next + interval))
+        [ "$now" -lt "$end" ] || break
+    fi
+    sleep 5
 done
 stop
 trap - EXIT
 left=$(find /dev/shm -maxdepth 1 -name "${SUPERFLOW_IOX_PREFIX}_*" ! -name '*global_mgmt' | wc -l)
-
-# Least-squares slope of each process's RSS after the warm-up.
-awk -F, -v warmup="$warmup" -v left="$left" '
-NR == 1 { for (i = 2; i <= 5; i++) name[i] = $i; next }
-$1 >= warmup {
-    n++; x = $1
-    for (i = 2; i <= 5; i++) { y = $i / 1024; sx[i] += x; sy[i] += y; sxx[i] += x * x; sxy[i] += x * y
-        if (n == 1 || y < lo[i]) lo[i] = y; if (n == 1 || y > hi[i]) hi[i] = y }
-    if (n == 1) first = x; last = x
-}
-END {
-    if (n < 3) { print "soak: fewer than 3 samples after the warm-up; run longer"; exit 1 }
-    span = last - first; bad = 0
-    printf "%-10s %10s %10s %10s %14s %14s %s\n", "process", "mean MiB", "min MiB", "max MiB", "slope MiB/h", "growth MiB", "verdict"
-    for (i = 2; i <= 5; i++) {
-        mean = sy[i] / n; d = n * sxx[i] - sx[i] * sx[i]
-        slope = d > 0 ? (n * sxy[i] - sx[i] * sy[i]) / d : 0
-        growth = slope * span; limit = mean * 0.05 > 16 ? mean * 0.05 : 16
-        verdict = growth <= limit ? "flat" : "GROWS"; if (growth > limit) bad = 1
-        printf "%-10s %10.1f %10.1f %10.1f %14.2f %14.2f %s (limit %.1f)\n", name[i], mean, lo[i], hi[i], slope * 60, growth, verdict, limit
-    }
-    printf "fitted %d samples over %.1f min after a %s min warm-up; files left in /dev/shm: %d\n", n, span, warmup, left
-    if (left > 0) bad = 1
-    exit bad
-}' "$out/rss.csv" | tee "$out/summary.txt"
+analyze "$out/rss.csv" "$left" | tee "$out/summary.txt"

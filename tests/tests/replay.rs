@@ -190,7 +190,7 @@ fn each_sample_once<'a>(
 }
 
 #[test]
-fn sharded_trainers_on_ros2_survive_a_trainer_sigkill_mid_epoch() {
+fn sharded_trainers_on_ros2_survive_a_sigkill_and_a_sigterm_mid_epoch() {
     const STEPS: u64 = 9; // 3 epochs of 3 batches of 1 per rank
     let run = Run::new("killtrainer");
     let pipe = run.pipeline(
@@ -239,8 +239,30 @@ fn sharded_trainers_on_ros2_survive_a_trainer_sigkill_mid_epoch() {
             "--resume",
         ],
     );
+    // Rank 0 is stopped with SIGTERM (a preemption, a Slurm time limit): it finishes
+    // the step in progress, checkpoints it, exits 143 and resumes where it stopped.
+    run.wait_for_step("rank0", 2);
+    send_signal(&rank0, "-TERM");
+    let (ok, _, _) = finish(rank0, LIMIT);
+    let stopped_log = run.read_log("rank0");
+    assert!(
+        !ok && stopped_log.contains("stopped by a signal; checkpoint saved"),
+        "{stopped_log}"
+    );
+    let stopped_at = run.steps_done("rank0");
+    assert!(stopped_at < STEPS, "{stopped_log}");
+    let rank0 = run.trainer(
+        "rank0",
+        STEPS,
+        &["--rank", "0", "--world-size", "2", "--resume"],
+    );
     run.succeeds(rank1, "rank1");
     run.succeeds(rank0, "rank0");
+    let resumed0 = run.read_log("rank0");
+    assert!(
+        resumed0.contains("resuming") && !resumed0.contains("will be redone"),
+        "{resumed0}"
+    );
     // With --epochs 3 the pipeline ends once both trainers have left.
     run.succeeds(pipe, "pipeline");
     let resumed_log = run.read_log("rank1");

@@ -5,6 +5,8 @@ use anyhow::Context as _;
 use clap::Parser;
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicI32, Ordering};
 use std::time::{Duration, Instant};
 use superflow_trainer::config::TrainerConfig;
 use superflow_trainer::metrics::{self, MetricsWriter, StepRecord};
@@ -146,19 +148,63 @@ fn device(backend: &str, index: usize) -> anyhow::Result<burn::tensor::Device> {
 
 /// Waits for the next batch; says when no pipeline publishes and keeps waiting for one
 /// to come back, up to `timeout`.
+/// Watches SIGTERM and SIGINT (on a thread of its own): the first sets the returned
+/// number (15 or 2) — the trainer checkpoints after the step in progress and exits
+/// with 128 + the signal — and a second one exits at once.
+fn watch_signals() -> anyhow::Result<Arc<AtomicI32>> {
+    use tokio::signal::unix::{SignalKind, signal};
+    let caught = Arc::new(AtomicI32::new(0));
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_io()
+        .build()?;
+    let (mut term, mut int) = runtime.block_on(async {
+        Ok::<_, std::io::Error>((
+            signal(SignalKind::terminate())?,
+            signal(SignalKind::interrupt())?,
+        ))
+    })?;
+    let flag = caught.clone();
+    std::thread::Builder::new()
+        .name("signals".into())
+        .spawn(move || {
+            runtime.block_on(async move {
+                loop {
+                    let n = tokio::select! {
+                        _ = term.recv() => 15,
+                        _ = int.recv() => 2,
+                    };
+                    if flag.swap(n, Ordering::SeqCst) != 0 {
+                        eprintln!("superflow-trainer: second signal, exiting without a checkpoint");
+                        std::process::exit(128 + n);
+                    }
+                    tracing::warn!(
+                        signal = n,
+                        "stopping: a checkpoint is written after the step in progress (signal again to exit at once)"
+                    );
+                }
+            });
+        })?;
+    Ok(caught)
+}
+
+/// The next batch, or `None` once a stop signal was caught.
 fn next_batch(
     subscription: &Subscription,
     run: &str,
     timeout: Duration,
-) -> anyhow::Result<Received> {
+    stop: &AtomicI32,
+) -> anyhow::Result<Option<Received>> {
     let t = Instant::now();
     let mut gone_reported = false;
     loop {
+        if stop.load(Ordering::SeqCst) != 0 {
+            return Ok(None);
+        }
         if let Some(batch) = subscription.receive(Duration::from_secs(2))? {
             if gone_reported {
                 tracing::info!(run, "a pipeline is publishing again");
             }
-            return Ok(batch);
+            return Ok(Some(batch));
         }
         let attached = subscription.pipeline_attached();
         if !attached && !gone_reported {
@@ -180,7 +226,8 @@ fn next_batch(
     }
 }
 
-fn run(args: &Args) -> anyhow::Result<()> {
+/// Trains; `Some(code)` when stopped early by a signal (after a checkpoint).
+fn run(args: &Args) -> anyhow::Result<Option<i32>> {
     if let (Some(rank), Some(world)) = (args.rank, args.world_size)
         && rank >= world
     {
@@ -189,6 +236,7 @@ fn run(args: &Args) -> anyhow::Result<()> {
     let config = args.config()?;
     let iox = superflow_schemas::service::iceoryx2_config(args.iox_prefix.as_deref())
         .map_err(|e| anyhow::anyhow!(e))?;
+    let stop = watch_signals().context("installing the SIGTERM/SIGINT handlers")?;
     let target = args.rank.map_or(Target::Broadcast, Target::Rank);
     let subscription = Subscription::open(&args.run, target, &iox, 2)
         .with_context(|| format!("subscribing to run {}", args.run))?;
@@ -277,11 +325,15 @@ fn run(args: &Args) -> anyhow::Result<()> {
     tracing::info!(run = %args.run, ?target, steps, out = %out.display(), "training");
     while trainer.step_count() < steps {
         let t = Instant::now();
-        let batch = next_batch(
+        let Some(batch) = next_batch(
             &subscription,
             &args.run,
             Duration::from_secs(args.timeout_secs),
-        )?;
+            &stop,
+        )?
+        else {
+            break;
+        };
         let position = (batch.header().epoch, batch.header().step);
         let restarted = origin.is_some_and(|o| o != batch.origin());
         // Broadcast: another trainer's resume moved the shared stream past this one.
@@ -379,16 +431,32 @@ fn run(args: &Args) -> anyhow::Result<()> {
         );
         bar.set_position(record.step);
         bar.set_message(format!("loss {:.4}", record.loss));
-        if every > 0 && record.step.is_multiple_of(every) && record.step < steps {
+        let stopping = stop.load(Ordering::SeqCst) != 0;
+        if every > 0 && record.step.is_multiple_of(every) && record.step < steps && !stopping {
             let dir = trainer.save_checkpoint(&ckpt_dir, &args.run, next, &outcome.losses)?;
             tracing::info!(checkpoint = %dir.display(), "checkpoint saved");
         }
         last = Some(outcome.losses);
+        if stopping {
+            break;
+        }
     }
     bar.finish_and_clear();
+    let signal = stop.load(Ordering::SeqCst);
     if let Some(losses) = last {
         let dir = trainer.save_checkpoint(&ckpt_dir, &args.run, next, &losses)?;
-        tracing::info!(checkpoint = %dir.display(), "final checkpoint saved");
+        if signal != 0 {
+            tracing::warn!(
+                checkpoint = %dir.display(),
+                step = trainer.step_count(),
+                "stopped by a signal; checkpoint saved: continue with --resume"
+            );
+        } else {
+            tracing::info!(checkpoint = %dir.display(), "final checkpoint saved");
+        }
+    }
+    if signal != 0 {
+        return Ok(Some(128 + signal));
     }
     if args.plot {
         let svg = out.join("losses.svg");
@@ -404,7 +472,7 @@ fn run(args: &Args) -> anyhow::Result<()> {
         metrics = %metrics_path.display(),
         "done training"
     );
-    Ok(())
+    Ok(None)
 }
 
 fn main() -> std::process::ExitCode {
@@ -417,7 +485,9 @@ fn main() -> std::process::ExitCode {
         )
         .init();
     match run(&Args::parse()) {
-        Ok(()) => std::process::ExitCode::SUCCESS,
+        Ok(None) => std::process::ExitCode::SUCCESS,
+        // Stopped by a signal after checkpointing: not done, so not success.
+        Ok(Some(code)) => std::process::ExitCode::from(code as u8),
         Err(err) => {
             eprintln!("superflow-trainer: {err:#}");
             std::process::ExitCode::from(1)
