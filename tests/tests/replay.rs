@@ -22,6 +22,17 @@ const FOXGLOVE: &str = "recordings/drives/street_foxglove.mcap";
 /// Keyframes of one sample drive (0.5 s apart over 3 s).
 const KEYFRAMES: u64 = 6;
 const LIMIT: Duration = Duration::from_secs(600);
+/// The pipeline's flags for 2 ranks, batches of 1, 3 epochs.
+const SHARDS_OF_1_FOR_3_EPOCHS: [&str; 8] = [
+    "--world-size",
+    "2",
+    "--batch-size",
+    "1",
+    "--epochs",
+    "3",
+    "--subscribers",
+    "1",
+];
 
 /// One test's run: its name, iceoryx2 prefix and scratch directory (logs, outputs).
 struct Run {
@@ -193,52 +204,24 @@ fn each_sample_once<'a>(
 fn sharded_trainers_on_ros2_survive_a_sigkill_and_a_sigterm_mid_epoch() {
     const STEPS: u64 = 9; // 3 epochs of 3 batches of 1 per rank
     let run = Run::new("killtrainer");
-    let pipe = run.pipeline(
-        "pipeline",
-        &[ROS2],
-        &[
-            "--world-size",
-            "2",
-            "--batch-size",
-            "1",
-            "--epochs",
-            "3",
-            "--subscribers",
-            "1",
-        ],
-    );
+    let pipe = run.pipeline("pipeline", &[ROS2], &SHARDS_OF_1_FOR_3_EPOCHS);
     let rank0 = run.trainer("rank0", STEPS, &["--rank", "0", "--world-size", "2"]);
-    let rank1 = run.trainer(
-        "rank1",
-        STEPS,
-        &[
-            "--rank",
-            "1",
-            "--world-size",
-            "2",
-            "--checkpoint-every",
-            "4",
-        ],
-    );
+    let rank1_args = [
+        "--rank",
+        "1",
+        "--world-size",
+        "2",
+        "--checkpoint-every",
+        "4",
+    ];
+    let rank1 = run.trainer("rank1", STEPS, &rank1_args);
     // Step 5 is batch 1 of epoch 1; the last checkpoint is step 4's.
     run.wait_for_step("rank1", 5);
     send_signal(&rank1, "-KILL");
     drop(rank1);
     let killed_log = run.read_log("rank1");
     assert!(killed_log.contains("checkpoint saved"), "{killed_log}");
-    let rank1 = run.trainer(
-        "rank1",
-        STEPS,
-        &[
-            "--rank",
-            "1",
-            "--world-size",
-            "2",
-            "--checkpoint-every",
-            "4",
-            "--resume",
-        ],
-    );
+    let rank1 = run.trainer("rank1", STEPS, &[&rank1_args[..], &["--resume"]].concat());
     // Rank 0 is stopped with SIGTERM (a preemption, a Slurm time limit): it finishes
     // the step in progress, checkpoints it, exits 143 and resumes where it stopped.
     run.wait_for_step("rank0", 2);
@@ -288,16 +271,7 @@ fn sharded_trainers_on_ros2_survive_a_sigkill_and_a_sigterm_mid_epoch() {
 fn sharded_trainers_on_foxglove_wait_for_a_restarted_pipeline() {
     const STEPS: u64 = 9;
     let run = Run::new("killpipeline");
-    let args = [
-        "--world-size",
-        "2",
-        "--batch-size",
-        "1",
-        "--epochs",
-        "3",
-        "--subscribers",
-        "1",
-    ];
+    let args = SHARDS_OF_1_FOR_3_EPOCHS;
     let pipe = run.pipeline("pipeline", &[FOXGLOVE], &args);
     let rank0 = run.trainer("rank0", STEPS, &["--rank", "0", "--world-size", "2"]);
     let rank1 = run.trainer("rank1", STEPS, &["--rank", "1", "--world-size", "2"]);
