@@ -336,7 +336,10 @@ impl McapFile {
             damage: Vec::new(),
             message_counts: BTreeMap::new(),
         };
-        let summary = this.read_summary();
+        let (summary, summary_damage) = match this.check_summary_framing() {
+            Ok(()) => (this.read_summary(), None),
+            Err(reason) => (None, Some(reason)),
+        };
         // Chunk offsets from the summary's index: where to resume after a corrupt record.
         // Only offsets inside the file (a corrupt index pointing past its end made the
         // scan compute `len - pos` with `pos > len`: found by the fuzz target).
@@ -523,10 +526,62 @@ impl McapFile {
                 }
             }
             None => this.damage.push(Damage::NoSummary {
-                reason: "the summary section is missing or unreadable".into(),
+                reason: summary_damage
+                    .unwrap_or_else(|| "the summary section is missing or unreadable".into()),
             }),
         }
         Ok(this)
+    }
+
+    /// Checks the framing of the summary section (from the footer's summary start to the
+    /// footer) before mcap's `SummaryReader` reads it: every record within the section and
+    /// none of a kind that belongs in the data section (a chunk there made mcap overflow a
+    /// subtraction: found by the fuzz target). Without a footer or summary there is nothing
+    /// to check; the error names the byte offset of the offending record.
+    fn check_summary_framing(&self) -> Result<(), String> {
+        // Footer: opcode, length, summary start, summary offset start, CRC; then the magic.
+        let footer_len = 9 + 20 + 8;
+        let Some(footer_start) = self.len.checked_sub(footer_len).filter(|&f| f >= 8) else {
+            return Ok(());
+        };
+        let Ok(footer) = self.read_exact_at(footer_start, footer_len) else {
+            return Ok(());
+        };
+        let mut start = [0u8; 8];
+        start.copy_from_slice(&footer[9..17]);
+        let summary_start = u64::from_le_bytes(start);
+        if footer[0] != op::FOOTER || summary_start == 0 {
+            return Ok(());
+        }
+        if !(8..=footer_start).contains(&summary_start)
+            || footer_start - summary_start > MAX_RECORD_BYTES
+        {
+            return Err(format!(
+                "the footer's summary start, byte {summary_start}, is outside the file's data"
+            ));
+        }
+        let section = self
+            .read_exact_at(summary_start, footer_start - summary_start)
+            .map_err(|e| e.to_string())?;
+        check_framing(&section, |_, opcode| match opcode {
+            op::HEADER
+            | op::FOOTER
+            | op::MESSAGE
+            | op::CHUNK
+            | op::MESSAGE_INDEX
+            | op::ATTACHMENT
+            | op::METADATA
+            | op::DATA_END => Err(format!(
+                "a record with opcode {opcode:#04x}, which does not belong there"
+            )),
+            _ => Ok(()),
+        })
+        .map_err(|(at, reason)| {
+            format!(
+                "malformed summary section at byte {}: {reason}",
+                summary_start + at as u64
+            )
+        })
     }
 
     fn read_summary(&self) -> Option<mcap::Summary> {
@@ -739,6 +794,39 @@ fn record_len(head: &[u8; 9]) -> u64 {
 
 type SchemaRecord = (u16, String, String, Vec<u8>);
 
+/// Checks that `records` is a run of whole records (opcode, length, body), none running
+/// past its end, and passes each record's offset and opcode to `each`; an error carries
+/// the offset of the offending record. mcap's readers subtract each record's length from
+/// what remains unchecked (an overflow panic in debug builds, found by the fuzz target
+/// `mcap_drive`), so bytes are framed here before mcap reads them.
+fn check_framing(
+    records: &[u8],
+    mut each: impl FnMut(usize, u8) -> Result<(), String>,
+) -> Result<(), (usize, String)> {
+    let mut at = 0usize;
+    while let Some(rest) = records.get(at..).filter(|r| !r.is_empty()) {
+        let Some(&[opcode, l0, l1, l2, l3, l4, l5, l6, l7]) = rest.get(..9) else {
+            return Err((
+                at,
+                format!("{} stray bytes after the last record", rest.len()),
+            ));
+        };
+        let len = u64::from_le_bytes([l0, l1, l2, l3, l4, l5, l6, l7]);
+        if len > (rest.len() - 9) as u64 {
+            return Err((
+                at,
+                format!(
+                    "record of {len} bytes runs past the end ({} bytes left)",
+                    rest.len() - 9
+                ),
+            ));
+        }
+        each(at, opcode).map_err(|reason| (at, reason))?;
+        at += 9 + len as usize;
+    }
+    Ok(())
+}
+
 /// Decompresses a chunk and splits it into records; the whole chunk is rejected if
 /// anything in it fails (CRC, decompression, a record), so corrupt bytes never reach a
 /// decoder. `header` and `records` are the parsed chunk record, `body` its whole body
@@ -763,23 +851,12 @@ fn decode_chunk(
         ));
     }
     if header.compression.is_empty() {
-        let mut at = 0usize;
-        while let Some(rest) = records.get(at..).filter(|r| !r.is_empty()) {
-            let Some(&[_, l0, l1, l2, l3, l4, l5, l6, l7]) = rest.get(..9) else {
-                return Err(format!(
-                    "{} stray bytes after the last record of the chunk",
-                    rest.len()
-                ));
-            };
-            let len = u64::from_le_bytes([l0, l1, l2, l3, l4, l5, l6, l7]);
-            if len > (rest.len() - 9) as u64 {
-                return Err(format!(
-                    "record of {len} bytes at byte {at} of the chunk's {} bytes of records runs past its end",
-                    records.len()
-                ));
-            }
-            at += 9 + len as usize;
-        }
+        check_framing(records, |_, _| Ok(())).map_err(|(at, reason)| {
+            format!(
+                "{reason} at byte {at} of the chunk's {} bytes of records",
+                records.len()
+            )
+        })?;
     }
     // The limit also bounds the chunk's own header and padding: at least the body length.
     let limit = header
@@ -1073,6 +1150,54 @@ mod tests {
             "{:?}",
             file.damage
         );
+    }
+
+    /// Found by the `mcap_drive` fuzz target: an uncompressed chunk in the summary
+    /// section, holding a record longer than the chunk, made mcap's `SummaryReader`
+    /// overflow a subtraction (a panic in debug builds). A summary with a record of a
+    /// kind that does not belong there, or one running past the section, is now no
+    /// usable summary (named with its byte offset) and the file is scanned linearly.
+    #[test]
+    fn a_malformed_summary_section_is_no_summary() {
+        let bytes = sample_file(false, 6);
+        let footer_start = bytes.len() - 37;
+        assert_eq!(bytes[footer_start], op::FOOTER);
+        let summary_start = u64::from_le_bytes(
+            bytes[footer_start + 9..footer_start + 17]
+                .try_into()
+                .unwrap(),
+        );
+        // A chunk whose one record claims 100 bytes where 5 remain (padding after it:
+        // mcap would read on into it).
+        let mut overlong = vec![op::MESSAGE];
+        overlong.extend_from_slice(&100u64.to_le_bytes());
+        overlong.extend_from_slice(b"short");
+        let chunk = padded_chunk_record("", overlong.len() as u64, &overlong, 128);
+        // A schema record running past the summary section into the footer.
+        let mut schema = vec![op::SCHEMA];
+        schema.extend_from_slice(&1000u64.to_le_bytes());
+        schema.extend_from_slice(b"short");
+        for (summary, what) in [(chunk, "opcode 0x06"), (schema, "runs past the end")] {
+            let mut corrupt = bytes[..summary_start as usize].to_vec();
+            corrupt.extend_from_slice(&summary);
+            corrupt.push(op::FOOTER);
+            corrupt.extend_from_slice(&20u64.to_le_bytes());
+            corrupt.extend_from_slice(&summary_start.to_le_bytes());
+            corrupt.extend_from_slice(&0u64.to_le_bytes()); // no summary offsets
+            corrupt.extend_from_slice(&0u32.to_le_bytes()); // no summary CRC
+            corrupt.extend_from_slice(MAGIC);
+            let (file, seen) = scan_bytes("malformed_summary.mcap", &corrupt);
+            assert_eq!(seen.len(), 6, "{:?}", file.damage);
+            assert!(
+                file.damage.iter().any(|d| matches!(
+                    d,
+                    Damage::NoSummary { reason }
+                        if reason.contains(&format!("byte {summary_start}")) && reason.contains(what)
+                )),
+                "{:?}",
+                file.damage
+            );
+        }
     }
 
     #[test]
