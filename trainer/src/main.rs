@@ -146,8 +146,6 @@ fn device(backend: &str, index: usize) -> anyhow::Result<burn::tensor::Device> {
     }
 }
 
-/// Waits for the next batch; says when no pipeline publishes and keeps waiting for one
-/// to come back, up to `timeout`.
 /// Watches SIGTERM and SIGINT (on a thread of its own): the first sets the returned
 /// number (15 or 2) — the trainer checkpoints after the step in progress and exits
 /// with 128 + the signal — and a second one exits at once.
@@ -187,7 +185,8 @@ fn watch_signals() -> anyhow::Result<Arc<AtomicI32>> {
     Ok(caught)
 }
 
-/// The next batch, or `None` once a stop signal was caught.
+/// Waits for the next batch; says when no pipeline publishes and keeps waiting for one
+/// to come back, up to `timeout`. `None` once a stop signal was caught.
 fn next_batch(
     subscription: &Subscription,
     run: &str,
@@ -318,8 +317,7 @@ fn run(args: &Args) -> anyhow::Result<Option<i32>> {
     let mut last = None;
     // The stream position of the next batch to train on, once known, and the pipeline
     // (publisher) that sends it.
-    let mut next: (u64, u64) = resumed_at.unwrap_or((0, 0));
-    let mut expecting = resumed_at.is_some();
+    let mut expected: Option<(u64, u64)> = resumed_at;
     let mut origin: Option<u128> = None;
     let mut skipped = 0u64;
     tracing::info!(run = %args.run, ?target, steps, out = %out.display(), "training");
@@ -337,8 +335,11 @@ fn run(args: &Args) -> anyhow::Result<Option<i32>> {
         let position = (batch.header().epoch, batch.header().step);
         let restarted = origin.is_some_and(|o| o != batch.origin());
         // Broadcast: another trainer's resume moved the shared stream past this one.
-        let gap = position.0 == next.0 && position.1 > next.1;
-        if expecting && position != next && (restarted || gap) {
+        let gap = |next: (u64, u64)| position.0 == next.0 && position.1 > next.1;
+        if let Some(next) = expected
+            && position != next
+            && (restarted || gap(next))
+        {
             // A new pipeline (the old one died and was restarted) began elsewhere, or
             // the stream jumped ahead: ask it to continue where this trainer is.
             tracing::warn!(
@@ -365,7 +366,7 @@ fn run(args: &Args) -> anyhow::Result<Option<i32>> {
             origin = Some(reply.publisher());
             continue;
         }
-        if expecting && position < next {
+        if expected.is_some_and(|next| position < next) {
             // Broadcast: another subscriber rewound the shared stream (its resume).
             skipped += 1;
             tracing::warn!(
@@ -377,7 +378,6 @@ fn run(args: &Args) -> anyhow::Result<Option<i32>> {
             continue;
         }
         origin = Some(batch.origin());
-        expecting = true;
         let wait = t.elapsed().as_secs_f64();
         let view = batch.view().context("invalid batch")?;
         let meta = view.meta().clone();
@@ -393,7 +393,8 @@ fn run(args: &Args) -> anyhow::Result<Option<i32>> {
         drop(batch);
         waiting += wait;
         computing += outcome.seconds;
-        next = (meta.epoch, meta.step + 1);
+        let next = (meta.epoch, meta.step + 1);
+        expected = Some(next);
         let record = StepRecord {
             step: trainer.step_count(),
             epoch: meta.epoch,
@@ -443,7 +444,7 @@ fn run(args: &Args) -> anyhow::Result<Option<i32>> {
     }
     bar.finish_and_clear();
     let signal = stop.load(Ordering::SeqCst);
-    if let Some(losses) = last {
+    if let (Some(losses), Some(next)) = (last, expected) {
         let dir = trainer.save_checkpoint(&ckpt_dir, &args.run, next, &losses)?;
         if signal != 0 {
             tracing::warn!(

@@ -946,6 +946,20 @@ mod tests {
     /// Topic, log time, payload and location of a scanned message.
     type Seen = (String, u64, Vec<u8>, MessageLoc);
 
+    /// Scans a file whose only chunk (right after the magic) is damaged: no message
+    /// comes out and the chunk is reported bad at byte 8.
+    fn scan_rejects_the_chunk(name: &str, bytes: &[u8]) {
+        let (file, seen) = scan_bytes(name, bytes);
+        assert!(seen.is_empty());
+        assert!(
+            file.damage
+                .iter()
+                .any(|d| matches!(d, Damage::BadChunk { offset: 8, .. })),
+            "{:?}",
+            file.damage
+        );
+    }
+
     fn scan_bytes(name: &str, bytes: &[u8]) -> (McapFile, Vec<Seen>) {
         let dir = std::env::temp_dir().join(format!("superflow-source-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
@@ -1045,15 +1059,7 @@ mod tests {
                 uncompressed_size,
                 &zstd_stored(&content),
             ));
-            let (file, seen) = scan_bytes("huge_record_in_chunk.mcap", &bytes);
-            assert!(seen.is_empty());
-            assert!(
-                file.damage
-                    .iter()
-                    .any(|d| matches!(d, Damage::BadChunk { offset: 8, .. })),
-                "{:?}",
-                file.damage
-            );
+            scan_rejects_the_chunk("huge_record_in_chunk.mcap", &bytes);
         }
         // The same chunk holding a well-formed record (a schema) still reads.
         let schema = b"\x01\x00\x01\x00\x00\x00s\x03\x00\x00\x00raw\x00\x00\x00\x00";
@@ -1097,15 +1103,7 @@ mod tests {
             // Padding after the records, as a writer may leave: the overlong record
             // would reach into it.
             bytes.extend(padded_chunk_record("", chunk.len() as u64, &chunk, 128));
-            let (file, seen) = scan_bytes("record_past_chunk.mcap", &bytes);
-            assert!(seen.is_empty());
-            assert!(
-                file.damage
-                    .iter()
-                    .any(|d| matches!(d, Damage::BadChunk { offset: 8, .. })),
-                "{:?}",
-                file.damage
-            );
+            scan_rejects_the_chunk("record_past_chunk.mcap", &bytes);
         }
     }
 
