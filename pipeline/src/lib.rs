@@ -31,6 +31,7 @@ pub mod config;
 pub mod decode;
 pub mod drive;
 pub mod inspect;
+pub mod invalid;
 pub mod publish;
 pub mod sample;
 pub mod source;
