@@ -161,12 +161,16 @@ mod tests {
             PipelineConfig::load(&path).expect("example parses"),
             PipelineConfig::default()
         );
-        let err = toml::from_str::<PipelineConfig>(
-            "[service]
-batch_sise = 8
-",
-        )
-        .expect_err("typo");
+        // Every setting is in the file (those without a default commented out).
+        let text = std::fs::read_to_string(&path).unwrap();
+        let file: toml::Table = toml::from_str(&text).unwrap();
+        let defaults = toml::Table::try_from(PipelineConfig::default()).unwrap();
+        assert_eq!(keys(&file, ""), keys(&defaults, ""));
+        for optional in ["lidar_topic", "map_frame", "ego_frame"] {
+            assert!(text.contains(&format!("\n# {optional} = ")), "{optional}");
+        }
+        let err =
+            toml::from_str::<PipelineConfig>("[service]\nbatch_sise = 8\n").expect_err("typo");
         assert!(err.to_string().contains("batch_sise"), "{err}");
         let mut bad = PipelineConfig::default();
         bad.service.host_rank = 1;

@@ -112,7 +112,7 @@ impl ServiceConfig {
     }
 
     /// Streams of this host: 1 in broadcast mode, `world_size` in shard mode.
-    pub(crate) fn streams(&self) -> u32 {
+    pub(super) fn streams(&self) -> u32 {
         match self.mode {
             Mode::Broadcast => 1,
             Mode::Shard => self.world_size,

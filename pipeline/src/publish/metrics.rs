@@ -156,7 +156,7 @@ impl Metrics {
 }
 
 /// Logs the main counters (every 10 s while serving, and once at the end).
-pub(crate) fn log_counters(metrics: &Metrics) {
+pub(super) fn log_counters(metrics: &Metrics) {
     tracing::info!(
         batches = metrics.batches.load(Ordering::Relaxed),
         samples = metrics.samples.load(Ordering::Relaxed),
