@@ -280,13 +280,9 @@ fn serve(args: &Args) -> anyhow::Result<()> {
     if let Some(n) = args.subscribers {
         config.service.min_subscribers = n;
     }
-    config
-        .service
-        .validate()
-        .map_err(|e| anyhow::anyhow!("{e}"))?;
+    config.service.validate()?;
     superflow_schemas::service::batches_service(&args.run)?;
-    let iox = superflow_schemas::service::iceoryx2_config(args.iox_prefix.as_deref())
-        .map_err(|e| anyhow::anyhow!(e))?;
+    let iox = superflow_schemas::service::iceoryx2_config(args.iox_prefix.as_deref())?;
     let dataset = open(args)?;
     dataset
         .check_sensors()

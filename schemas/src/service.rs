@@ -75,15 +75,75 @@ pub type BatchService = iceoryx2::service::port_factory::publish_subscribe::Port
     crate::batch::BatchHeader,
 >;
 
+/// A service that cannot be set up: a bad name or prefix, or iceoryx2 refusing to open
+/// or create it (e.g. another process opened it with incompatible settings).
+#[derive(Debug, thiserror::Error)]
+pub enum ServiceSetupError {
+    /// The run name is not valid.
+    #[error(transparent)]
+    Run(#[from] BatchError),
+    /// iceoryx2 does not accept the service name.
+    #[error("service name `{name}`: {source}")]
+    Name {
+        /// The name.
+        name: String,
+        /// iceoryx2's reason.
+        source: iceoryx2::service::service_name::ServiceNameError,
+    },
+    /// Opening or creating a batch service failed.
+    #[error("opening service `{name}`: {source}")]
+    Batch {
+        /// The service.
+        name: String,
+        /// iceoryx2's reason.
+        source: iceoryx2::service::builder::publish_subscribe::PublishSubscribeOpenOrCreateError,
+    },
+    /// Opening or creating a ready event service failed.
+    #[error("opening service `{name}`: {source}")]
+    Ready {
+        /// The service.
+        name: String,
+        /// iceoryx2's reason.
+        source: iceoryx2::service::builder::event::EventOpenOrCreateError,
+    },
+    /// Opening or creating the control service failed.
+    #[error("opening service `{name}`: {source}")]
+    Control {
+        /// The service.
+        name: String,
+        /// iceoryx2's reason.
+        source: iceoryx2::service::builder::request_response::RequestResponseOpenOrCreateError,
+    },
+    /// The iceoryx2 prefix breaks the rule.
+    #[error("iceoryx2 prefix `{prefix}` must be 1..=32 of A-Z a-z 0-9 _ -")]
+    Prefix {
+        /// The prefix.
+        prefix: String,
+    },
+    /// iceoryx2 does not accept the prefix as a file name.
+    #[error("iceoryx2 prefix `{prefix}`: {source}")]
+    PrefixFile {
+        /// The prefix.
+        prefix: String,
+        /// iceoryx2's reason.
+        source: iceoryx2::prelude::SemanticStringError,
+    },
+}
+
+/// `name` as an iceoryx2 service name.
+fn service_name(name: &str) -> Result<iceoryx2::prelude::ServiceName, ServiceSetupError> {
+    name.try_into().map_err(|source| ServiceSetupError::Name {
+        name: name.to_string(),
+        source,
+    })
+}
+
 /// Opens (or creates) the batch service `name` with the [`qos`] settings.
 pub fn open_batch_service(
     node: &iceoryx2::prelude::Node<iceoryx2::prelude::ipc::Service>,
     name: &str,
-) -> Result<BatchService, String> {
-    let service_name: iceoryx2::prelude::ServiceName = name
-        .try_into()
-        .map_err(|e| format!("service name `{name}`: {e:?}"))?;
-    node.service_builder(&service_name)
+) -> Result<BatchService, ServiceSetupError> {
+    node.service_builder(&service_name(name)?)
         .publish_subscribe::<[u8]>()
         .user_header::<crate::batch::BatchHeader>()
         .enable_safe_overflow(false)
@@ -94,7 +154,10 @@ pub fn open_batch_service(
         .max_publishers(qos::MAX_PUBLISHERS)
         .max_nodes(qos::MAX_NODES)
         .open_or_create()
-        .map_err(|e| format!("opening service `{name}`: {e:?}"))
+        .map_err(|source| ServiceSetupError::Batch {
+            name: name.to_string(),
+            source,
+        })
 }
 
 /// The event service that wakes subscribers of `batch_service`.
@@ -105,19 +168,15 @@ pub type ReadyService =
 pub fn open_ready_service(
     node: &iceoryx2::prelude::Node<iceoryx2::prelude::ipc::Service>,
     batch_service: &str,
-) -> Result<ReadyService, String> {
+) -> Result<ReadyService, ServiceSetupError> {
     let name = ready_event_service(batch_service);
-    let service_name: iceoryx2::prelude::ServiceName = name
-        .as_str()
-        .try_into()
-        .map_err(|e| format!("service name `{name}`: {e:?}"))?;
-    node.service_builder(&service_name)
+    node.service_builder(&service_name(&name)?)
         .event()
         .max_nodes(qos::MAX_NODES)
         .max_listeners(qos::MAX_SUBSCRIBERS)
         .max_notifiers(qos::MAX_PUBLISHERS)
         .open_or_create()
-        .map_err(|e| format!("opening service `{name}`: {e:?}"))
+        .map_err(|source| ServiceSetupError::Ready { name, source })
 }
 
 /// The control service type (request-response).
@@ -133,25 +192,23 @@ pub type ControlService = iceoryx2::service::port_factory::request_response::Por
 pub fn open_control_service(
     node: &iceoryx2::prelude::Node<iceoryx2::prelude::ipc::Service>,
     run: &str,
-) -> Result<ControlService, String> {
-    let name = control_service(run).map_err(|e| e.to_string())?;
-    let service_name: iceoryx2::prelude::ServiceName = name
-        .as_str()
-        .try_into()
-        .map_err(|e| format!("service name `{name}`: {e:?}"))?;
-    node.service_builder(&service_name)
+) -> Result<ControlService, ServiceSetupError> {
+    let name = control_service(run)?;
+    node.service_builder(&service_name(&name)?)
         .request_response::<ResumeRequest, ResumeReply>()
         .max_clients(qos::MAX_SUBSCRIBERS * 4)
         .max_servers(qos::MAX_PUBLISHERS)
         .max_nodes(qos::MAX_NODES * 2)
         .open_or_create()
-        .map_err(|e| format!("opening service `{name}`: {e:?}"))
+        .map_err(|source| ServiceSetupError::Control { name, source })
 }
 
 /// The iceoryx2 configuration of superflow processes. `prefix` (from
 /// `SUPERFLOW_IOX_PREFIX` in the binaries) isolates one deployment's shared-memory
 /// files and service names from another's on the same host (each test uses its own).
-pub fn iceoryx2_config(prefix: Option<&str>) -> Result<iceoryx2::config::Config, String> {
+pub fn iceoryx2_config(
+    prefix: Option<&str>,
+) -> Result<iceoryx2::config::Config, ServiceSetupError> {
     let mut config = iceoryx2::config::Config::default();
     if let Some(prefix) = prefix {
         let valid = !prefix.is_empty()
@@ -160,13 +217,16 @@ pub fn iceoryx2_config(prefix: Option<&str>) -> Result<iceoryx2::config::Config,
                 .bytes()
                 .all(|b| b.is_ascii_alphanumeric() || b == b'_' || b == b'-');
         if !valid {
-            return Err(format!(
-                "iceoryx2 prefix `{prefix}` must be 1..=32 of A-Z a-z 0-9 _ -"
-            ));
+            return Err(ServiceSetupError::Prefix {
+                prefix: prefix.to_string(),
+            });
         }
         use iceoryx2::prelude::SemanticString as _;
         config.global.prefix = iceoryx2::prelude::FileName::new(format!("{prefix}_").as_bytes())
-            .map_err(|e| format!("iceoryx2 prefix `{prefix}`: {e:?}"))?;
+            .map_err(|source| ServiceSetupError::PrefixFile {
+                prefix: prefix.to_string(),
+                source,
+            })?;
     }
     Ok(config)
 }
@@ -211,5 +271,15 @@ mod tests {
             "superflow/exp1/rank/3/ready"
         );
         assert!(batches_service("a/b").is_err());
+    }
+
+    #[test]
+    fn a_bad_prefix_is_named() {
+        assert!(iceoryx2_config(Some("ok_prefix-1")).is_ok());
+        for bad in ["", "a/b", &"x".repeat(33)] {
+            let err = iceoryx2_config(Some(bad)).unwrap_err();
+            assert!(matches!(err, ServiceSetupError::Prefix { .. }), "{err}");
+            assert!(err.to_string().contains("must be 1..=32"), "{err}");
+        }
     }
 }

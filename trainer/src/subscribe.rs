@@ -7,7 +7,7 @@ use iceoryx2::prelude::*;
 use iceoryx2::sample::Sample;
 use std::time::{Duration, Instant};
 use superflow_schemas::batch::{BatchError, BatchHeader, BatchView};
-use superflow_schemas::service::{self as names, ResumeReply, ResumeRequest};
+use superflow_schemas::service::{self as names, ResumeReply, ResumeRequest, ServiceSetupError};
 
 /// Which stream to read.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -21,9 +21,17 @@ pub enum Target {
 /// A subscription failure.
 #[derive(Debug, thiserror::Error)]
 pub enum SubscribeError {
-    /// iceoryx2 refused something.
-    #[error("{0}")]
-    Ipc(String),
+    /// iceoryx2 refused something (the node, a port, a receive, a request).
+    #[error("{what}: {source}")]
+    Ipc {
+        /// What was being done.
+        what: String,
+        /// iceoryx2's error.
+        source: Box<dyn std::error::Error + Send + Sync>,
+    },
+    /// A service could not be opened or created (name, or iceoryx2 refused).
+    #[error(transparent)]
+    Setup(#[from] ServiceSetupError),
     /// The run name is not valid.
     #[error(transparent)]
     Name(#[from] BatchError),
@@ -35,6 +43,19 @@ pub enum SubscribeError {
         /// How long we waited.
         waited: Duration,
     },
+}
+
+impl SubscribeError {
+    /// Wraps an iceoryx2 error with what was being done.
+    fn ipc<E: std::error::Error + Send + Sync + 'static>(
+        what: impl Into<String>,
+    ) -> impl FnOnce(E) -> Self {
+        let what = what.into();
+        move |source| Self::Ipc {
+            what,
+            source: Box::new(source),
+        }
+    }
 }
 
 /// One received batch: header and payload stay in shared memory while this lives.
@@ -105,18 +126,18 @@ impl Subscription {
         let node = NodeBuilder::new()
             .config(iox)
             .create::<ipc::Service>()
-            .map_err(|e| SubscribeError::Ipc(format!("creating the iceoryx2 node: {e:?}")))?;
-        let service = names::open_batch_service(&node, &name).map_err(SubscribeError::Ipc)?;
-        let ready = names::open_ready_service(&node, &name).map_err(SubscribeError::Ipc)?;
+            .map_err(SubscribeError::ipc("creating the iceoryx2 node"))?;
+        let service = names::open_batch_service(&node, &name)?;
+        let ready = names::open_ready_service(&node, &name)?;
         let listener = ready
             .listener_builder()
             .create()
-            .map_err(|e| SubscribeError::Ipc(format!("{name}: listener: {e:?}")))?;
+            .map_err(SubscribeError::ipc(format!("{name}: listener")))?;
         let subscriber = service
             .subscriber_builder()
             .buffer_size(buffer.clamp(1, names::qos::MAX_BUFFER))
             .create()
-            .map_err(|e| SubscribeError::Ipc(format!("{name}: subscriber: {e:?}")))?;
+            .map_err(SubscribeError::ipc(format!("{name}: subscriber")))?;
         Ok(Self {
             run: run.to_string(),
             target,
@@ -147,7 +168,7 @@ impl Subscription {
             match self.subscriber.receive() {
                 Ok(Some(sample)) => return Ok(Some(Received { sample })),
                 Ok(None) => {}
-                Err(e) => return Err(SubscribeError::Ipc(format!("receive: {e:?}"))),
+                Err(e) => return Err(SubscribeError::ipc("receive")(e)),
             }
             let now = Instant::now();
             if now >= deadline {
@@ -157,7 +178,7 @@ impl Subscription {
             let slice = (deadline - now).min(Duration::from_millis(100));
             self.listener
                 .timed_wait(|_| {}, slice)
-                .map_err(|e| SubscribeError::Ipc(format!("waiting for the ready event: {e:?}")))?;
+                .map_err(SubscribeError::ipc("waiting for the ready event"))?;
         }
     }
 
@@ -172,12 +193,11 @@ impl Subscription {
         step: u64,
         timeout: Duration,
     ) -> Result<ResumeReply, SubscribeError> {
-        let control =
-            names::open_control_service(&self.node, &self.run).map_err(SubscribeError::Ipc)?;
+        let control = names::open_control_service(&self.node, &self.run)?;
         let client = control
             .client_builder()
             .create()
-            .map_err(|e| SubscribeError::Ipc(format!("control client: {e:?}")))?;
+            .map_err(SubscribeError::ipc("control client"))?;
         let request = ResumeRequest {
             rank: match self.target {
                 Target::Broadcast => 0,
@@ -198,13 +218,13 @@ impl Subscription {
         while started.elapsed() < timeout {
             let pending = client
                 .send_copy(request)
-                .map_err(|e| SubscribeError::Ipc(format!("resume request: {e:?}")))?;
+                .map_err(SubscribeError::ipc("resume request"))?;
             let attempt = Instant::now();
             while attempt.elapsed() < Duration::from_millis(500) && started.elapsed() < timeout {
                 let reply = match pending.receive() {
                     Ok(Some(reply)) => Some(*reply.payload()),
                     Ok(None) => None,
-                    Err(e) => return Err(SubscribeError::Ipc(format!("resume reply: {e:?}"))),
+                    Err(e) => return Err(SubscribeError::ipc("resume reply")(e)),
                 };
                 let mut stash = self.stash.borrow_mut();
                 if let Some(reply) = reply {
@@ -227,7 +247,7 @@ impl Subscription {
                                 }
                                 Ok(None) => break,
                                 Err(e) => {
-                                    return Err(SubscribeError::Ipc(format!("receive: {e:?}")));
+                                    return Err(SubscribeError::ipc("receive")(e));
                                 }
                             }
                         }
@@ -244,7 +264,7 @@ impl Subscription {
                         }
                     }
                     Ok(None) => std::thread::sleep(Duration::from_millis(2)),
-                    Err(e) => return Err(SubscribeError::Ipc(format!("receive: {e:?}"))),
+                    Err(e) => return Err(SubscribeError::ipc("receive")(e)),
                 }
             }
         }

@@ -1,0 +1,116 @@
+//! The producer thread: builds batches ahead of the publisher (at most `prefetch`
+//! waiting in the channel), stream by stream in turn, each from its stream's cursor,
+//! the samples of a batch in parallel (rayon).
+
+use super::{Cursors, Metrics, Schedule, ServiceConfig};
+use crate::sample::{Sample, SampleBuilder, SampleError};
+use rayon::prelude::*;
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc::SyncSender;
+use std::time::Duration;
+
+/// A batch built by the producer.
+pub(super) struct Prepared {
+    /// The stream (rank) it is for.
+    pub stream: u32,
+    /// The stream's generation when it was planned (see [`Cursors`]).
+    pub generation: u64,
+    /// Its epoch.
+    pub epoch: u64,
+    /// Its step in the epoch.
+    pub step: u64,
+    /// The samples built (failed ones left out).
+    pub samples: Vec<Sample>,
+}
+
+/// What the producer thread works with.
+pub(super) struct Producer<'a> {
+    pub builder: &'a SampleBuilder<'a>,
+    pub schedule: &'a Schedule,
+    pub config: &'a ServiceConfig,
+    pub cursors: &'a Cursors,
+    pub stop: &'a AtomicBool,
+    /// Set while every stream is past the configured epochs (and all it built was
+    /// sent): the publisher reads it to tell "done" from "slow".
+    pub idle: &'a AtomicBool,
+    pub metrics: &'a Metrics,
+}
+
+impl Producer<'_> {
+    /// Builds batches until `stop` or until the publisher hangs up.
+    pub fn run(&self, tx: &SyncSender<Prepared>) {
+        let streams = self.config.streams() as usize;
+        let mut orders: HashMap<u64, Vec<u32>> = HashMap::new();
+        let mut finished = vec![false; streams];
+        let mut stream = 0usize;
+        while !self.stop.load(Ordering::SeqCst) {
+            let (epoch, step, generation) = self.cursors.position(stream);
+            if self.config.epochs > 0 && epoch >= self.config.epochs {
+                finished[stream] = true;
+                if finished.iter().all(|f| *f) {
+                    // Every stream is done: idle until a resume request rewinds one (the
+                    // publisher decides when the service ends).
+                    self.idle.store(true, Ordering::SeqCst);
+                    std::thread::sleep(Duration::from_millis(10));
+                    finished.iter_mut().for_each(|f| *f = false);
+                }
+                stream = (stream + 1) % streams;
+                continue;
+            }
+            self.idle.store(false, Ordering::SeqCst);
+            finished[stream] = false;
+            if orders.len() > 4 {
+                orders.retain(|e, _| *e + 1 >= epoch);
+            }
+            let order = orders
+                .entry(epoch)
+                .or_insert_with(|| self.builder.plan().epoch_order(self.schedule.seed(), epoch));
+            let Some(slots) = self.schedule.batch(order, stream, step) else {
+                // Past the epoch's end: next epoch.
+                self.cursors.advance(stream, generation, (epoch + 1, 0));
+                continue;
+            };
+            let samples = self.build(&slots, stream, epoch, step);
+            // Advance this stream unless a resume moved it meanwhile.
+            let current = self.cursors.advance(stream, generation, (epoch, step + 1));
+            if current && !samples.is_empty() {
+                let prepared = Prepared {
+                    stream: stream as u32,
+                    generation,
+                    epoch,
+                    step,
+                    samples,
+                };
+                if tx.send(prepared).is_err() {
+                    return;
+                }
+            }
+            stream = (stream + 1) % streams;
+        }
+    }
+
+    /// The samples of one batch; a sample that fails is counted, logged and left out.
+    fn build(&self, slots: &[super::Slot], stream: usize, epoch: u64, step: u64) -> Vec<Sample> {
+        let span = tracing::debug_span!("build batch", stream, epoch, step);
+        let _entered = span.enter();
+        let built: Vec<Result<Sample, SampleError>> = slots
+            .par_iter()
+            .map(|&(keyframe, index)| self.builder.build_keyframe(keyframe as usize, epoch, index))
+            .collect();
+        let mut samples = Vec::with_capacity(built.len());
+        for (result, (keyframe, _)) in built.into_iter().zip(slots) {
+            match result {
+                Ok(sample) => {
+                    self.metrics.add_stages(&sample.times);
+                    samples.push(sample);
+                }
+                Err(e) => {
+                    self.metrics.failed_samples.fetch_add(1, Ordering::Relaxed);
+                    tracing::error!(keyframe, epoch, "sample lost: {e}");
+                }
+            }
+        }
+        samples
+    }
+}
