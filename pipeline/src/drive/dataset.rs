@@ -1,12 +1,11 @@
 //! A dataset: many drives, each one or more MCAP files (a recording split in parts),
-//! indexed in one pass per file (see `index`) — every LiDAR sweep and camera frame with
+//! indexed in one pass per file (built in `drive/index.rs`) — every LiDAR sweep and camera frame with
 //! its sensor stamp and location, every transform in a [`TransformTree`], every
 //! calibration — plus a report of what was skipped and why. This file holds the dataset
 //! and drive types, what a drive answers (sensor checks, keyframes) and the reading of
 //! one sensor message.
 
 use super::discover::{self, Dialect, IngestConfig, Role, SchemaKind};
-use super::inputs::drive_groups;
 use super::streams::EGO_FRAMES;
 use super::tf::TransformTree;
 use crate::decode::image::{self, ImageError, Target};
@@ -19,7 +18,7 @@ use superflow_schemas::Stamp;
 use superflow_schemas::sensor::{CameraCalibration, Image};
 
 pub use super::index::STAMP_LOG_TOLERANCE_NANOS;
-pub use super::inputs::mcap_files;
+pub use super::inputs::{drive_groups, mcap_files};
 pub use super::skips::{SkipEntry, SkipReport};
 
 /// A sensor message located in the dataset.

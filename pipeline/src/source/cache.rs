@@ -131,7 +131,7 @@ pub(super) enum CacheKey {
     Direct(u64),
 }
 
-/// Why [`McapFile::load`] failed.
+/// Why `McapFile::load` failed.
 enum LoadError {
     /// The file could not deliver it.
     Source(SourceError),

@@ -32,7 +32,7 @@ pub(super) enum SummaryError {
 }
 
 impl McapFile {
-    /// The summary, read by mcap after [`McapFile::check_summary_framing`].
+    /// The summary, read by mcap after `check_summary_framing`.
     pub(super) fn checked_summary(&self) -> Result<mcap::Summary, SummaryError> {
         self.check_summary_framing()?;
         self.read_summary().ok_or(SummaryError::Unreadable)
