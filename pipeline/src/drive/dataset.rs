@@ -1,17 +1,25 @@
 //! A dataset: many drives, each one or more MCAP files (a recording split in parts),
-//! indexed in one pass per file — every LiDAR sweep and camera frame with its sensor stamp and location,
-//! every transform in a [`TransformTree`], every calibration — plus a report of what was
-//! skipped and why.
+//! indexed in one pass per file (built in `drive/index.rs`) — every LiDAR sweep and camera frame with
+//! its sensor stamp and location, every transform in a [`TransformTree`], every
+//! calibration — plus a report of what was skipped and why. This file holds the dataset
+//! and drive types, what a drive answers (sensor checks, keyframes) and the reading of
+//! one sensor message.
 
 use super::discover::{self, Dialect, IngestConfig, Role, SchemaKind};
+use super::streams::EGO_FRAMES;
 use super::tf::TransformTree;
-use crate::decode::{foxglove, ros2};
-use crate::source::{ChannelInfo, Damage, McapFile, MessageLoc, MessageRef, SourceError};
+use crate::decode::image::{self, ImageError, Target};
+use crate::decode::points::{DecodedCloud, PointsError};
+use crate::decode::{DecodeError, foxglove, ros2};
+use crate::source::{ChunkCache, McapFile, MessageLoc, MessageRef, SourceError};
 use serde::{Deserialize, Serialize};
-use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use superflow_schemas::Stamp;
-use superflow_schemas::sensor::CameraCalibration;
+use superflow_schemas::sensor::{CameraCalibration, Image};
+
+pub use super::index::STAMP_LOG_TOLERANCE_NANOS;
+pub use super::inputs::{drive_groups, mcap_files};
+pub use super::skips::{SkipEntry, SkipReport};
 
 /// A sensor message located in the dataset.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -92,40 +100,6 @@ fn median_spacing(frames: &[FrameRef]) -> Option<i64> {
     Some(gaps[gaps.len() / 2])
 }
 
-/// Counted skips, one entry per kind, with the first occurrence spelled out.
-#[derive(Debug, Clone, Default, PartialEq, Eq, Serialize, Deserialize)]
-pub struct SkipReport {
-    /// Kind → count and first example (`file: topic at stamp: error`).
-    pub entries: BTreeMap<String, SkipEntry>,
-}
-
-/// One kind of skip.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-pub struct SkipEntry {
-    /// How many.
-    pub count: u64,
-    /// The first one, in words.
-    pub first: String,
-}
-
-impl SkipReport {
-    /// Counts one skip of `kind`; `detail` is kept for the first.
-    pub fn add(&mut self, kind: impl Into<String>, detail: impl FnOnce() -> String) {
-        self.entries
-            .entry(kind.into())
-            .and_modify(|e| e.count += 1)
-            .or_insert_with(|| SkipEntry {
-                count: 1,
-                first: detail(),
-            });
-    }
-
-    /// Total skips.
-    pub fn total(&self) -> u64 {
-        self.entries.values().map(|e| e.count).sum()
-    }
-}
-
 /// What a channel holds, over all files of the dataset.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ChannelSummary {
@@ -171,170 +145,6 @@ pub enum IngestError {
         /// What is missing, `; `-separated.
         problems: String,
     },
-}
-
-#[derive(Debug)]
-struct TopicData {
-    channel: ChannelInfo,
-    kind: Option<(SchemaKind, Dialect)>,
-    count: u64,
-    frame_id: Option<String>,
-    frames: Vec<FrameRef>,
-    /// Log time of each of `frames`, until the stamps are checked against them.
-    frame_logs: Vec<u64>,
-    calibrations: Vec<CameraCalibration>,
-    first_log: u64,
-    last_log: u64,
-}
-
-// Just the stamp and frame of Foxglove sensor messages: prost skips the other fields
-// (the point or pixel data) without copying them.
-macro_rules! stamp_and_frame {
-    ($name:ident, $frame_tag:literal) => {
-        #[derive(Clone, PartialEq, prost::Message)]
-        struct $name {
-            #[prost(message, optional, tag = "1")]
-            timestamp: Option<foxglove::Timestamp>,
-            #[prost(string, tag = $frame_tag)]
-            frame_id: String,
-        }
-    };
-}
-stamp_and_frame!(PointCloudHead, "2");
-stamp_and_frame!(CompressedImageHead, "4");
-stamp_and_frame!(RawImageHead, "7");
-
-/// Just the header of a ROS 2 sensor message (CDR decoding stops after it).
-#[derive(Debug, Deserialize)]
-struct Ros2Head {
-    header: ros2::Header,
-}
-
-fn stamp_and_frame(
-    kind: SchemaKind,
-    dialect: Dialect,
-    data: &[u8],
-) -> Result<(Stamp, String), String> {
-    fn fox<T: prost::Message + Default>(schema: &'static str, data: &[u8]) -> Result<T, String> {
-        foxglove::decode::<T>(schema, data).map_err(|e| e.to_string())
-    }
-    match dialect {
-        Dialect::Ros2 => {
-            let head: Ros2Head = ros2::decode(data).map_err(|e| e.to_string())?;
-            Ok((head.header.stamp.stamp(), head.header.frame_id))
-        }
-        Dialect::FoxgloveProtobuf => {
-            let (schema, timestamp, frame_id) = match kind {
-                SchemaKind::PointCloud => {
-                    let m: PointCloudHead = fox("foxglove.PointCloud", data)?;
-                    ("foxglove.PointCloud", m.timestamp, m.frame_id)
-                }
-                SchemaKind::CompressedImage => {
-                    let m: CompressedImageHead = fox("foxglove.CompressedImage", data)?;
-                    ("foxglove.CompressedImage", m.timestamp, m.frame_id)
-                }
-                SchemaKind::RawImage => {
-                    let m: RawImageHead = fox("foxglove.RawImage", data)?;
-                    ("foxglove.RawImage", m.timestamp, m.frame_id)
-                }
-                _ => return Err("not a sensor message".into()),
-            };
-            let stamp = foxglove::stamp(schema, timestamp.as_ref()).map_err(|e| e.to_string())?;
-            Ok((stamp, frame_id))
-        }
-    }
-}
-
-/// Groups the inputs into drives: a rosbag2 directory (it holds `metadata.yaml`) is one
-/// drive made of its `.mcap` files in name order; any other directory contributes each
-/// of its `.mcap` files as a drive of its own; a file is a drive. A sidecar —
-/// `<name>.<tag>.mcap` next to `<name>.mcap`, e.g. `drive.superpixels.mcap` with class
-/// maps computed offline — joins the drive of `<name>.mcap` (found next to it even when
-/// only the drive is named) instead of being a drive of its own.
-pub fn drive_groups(inputs: &[PathBuf]) -> Result<Vec<Vec<PathBuf>>, IngestError> {
-    let mut groups: Vec<Vec<PathBuf>> = Vec::new();
-    for input in inputs {
-        let files = mcap_files(std::slice::from_ref(input))?;
-        if input.is_dir() && input.join("metadata.yaml").is_file() {
-            groups.push(files);
-        } else {
-            for file in files {
-                if sidecar_base(&file).is_some_and(|base| base.is_file()) {
-                    continue; // joins its base drive below
-                }
-                let mut group = vec![file.clone()];
-                group.extend(sidecars_of(&file));
-                groups.push(group);
-            }
-        }
-    }
-    for group in &mut groups {
-        let mut seen = std::collections::BTreeSet::new();
-        group.retain(|f| seen.insert(f.clone()));
-    }
-    Ok(groups)
-}
-
-/// `dir/<name>.mcap` for a sidecar `dir/<name>.<tag>.mcap`.
-fn sidecar_base(file: &Path) -> Option<PathBuf> {
-    let stem = file.file_stem()?.to_str()?; // <name>.<tag>
-    let (name, tag) = stem.rsplit_once('.')?;
-    (!name.is_empty() && !tag.is_empty()).then(|| file.with_file_name(format!("{name}.mcap")))
-}
-
-/// Sidecars next to `file` (`<stem>.<tag>.mcap`), in name order.
-fn sidecars_of(file: &Path) -> Vec<PathBuf> {
-    let (Some(dir), Some(stem)) = (file.parent(), file.file_stem().and_then(|s| s.to_str())) else {
-        return Vec::new();
-    };
-    let dir = if dir.as_os_str().is_empty() {
-        Path::new(".")
-    } else {
-        dir
-    };
-    let prefix = format!("{stem}.");
-    let mut found: Vec<PathBuf> = std::fs::read_dir(dir)
-        .map(|entries| {
-            entries
-                .filter_map(|e| e.ok().map(|e| e.path()))
-                .filter(|p| {
-                    p.extension().is_some_and(|e| e == "mcap")
-                        && p.file_name()
-                            .and_then(|n| n.to_str())
-                            .is_some_and(|n| n.starts_with(&prefix) && n.len() > prefix.len() + 5)
-                })
-                .map(|p| file.with_file_name(p.file_name().unwrap_or_default()))
-                .collect()
-        })
-        .unwrap_or_default();
-    found.sort();
-    found
-}
-
-/// All `.mcap` files named or inside the named directories, sorted per directory.
-pub fn mcap_files(inputs: &[PathBuf]) -> Result<Vec<PathBuf>, IngestError> {
-    let mut files = Vec::new();
-    for input in inputs {
-        if input.is_dir() {
-            let io = |source| IngestError::Io {
-                path: input.clone(),
-                source,
-            };
-            let mut found: Vec<PathBuf> = std::fs::read_dir(input)
-                .map_err(io)?
-                .filter_map(|e| e.ok().map(|e| e.path()))
-                .filter(|p| p.extension().is_some_and(|e| e == "mcap"))
-                .collect();
-            found.sort();
-            files.extend(found);
-        } else {
-            files.push(input.clone());
-        }
-    }
-    if files.is_empty() {
-        return Err(IngestError::NoFiles);
-    }
-    Ok(files)
 }
 
 /// Every drive of a dataset.
@@ -404,220 +214,6 @@ pub struct Drive {
 }
 
 impl Drive {
-    /// Indexes the files of one drive, in one pass per file.
-    pub fn open(files: &[PathBuf], config: &IngestConfig) -> Result<Drive, IngestError> {
-        Self::open_with_progress(files, config, |_, _| {})
-    }
-
-    /// [`Drive::open`], reporting `(bytes indexed, bytes of this drive)` as it goes.
-    pub fn open_with_progress(
-        files: &[PathBuf],
-        config: &IngestConfig,
-        mut progress: impl FnMut(u64, u64),
-    ) -> Result<Drive, IngestError> {
-        if files.is_empty() {
-            return Err(IngestError::NoFiles);
-        }
-        let mut topics: BTreeMap<String, TopicData> = BTreeMap::new();
-        let mut tf = TransformTree::new((config.tf_tolerance_ms * 1e6) as i64);
-        let mut skipped = SkipReport::default();
-        let mut opened: Vec<McapFile> = Vec::with_capacity(files.len());
-        let total_bytes: u64 = files
-            .iter()
-            .map(|f| std::fs::metadata(f).map_or(0, |m| m.len()))
-            .sum();
-        for (file_index, path) in files.iter().enumerate() {
-            let mut visit = |m: MessageRef<'_>| {
-                index_message(
-                    file_index as u32,
-                    path,
-                    m,
-                    &mut topics,
-                    &mut tf,
-                    &mut skipped,
-                )
-            };
-            let _span = tracing::info_span!("index", file = %path.display()).entered();
-            let before: u64 = opened.iter().map(McapFile::len).sum();
-            let drive_bytes = total_bytes;
-            let file = McapFile::scan_with_progress(path, &mut visit, |d, _| {
-                progress(before + d, drive_bytes)
-            })?;
-            tracing::debug!(
-                bytes = file.len(),
-                chunks_damaged = file.damage.len(),
-                "indexed"
-            );
-            for damage in &file.damage {
-                let kind = match damage {
-                    Damage::Truncated { .. } => "file truncated",
-                    Damage::NoSummary { .. } => "file without summary",
-                    Damage::BadChunk { .. } => "unreadable chunk",
-                    Damage::BadRecord { .. } => "corrupt record",
-                    Damage::MissingMessages { .. } => "messages lost to damage",
-                };
-                skipped.add(kind, || format!("{}: {damage}", path.display()));
-            }
-            opened.push(file);
-        }
-        let frozen_edges = tf.freeze_constant_edges();
-        for t in topics.values_mut() {
-            drop_stamps_far_from_log_time(t, files, &mut skipped);
-            for repeated in sort_frames(&mut t.frames) {
-                skipped.add(format!("repeated stamp: {}", t.channel.topic), || {
-                    format!(
-                        "{}: {} at {}: repeats the stamp of an earlier message; the first is kept",
-                        file_name(files, repeated.file),
-                        t.channel.topic,
-                        repeated.stamp
-                    )
-                });
-            }
-        }
-
-        for (kind, entry) in &skipped.entries {
-            let lost = [
-                "file truncated",
-                "unreadable chunk",
-                "corrupt record",
-                "messages lost to damage",
-            ]
-            .contains(&kind.as_str());
-            if lost {
-                tracing::error!(kind = %kind, count = entry.count, first = %entry.first, "data lost");
-            } else {
-                tracing::warn!(kind = %kind, count = entry.count, first = %entry.first, "messages skipped");
-            }
-        }
-        let channels: Vec<&ChannelInfo> = topics.values().map(|t| &t.channel).collect();
-        let counts = |topic: &str| topics.get(topic).map_or(0, |t| t.count);
-        let roles = discover::assign_roles(&channels, &counts, config);
-        let role_of = |topic: &str| {
-            roles
-                .iter()
-                .find(|(t, _)| t == topic)
-                .map_or(Role::Ignored("unknown".into()), |(_, r)| r.clone())
-        };
-
-        let channel_summaries = topics
-            .values()
-            .map(|t| {
-                let span_nanos = match (t.frames.first(), t.frames.last()) {
-                    (Some(a), Some(b)) if t.frames.len() > 1 => b.stamp.nanos_since(a.stamp),
-                    _ => t.last_log.saturating_sub(t.first_log) as i64,
-                };
-                ChannelSummary {
-                    topic: t.channel.topic.clone(),
-                    role: role_of(&t.channel.topic),
-                    schema: t.channel.schema_name().to_string(),
-                    schema_encoding: t
-                        .channel
-                        .schema
-                        .as_ref()
-                        .map_or(String::new(), |s| s.encoding.clone()),
-                    message_encoding: t.channel.message_encoding.clone(),
-                    message_count: t.count,
-                    rate_hz: (span_nanos > 0 && t.count > 1)
-                        .then(|| (t.count - 1) as f64 / (span_nanos as f64 * 1e-9)),
-                }
-            })
-            .collect();
-
-        let mut lidar = None;
-        for t in topics.values() {
-            if role_of(&t.channel.topic) == Role::Lidar
-                && let Some((_, dialect)) = t.kind
-            {
-                lidar = Some(LidarStream {
-                    topic: t.channel.topic.clone(),
-                    frame_id: t.frame_id.clone().unwrap_or_default(),
-                    dialect,
-                    sweeps: t.frames.clone(),
-                });
-            }
-        }
-
-        let mut cameras = Vec::new();
-        for t in topics.values() {
-            if role_of(&t.channel.topic) != Role::Image {
-                continue;
-            }
-            let Some((image_kind, dialect)) = t.kind else {
-                continue;
-            };
-            let namespace = discover::camera_namespace(&t.channel.topic);
-            let frame_id = t.frame_id.clone().unwrap_or_default();
-            let calibration = topics
-                .values()
-                .filter(|c| role_of(&c.channel.topic) == Role::Calibration)
-                .find(|c| discover::camera_namespace(&c.channel.topic) == namespace)
-                .or_else(|| {
-                    topics
-                        .values()
-                        .filter(|c| role_of(&c.channel.topic) == Role::Calibration)
-                        .find(|c| {
-                            c.calibrations
-                                .first()
-                                .is_some_and(|k| k.frame_id == frame_id)
-                        })
-                });
-            let superpixels = topics
-                .values()
-                .filter(|c| role_of(&c.channel.topic) == Role::Superpixels)
-                .find(|c| discover::camera_namespace(&c.channel.topic) == namespace);
-            cameras.push(CameraStream {
-                name: namespace
-                    .rsplit('/')
-                    .next()
-                    .unwrap_or(namespace)
-                    .to_string(),
-                image_topic: t.channel.topic.clone(),
-                image_kind,
-                dialect,
-                frame_id,
-                calibration_topic: calibration.map(|c| c.channel.topic.clone()),
-                calibrations: calibration
-                    .map(|c| c.calibrations.clone())
-                    .unwrap_or_default(),
-                frames: t.frames.clone(),
-                superpixel_topic: superpixels.map(|s| s.channel.topic.clone()),
-                superpixel_kind: superpixels.and_then(|s| s.kind.map(|k| k.0)),
-                superpixels: superpixels.map(|s| s.frames.clone()).unwrap_or_default(),
-            });
-        }
-        cameras.sort_by(|a, b| a.name.cmp(&b.name));
-
-        let ego_frame = config.ego_frame.clone().or_else(|| {
-            [
-                "base_link",
-                "ego",
-                "ego_vehicle",
-                "vehicle",
-                "base_footprint",
-            ]
-            .iter()
-            .find(|f| tf.contains(f))
-            .map(|f| f.to_string())
-        });
-        let map_frame = config
-            .map_frame
-            .clone()
-            .or_else(|| ego_frame.as_deref().and_then(|e| tf.root_of(e).ok()));
-
-        Ok(Drive {
-            files: opened,
-            channels: channel_summaries,
-            lidar,
-            cameras,
-            tf,
-            frozen_edges,
-            map_frame,
-            ego_frame,
-            skipped,
-            config: config.clone(),
-        })
-    }
-
     /// The files' paths, comma-separated (for messages).
     pub fn file_list(&self) -> String {
         self.files
@@ -665,7 +261,9 @@ impl Drive {
                     .chain(self.cameras.iter().map(|c| (&c.image_topic, &c.frame_id)));
                 for (topic, frame) in sensors {
                     if !self.tf.contains(frame) {
-                        problems.push(format!("{topic}: frame `{frame}` has no transform to `{ego}`"));
+                        problems.push(format!(
+                            "{topic}: frame `{frame}` has no transform to `{ego}`"
+                        ));
                     }
                 }
             }
@@ -675,7 +273,8 @@ impl Drive {
                     .to_string(),
             ),
             _ => problems.push(format!(
-                "no ego frame (tried base_link, ego, ego_vehicle, vehicle, base_footprint) in the transforms; frames: {}",
+                "no ego frame (tried {}) in the transforms; frames: {}",
+                EGO_FRAMES.join(", "),
                 self.tf.frames().join(", ")
             )),
         }
@@ -758,200 +357,71 @@ pub fn nearest(frames: &[FrameRef], stamp: Stamp) -> Option<&FrameRef> {
     }
 }
 
-fn index_message(
-    file: u32,
-    path: &Path,
-    m: MessageRef<'_>,
-    topics: &mut BTreeMap<String, TopicData>,
-    tf: &mut TransformTree,
-    skipped: &mut SkipReport,
-) {
-    let topic = topics
-        .entry(m.channel.topic.clone())
-        .or_insert_with(|| TopicData {
-            channel: m.channel.clone(),
-            kind: discover::schema_kind(m.channel),
-            count: 0,
-            frame_id: None,
-            frames: Vec::new(),
-            frame_logs: Vec::new(),
-            calibrations: Vec::new(),
-            first_log: m.log_time,
-            last_log: m.log_time,
-        });
-    topic.count += 1;
-    topic.first_log = topic.first_log.min(m.log_time);
-    topic.last_log = topic.last_log.max(m.log_time);
-    let Some((kind, dialect)) = topic.kind else {
-        return;
-    };
-    let where_ = |stamp: Option<Stamp>| match stamp {
-        Some(s) => format!("{}: {} at {s}", path.display(), m.channel.topic),
-        None => format!(
-            "{}: {} (log time {})",
-            path.display(),
-            m.channel.topic,
-            m.log_time
-        ),
-    };
-    match kind {
-        SchemaKind::PointCloud | SchemaKind::CompressedImage | SchemaKind::RawImage => {
-            match stamp_and_frame(kind, dialect, m.data) {
-                Ok((stamp, frame_id)) if stamp.nanos() > 0 => {
-                    topic.frame_id.get_or_insert(frame_id);
-                    topic.frames.push(FrameRef {
-                        stamp,
-                        file,
-                        loc: m.loc,
-                    });
-                    topic.frame_logs.push(m.log_time);
-                }
-                Ok(_) => skipped.add(format!("zero stamp: {}", m.channel.topic), || where_(None)),
-                Err(e) => skipped.add(format!("undecodable: {}", m.channel.topic), || {
-                    format!("{}: {e}", where_(None))
-                }),
-            }
-        }
-        SchemaKind::Calibration => {
-            let decoded = match dialect {
-                Dialect::Ros2 => ros2::decode(m.data)
-                    .map_err(crate::decode::DecodeError::from)
-                    .and_then(|c| ros2::camera_info(&c)),
-                Dialect::FoxgloveProtobuf => foxglove::decode("foxglove.CameraCalibration", m.data)
-                    .and_then(|c| foxglove::camera_calibration(&c)),
-            };
-            match decoded {
-                Ok(calibration) => {
-                    topic.frame_id.get_or_insert(calibration.frame_id.clone());
-                    let same = topic.calibrations.last().is_some_and(|last| {
-                        last.k == calibration.k
-                            && last.distortion == calibration.distortion
-                            && (last.width, last.height) == (calibration.width, calibration.height)
-                    });
-                    if !same {
-                        topic.calibrations.push(calibration);
-                    }
-                }
-                Err(e) => skipped.add(format!("bad calibration: {}", m.channel.topic), || {
-                    format!("{}: {e}", where_(None))
-                }),
-            }
-        }
-        SchemaKind::FrameTransform | SchemaKind::FrameTransforms | SchemaKind::TfMessage => {
-            let is_static = m.channel.topic.ends_with("tf_static");
-            let transforms = match kind {
-                SchemaKind::TfMessage => match ros2::decode::<ros2::TfMessage>(m.data) {
-                    Ok(msg) => ros2::transforms(&msg, is_static),
-                    Err(e) => vec![Err(e.into())],
-                },
-                SchemaKind::FrameTransform => {
-                    vec![
-                        foxglove::decode::<foxglove::FrameTransform>(
-                            "foxglove.FrameTransform",
-                            m.data,
-                        )
-                        .and_then(|t| foxglove::frame_transform(&t, is_static)),
-                    ]
-                }
-                _ => match foxglove::decode::<foxglove::FrameTransforms>(
-                    "foxglove.FrameTransforms",
-                    m.data,
-                ) {
-                    Ok(msg) => msg
-                        .transforms
-                        .iter()
-                        .map(|t| foxglove::frame_transform(t, is_static))
-                        .collect(),
-                    Err(e) => vec![Err(e)],
-                },
-            };
-            for transform in transforms {
-                match transform {
-                    Ok(t) => {
-                        let stamp = t.stamp;
-                        if let Err(e) = tf.insert(t) {
-                            skipped.add(format!("rejected transform: {}", m.channel.topic), || {
-                                format!("{}: {e}", where_(Some(stamp)))
-                            });
-                        }
-                    }
-                    Err(e) => skipped.add(format!("bad transform: {}", m.channel.topic), || {
-                        format!("{}: {e}", where_(None))
-                    }),
-                }
-            }
-        }
+/// Where a frame is: shown as `file: topic at stamp`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct FrameAt {
+    /// The file.
+    pub file: String,
+    /// The topic.
+    pub topic: String,
+    /// The frame's stamp.
+    pub stamp: Stamp,
+}
+
+impl std::fmt::Display for FrameAt {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}: {} at {}", self.file, self.topic, self.stamp)
     }
 }
 
-/// Sorts a topic's frames by stamp and drops repeated stamps; returns the dropped ones.
-fn sort_frames(frames: &mut Vec<FrameRef>) -> Vec<FrameRef> {
-    frames.sort_by_key(|f| (f.stamp, f.file, f.loc));
-    let mut repeated = Vec::new();
-    let mut kept: Vec<FrameRef> = Vec::with_capacity(frames.len());
-    for f in frames.drain(..) {
-        if kept.last().is_some_and(|k| k.stamp == f.stamp) {
-            repeated.push(f);
-        } else {
-            kept.push(f);
-        }
-    }
-    *frames = kept;
-    repeated
+/// A sensor message that could not be read or decoded, with where it is.
+#[derive(Debug, thiserror::Error)]
+pub enum ReadError {
+    /// The file could not deliver the message.
+    #[error(transparent)]
+    Source(#[from] SourceError),
+    /// An image (or class map) of a camera did not decode.
+    #[error("{at}: {camera} ({source})")]
+    Image {
+        /// Where the image is.
+        at: FrameAt,
+        /// The camera.
+        camera: String,
+        /// What failed (boxed: a read error stays small).
+        #[source]
+        source: Box<ImageReadError>,
+    },
+    /// A LiDAR sweep did not decode.
+    #[error("{at}: {source}")]
+    Sweep {
+        /// Where the sweep is.
+        at: FrameAt,
+        /// What failed (boxed: a read error stays small).
+        #[source]
+        source: Box<PointsError>,
+    },
+    /// A message decoded but cannot be used.
+    #[error("{at}: {reason}")]
+    Decode {
+        /// Where the message is.
+        at: FrameAt,
+        /// What is wrong, in words.
+        reason: String,
+    },
 }
 
-/// How far a sensor stamp may stray from its channel's usual stamp-to-log-time offset.
-/// Recorder latency, buffering and the nuScenes converter's keyframe log times stay far
-/// below it; a sensor clock that was never synchronised (seconds since boot) or a
-/// clock jump does not.
-pub const STAMP_LOG_TOLERANCE_NANOS: i64 = 10_000_000_000;
-
-fn file_name(files: &[PathBuf], file: u32) -> String {
-    files
-        .get(file as usize)
-        .map_or_else(|| "?".to_string(), |p| p.display().to_string())
-}
-
-/// Drops (and counts, as `stamp far from log time: <topic>`) the frames whose sensor
-/// stamp is more than [`STAMP_LOG_TOLERANCE_NANOS`] off the channel's median
-/// stamp-to-log-time offset. A channel whose every stamp is offset alike (a replayed bag,
-/// an unsynchronised but steady sensor clock) keeps everything.
-fn drop_stamps_far_from_log_time(t: &mut TopicData, files: &[PathBuf], skipped: &mut SkipReport) {
-    let logs = std::mem::take(&mut t.frame_logs);
-    if logs.len() != t.frames.len() || t.frames.is_empty() {
-        return;
-    }
-    let offsets: Vec<i128> = t
-        .frames
-        .iter()
-        .zip(&logs)
-        .map(|(f, log)| i128::from(f.stamp.nanos()) - i128::from(*log))
-        .collect();
-    let mut sorted = offsets.clone();
-    sorted.sort_unstable();
-    let median = sorted[sorted.len() / 2];
-    let mut keep = Vec::with_capacity(t.frames.len());
-    for ((frame, log), offset) in t.frames.iter().zip(&logs).zip(&offsets) {
-        if (offset - median).abs() <= i128::from(STAMP_LOG_TOLERANCE_NANOS) {
-            keep.push(*frame);
-            continue;
-        }
-        skipped.add(
-            format!("stamp far from log time: {}", t.channel.topic),
-            || {
-                format!(
-                    "{}: {} at {} (log time {log}): the stamp is {:.3} s off the channel's usual \
-                 stamp-to-log-time offset ({:.3} s); the message is skipped",
-                    file_name(files, frame.file),
-                    t.channel.topic,
-                    frame.stamp,
-                    (offset - median) as f64 * 1e-9,
-                    median as f64 * 1e-9,
-                )
-            },
-        );
-    }
-    t.frames = keep;
+/// Why an image message did not decode.
+#[derive(Debug, thiserror::Error)]
+pub enum ImageReadError {
+    /// The message itself did not decode (CDR or protobuf).
+    #[error(transparent)]
+    Message(#[from] DecodeError),
+    /// Its image data did not decode.
+    #[error(transparent)]
+    Image(#[from] ImageError),
+    /// The channel's schema is not an image.
+    #[error("schema `{0}` is not an image")]
+    NotAnImage(String),
 }
 
 impl Drive {
@@ -971,29 +441,19 @@ impl Drive {
                 })?;
         file.read_message(frame.loc, cache)
     }
-}
 
-/// A sensor message that could not be read or decoded, with where it is.
-#[derive(Debug, thiserror::Error)]
-pub enum ReadError {
-    /// The file could not deliver the message.
-    #[error(transparent)]
-    Source(#[from] SourceError),
-    /// The message did not decode.
-    #[error("{file}: {topic} at {stamp}: {reason}")]
-    Decode {
-        /// The file.
-        file: String,
-        /// The topic.
-        topic: String,
-        /// The frame's stamp.
-        stamp: Stamp,
-        /// What failed.
-        reason: String,
-    },
-}
+    /// Where `frame` of `topic` is: its file, the topic and its stamp.
+    pub fn frame_at(&self, frame: &FrameRef, topic: &str) -> FrameAt {
+        FrameAt {
+            file: self
+                .files
+                .get(frame.file as usize)
+                .map_or_else(|| self.file_list(), |f| f.path().display().to_string()),
+            topic: topic.to_string(),
+            stamp: frame.stamp,
+        }
+    }
 
-impl Drive {
     /// A [`ReadError::Decode`] naming the file, topic and stamp of `frame`.
     pub(crate) fn decode_error(
         &self,
@@ -1002,12 +462,7 @@ impl Drive {
         reason: impl std::fmt::Display,
     ) -> ReadError {
         ReadError::Decode {
-            file: self
-                .files
-                .get(frame.file as usize)
-                .map_or_else(|| self.file_list(), |f| f.path().display().to_string()),
-            topic: topic.to_string(),
-            stamp: frame.stamp,
+            at: self.frame_at(frame, topic),
             reason: reason.to_string(),
         }
     }
@@ -1018,152 +473,64 @@ impl Drive {
         &self,
         camera: &CameraStream,
         frame: &FrameRef,
-        target: crate::decode::image::Target,
-        cache: &mut crate::source::ChunkCache,
-    ) -> Result<superflow_schemas::sensor::Image, ReadError> {
-        use crate::decode::image;
+        target: Target,
+        cache: &mut ChunkCache,
+    ) -> Result<Image, ReadError> {
         let message = self.read_raw(frame, cache)?;
-        let topic = message.channel.topic.clone();
-        let kind = discover::schema_kind(message.channel);
-        let decoded = match kind {
-            Some((SchemaKind::CompressedImage, Dialect::Ros2)) => ros2::decode(message.data)
-                .map_err(|e| e.to_string())
-                .and_then(|m| image::decode_ros2_compressed(&m, target).map_err(|e| e.to_string())),
-            Some((SchemaKind::RawImage, Dialect::Ros2)) => ros2::decode(message.data)
-                .map_err(|e| e.to_string())
-                .and_then(|m| image::decode_ros2_raw(&m, target).map_err(|e| e.to_string())),
-            Some((SchemaKind::CompressedImage, Dialect::FoxgloveProtobuf)) => {
-                foxglove::decode("foxglove.CompressedImage", message.data)
-                    .map_err(|e| e.to_string())
-                    .and_then(|m| {
-                        image::decode_foxglove_compressed(&m, target).map_err(|e| e.to_string())
-                    })
-            }
-            Some((SchemaKind::RawImage, Dialect::FoxgloveProtobuf)) => {
-                foxglove::decode("foxglove.RawImage", message.data)
-                    .map_err(|e| e.to_string())
-                    .and_then(|m| image::decode_foxglove_raw(&m, target).map_err(|e| e.to_string()))
-            }
-            _ => Err(format!(
-                "schema `{}` is not an image",
-                message.channel.schema_name()
-            )),
-        };
-        decoded.map_err(|reason| {
-            self.decode_error(frame, &topic, format!("{} ({reason})", camera.name))
+        decode_image(&message, target).map_err(|source| ReadError::Image {
+            at: self.frame_at(frame, &message.channel.topic),
+            camera: camera.name.clone(),
+            source: Box::new(source),
         })
     }
-}
 
-impl Drive {
     /// Decodes LiDAR sweep `frame` (non-finite points are dropped and counted in the
     /// result).
     pub fn read_sweep(
         &self,
         frame: &FrameRef,
-        cache: &mut crate::source::ChunkCache,
-    ) -> Result<crate::decode::points::DecodedCloud, ReadError> {
+        cache: &mut ChunkCache,
+    ) -> Result<DecodedCloud, ReadError> {
         let message = self.read_raw(frame, cache)?;
-        let topic = message.channel.topic.clone();
-        crate::decode::points::decode_message(&message, None)
-            .map_err(|e| self.decode_error(frame, &topic, e))
+        crate::decode::points::decode_message(&message, None).map_err(|source| ReadError::Sweep {
+            at: self.frame_at(frame, &message.channel.topic),
+            source: Box::new(source),
+        })
     }
+}
+
+/// Decodes an image message of either dialect, compressed or raw.
+fn decode_image(message: &MessageRef<'_>, target: Target) -> Result<Image, ImageReadError> {
+    let data = message.data;
+    Ok(match discover::schema_kind(message.channel) {
+        Some((SchemaKind::CompressedImage, Dialect::Ros2)) => {
+            let m = ros2::decode(data).map_err(DecodeError::from)?;
+            image::decode_ros2_compressed(&m, target)?
+        }
+        Some((SchemaKind::RawImage, Dialect::Ros2)) => {
+            let m = ros2::decode(data).map_err(DecodeError::from)?;
+            image::decode_ros2_raw(&m, target)?
+        }
+        Some((SchemaKind::CompressedImage, Dialect::FoxgloveProtobuf)) => {
+            let m = foxglove::decode("foxglove.CompressedImage", data)?;
+            image::decode_foxglove_compressed(&m, target)?
+        }
+        Some((SchemaKind::RawImage, Dialect::FoxgloveProtobuf)) => {
+            let m = foxglove::decode("foxglove.RawImage", data)?;
+            image::decode_foxglove_raw(&m, target)?
+        }
+        _ => {
+            let schema = message.channel.schema_name().to_string();
+            return Err(ImageReadError::NotAnImage(schema));
+        }
+    })
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::source::MessageLoc;
     use nalgebra::Isometry3;
     use superflow_schemas::sensor::StampedTransform;
-
-    fn frame(stamp: i64, index: u32) -> FrameRef {
-        FrameRef {
-            stamp: Stamp::from_nanos(stamp),
-            file: 0,
-            loc: MessageLoc::Chunk { chunk: 0, index },
-        }
-    }
-
-    fn topic(frames: &[(i64, u64)]) -> TopicData {
-        TopicData {
-            channel: ChannelInfo {
-                id: 1,
-                topic: "/lidar".into(),
-                schema: None,
-                message_encoding: "cdr".into(),
-                metadata: BTreeMap::new(),
-            },
-            kind: None,
-            count: frames.len() as u64,
-            frame_id: None,
-            frames: frames
-                .iter()
-                .enumerate()
-                .map(|(i, (s, _))| frame(*s, i as u32))
-                .collect(),
-            frame_logs: frames.iter().map(|(_, l)| *l).collect(),
-            calibrations: Vec::new(),
-            first_log: 0,
-            last_log: 0,
-        }
-    }
-
-    #[test]
-    fn repeated_stamps_are_returned_with_where_they_are() {
-        let mut frames = vec![frame(30, 0), frame(10, 1), frame(30, 2), frame(20, 3)];
-        let repeated = sort_frames(&mut frames);
-        assert_eq!(
-            frames.iter().map(|f| f.stamp.nanos()).collect::<Vec<_>>(),
-            [10, 20, 30]
-        );
-        assert_eq!(repeated, [frame(30, 2)]);
-    }
-
-    #[test]
-    fn a_stamp_far_from_its_log_time_is_skipped_and_counted() {
-        let files = [PathBuf::from("drive.mcap")];
-        let s = 1_000_000_000i64;
-        // Latency 60 ms, one message stamped by a clock since boot, one 1 s late.
-        let mut t = topic(&[
-            (1_700_000_000 * s, (1_700_000_000 * s + 60_000_000) as u64),
-            (1_234 * s, (1_700_000_000 * s + 110_000_000) as u64),
-            (
-                1_700_000_000 * s + 100_000_000,
-                (1_700_000_000 * s + 160_000_000) as u64,
-            ),
-            (
-                1_700_000_000 * s + 150_000_000,
-                (1_700_000_001 * s + 210_000_000) as u64,
-            ),
-        ]);
-        let mut skipped = SkipReport::default();
-        drop_stamps_far_from_log_time(&mut t, &files, &mut skipped);
-        assert_eq!(t.frames.len(), 3);
-        assert!(t.frames.iter().all(|f| f.stamp.nanos() > 1_234 * s));
-        let entry = &skipped.entries["stamp far from log time: /lidar"];
-        assert_eq!(entry.count, 1);
-        assert!(
-            entry.first.contains("drive.mcap: /lidar at ")
-                && entry.first.contains("off the channel's usual"),
-            "{}",
-            entry.first
-        );
-    }
-
-    #[test]
-    fn a_steady_offset_between_stamps_and_log_times_is_kept() {
-        // A replayed bag: stamps from the original drive, log times from today.
-        let files = [PathBuf::from("replay.mcap")];
-        let mut t = topic(&[
-            (1_500_000_000_000_000_000, 1_700_000_000_000_000_000),
-            (1_500_000_000_100_000_000, 1_700_000_000_100_000_000),
-        ]);
-        let mut skipped = SkipReport::default();
-        drop_stamps_far_from_log_time(&mut t, &files, &mut skipped);
-        assert_eq!(t.frames.len(), 2);
-        assert_eq!(skipped.total(), 0);
-    }
 
     fn drive(tf: TransformTree) -> Drive {
         let ego_frame = ["base_link"]

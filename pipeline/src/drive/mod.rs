@@ -1,10 +1,22 @@
 //! A drive in time: channel discovery, the index of every LiDAR sweep and camera frame
 //! over one or more files, and the transform tree.
+//!
+//! `inputs` finds the files of each drive, `index` builds a drive's index (with `heads`
+//! reading just the stamp of a sensor message and `streams` turning the indexed topics
+//! into streams), `skips` reports what was skipped, and `dataset` holds the dataset and
+//! drive types and reads one sensor message.
 
 pub mod dataset;
 pub mod discover;
+mod heads;
+mod index;
+pub mod inputs;
+pub mod skips;
+mod streams;
 pub mod tf;
 
-pub use dataset::{CameraStream, Dataset, Drive, FrameRef, IngestError, LidarStream, SkipReport};
+pub use dataset::{
+    CameraStream, Dataset, Drive, FrameRef, IngestError, LidarStream, ReadError, SkipReport,
+};
 pub use discover::{IngestConfig, Role};
 pub use tf::{TfError, TransformTree};

@@ -1,0 +1,479 @@
+//! Building the index of a drive ([`Drive::open`]): one pass per file, every LiDAR sweep
+//! and camera frame with its sensor stamp and location, every transform in the
+//! [`TransformTree`], every calibration; then the frames checked (repeated stamps, stamps
+//! far from their log time) and what was skipped logged.
+
+use super::dataset::{Drive, FrameRef, IngestError};
+use super::discover::{self, Dialect, IngestConfig, SchemaKind};
+use super::heads::stamp_and_frame;
+use super::skips::{DamageKind, SkipReport};
+use super::streams::Streams;
+use super::tf::TransformTree;
+use crate::decode::{DecodeError, foxglove, ros2};
+use crate::source::{ChannelInfo, McapFile, MessageRef, SourceError};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use superflow_schemas::Stamp;
+use superflow_schemas::sensor::{CameraCalibration, StampedTransform};
+
+/// How far a sensor stamp may stray from its channel's usual stamp-to-log-time offset.
+/// Recorder latency, buffering and the nuScenes converter's keyframe log times stay far
+/// below it; a sensor clock that was never synchronised (seconds since boot) or a
+/// clock jump does not.
+pub const STAMP_LOG_TOLERANCE_NANOS: i64 = 10_000_000_000;
+
+/// What the index holds of one topic, over all files of the drive.
+#[derive(Debug)]
+pub(super) struct TopicData {
+    pub channel: ChannelInfo,
+    pub kind: Option<(SchemaKind, Dialect)>,
+    pub count: u64,
+    pub frame_id: Option<String>,
+    pub frames: Vec<FrameRef>,
+    /// Log time of each of `frames`, until the stamps are checked against them.
+    pub frame_logs: Vec<u64>,
+    pub calibrations: Vec<CameraCalibration>,
+    pub first_log: u64,
+    pub last_log: u64,
+}
+
+/// The index of a drive while its files are scanned.
+struct Index {
+    topics: BTreeMap<String, TopicData>,
+    tf: TransformTree,
+    skipped: SkipReport,
+}
+
+/// A message being indexed, with where it is.
+struct Indexed<'a> {
+    /// Index of its file in the drive.
+    file: u32,
+    /// Path of its file.
+    path: &'a Path,
+    m: MessageRef<'a>,
+}
+
+impl Drive {
+    /// Indexes the files of one drive, in one pass per file.
+    pub fn open(files: &[PathBuf], config: &IngestConfig) -> Result<Drive, IngestError> {
+        Self::open_with_progress(files, config, |_, _| {})
+    }
+
+    /// [`Drive::open`], reporting `(bytes indexed, bytes of this drive)` as it goes.
+    pub fn open_with_progress(
+        files: &[PathBuf],
+        config: &IngestConfig,
+        mut progress: impl FnMut(u64, u64),
+    ) -> Result<Drive, IngestError> {
+        if files.is_empty() {
+            return Err(IngestError::NoFiles);
+        }
+        let mut index = Index {
+            topics: BTreeMap::new(),
+            tf: TransformTree::new((config.tf_tolerance_ms * 1e6) as i64),
+            skipped: SkipReport::default(),
+        };
+        let total_bytes: u64 = files
+            .iter()
+            .map(|f| std::fs::metadata(f).map_or(0, |m| m.len()))
+            .sum();
+        let mut opened: Vec<McapFile> = Vec::with_capacity(files.len());
+        for (file, path) in files.iter().enumerate() {
+            let before: u64 = opened.iter().map(McapFile::len).sum();
+            let scanned = index.scan_file(file as u32, path, |done| {
+                progress(before + done, total_bytes)
+            })?;
+            opened.push(scanned);
+        }
+        let frozen_edges = index.tf.freeze_constant_edges();
+        index.check_frames(files);
+        index.log_skips();
+        let streams = Streams::assemble(&index.topics, &index.tf, config);
+        Ok(Drive {
+            files: opened,
+            channels: streams.channels,
+            lidar: streams.lidar,
+            cameras: streams.cameras,
+            tf: index.tf,
+            frozen_edges,
+            map_frame: streams.map_frame,
+            ego_frame: streams.ego_frame,
+            skipped: index.skipped,
+            config: config.clone(),
+        })
+    }
+}
+
+impl Index {
+    /// Scans file number `file` of the drive into the index; its damage is counted as
+    /// skips.
+    fn scan_file(
+        &mut self,
+        file: u32,
+        path: &Path,
+        mut progress: impl FnMut(u64),
+    ) -> Result<McapFile, SourceError> {
+        let _span = tracing::info_span!("index", file = %path.display()).entered();
+        let scanned = McapFile::scan_with_progress(
+            path,
+            |m| self.index_message(Indexed { file, path, m }),
+            |done, _| progress(done),
+        )?;
+        tracing::debug!(
+            bytes = scanned.len(),
+            chunks_damaged = scanned.damage.len(),
+            "indexed"
+        );
+        for damage in &scanned.damage {
+            self.skipped.add(DamageKind::of(damage).as_str(), || {
+                format!("{}: {damage}", path.display())
+            });
+        }
+        Ok(scanned)
+    }
+
+    /// Drops each topic's frames whose stamp is far from its log time, then sorts them
+    /// and drops repeated stamps (counting both).
+    fn check_frames(&mut self, files: &[PathBuf]) {
+        for t in self.topics.values_mut() {
+            drop_stamps_far_from_log_time(t, files, &mut self.skipped);
+            for repeated in sort_frames(&mut t.frames) {
+                self.skipped
+                    .add(format!("repeated stamp: {}", t.channel.topic), || {
+                        format!(
+                            "{}: {} at {}: repeats the stamp of an earlier message; the first is kept",
+                            file_name(files, repeated.file),
+                            t.channel.topic,
+                            repeated.stamp
+                        )
+                    });
+            }
+        }
+    }
+
+    /// Logs every kind of skip: lost data as an error, skipped messages as a warning.
+    fn log_skips(&self) {
+        for (kind, entry) in &self.skipped.entries {
+            if DamageKind::is_data_loss(kind) {
+                tracing::error!(kind = %kind, count = entry.count, first = %entry.first, "data lost");
+            } else {
+                tracing::warn!(kind = %kind, count = entry.count, first = %entry.first, "messages skipped");
+            }
+        }
+    }
+
+    /// Counts a message on its topic and indexes what it holds: a sensor frame, a
+    /// calibration or transforms.
+    fn index_message(&mut self, msg: Indexed<'_>) {
+        let m = &msg.m;
+        let topic = self
+            .topics
+            .entry(m.channel.topic.clone())
+            .or_insert_with(|| TopicData {
+                channel: m.channel.clone(),
+                kind: discover::schema_kind(m.channel),
+                count: 0,
+                frame_id: None,
+                frames: Vec::new(),
+                frame_logs: Vec::new(),
+                calibrations: Vec::new(),
+                first_log: m.log_time,
+                last_log: m.log_time,
+            });
+        topic.count += 1;
+        topic.first_log = topic.first_log.min(m.log_time);
+        topic.last_log = topic.last_log.max(m.log_time);
+        let Some((kind, dialect)) = topic.kind else {
+            return;
+        };
+        match kind {
+            SchemaKind::PointCloud | SchemaKind::CompressedImage | SchemaKind::RawImage => {
+                topic.add_frame(&msg, kind, dialect, &mut self.skipped)
+            }
+            SchemaKind::Calibration => topic.add_calibration(&msg, dialect, &mut self.skipped),
+            SchemaKind::FrameTransform | SchemaKind::FrameTransforms | SchemaKind::TfMessage => {
+                add_transforms(&msg, kind, &mut self.tf, &mut self.skipped)
+            }
+        }
+    }
+}
+
+impl Indexed<'_> {
+    /// `file: topic at stamp`, or `file: topic (log time t)` without a stamp.
+    fn place(&self, stamp: Option<Stamp>) -> String {
+        let (path, topic) = (self.path.display(), &self.m.channel.topic);
+        match stamp {
+            Some(s) => format!("{path}: {topic} at {s}"),
+            None => format!("{path}: {topic} (log time {})", self.m.log_time),
+        }
+    }
+}
+
+impl TopicData {
+    /// Indexes a LiDAR sweep or camera frame by its sensor stamp.
+    fn add_frame(
+        &mut self,
+        msg: &Indexed<'_>,
+        kind: SchemaKind,
+        dialect: Dialect,
+        skipped: &mut SkipReport,
+    ) {
+        let topic = &msg.m.channel.topic;
+        match stamp_and_frame(kind, dialect, msg.m.data) {
+            Ok((stamp, frame_id)) if stamp.nanos() > 0 => {
+                self.frame_id.get_or_insert(frame_id);
+                self.frames.push(FrameRef {
+                    stamp,
+                    file: msg.file,
+                    loc: msg.m.loc,
+                });
+                self.frame_logs.push(msg.m.log_time);
+            }
+            Ok(_) => skipped.add(format!("zero stamp: {topic}"), || msg.place(None)),
+            Err(e) => skipped.add(format!("undecodable: {topic}"), || {
+                format!("{}: {e}", msg.place(None))
+            }),
+        }
+    }
+
+    /// Keeps a calibration unless it equals the previous one.
+    fn add_calibration(&mut self, msg: &Indexed<'_>, dialect: Dialect, skipped: &mut SkipReport) {
+        let decoded = match dialect {
+            Dialect::Ros2 => ros2::decode(msg.m.data)
+                .map_err(DecodeError::from)
+                .and_then(|c| ros2::camera_info(&c)),
+            Dialect::FoxgloveProtobuf => foxglove::decode("foxglove.CameraCalibration", msg.m.data)
+                .and_then(|c| foxglove::camera_calibration(&c)),
+        };
+        match decoded {
+            Ok(calibration) => {
+                self.frame_id.get_or_insert(calibration.frame_id.clone());
+                let same = self.calibrations.last().is_some_and(|last| {
+                    last.k == calibration.k
+                        && last.distortion == calibration.distortion
+                        && (last.width, last.height) == (calibration.width, calibration.height)
+                });
+                if !same {
+                    self.calibrations.push(calibration);
+                }
+            }
+            Err(e) => skipped.add(format!("bad calibration: {}", msg.m.channel.topic), || {
+                format!("{}: {e}", msg.place(None))
+            }),
+        }
+    }
+}
+
+/// Inserts the transforms of a `/tf` or `/tf_static` message into `tf`.
+fn add_transforms(
+    msg: &Indexed<'_>,
+    kind: SchemaKind,
+    tf: &mut TransformTree,
+    skipped: &mut SkipReport,
+) {
+    let topic = &msg.m.channel.topic;
+    let is_static = topic.ends_with("tf_static");
+    for transform in decode_transforms(kind, msg.m.data, is_static) {
+        match transform {
+            Ok(t) => {
+                let stamp = t.stamp;
+                if let Err(e) = tf.insert(t) {
+                    skipped.add(format!("rejected transform: {topic}"), || {
+                        format!("{}: {e}", msg.place(Some(stamp)))
+                    });
+                }
+            }
+            Err(e) => skipped.add(format!("bad transform: {topic}"), || {
+                format!("{}: {e}", msg.place(None))
+            }),
+        }
+    }
+}
+
+/// The transforms of a message of `kind` (a message that does not decode is one error).
+fn decode_transforms(
+    kind: SchemaKind,
+    data: &[u8],
+    is_static: bool,
+) -> Vec<Result<StampedTransform, DecodeError>> {
+    match kind {
+        SchemaKind::TfMessage => match ros2::decode::<ros2::TfMessage>(data) {
+            Ok(msg) => ros2::transforms(&msg, is_static),
+            Err(e) => vec![Err(e.into())],
+        },
+        SchemaKind::FrameTransform => {
+            vec![
+                foxglove::decode::<foxglove::FrameTransform>("foxglove.FrameTransform", data)
+                    .and_then(|t| foxglove::frame_transform(&t, is_static)),
+            ]
+        }
+        _ => {
+            match foxglove::decode::<foxglove::FrameTransforms>("foxglove.FrameTransforms", data) {
+                Ok(msg) => msg
+                    .transforms
+                    .iter()
+                    .map(|t| foxglove::frame_transform(t, is_static))
+                    .collect(),
+                Err(e) => vec![Err(e)],
+            }
+        }
+    }
+}
+
+/// Sorts a topic's frames by stamp and drops repeated stamps; returns the dropped ones.
+fn sort_frames(frames: &mut Vec<FrameRef>) -> Vec<FrameRef> {
+    frames.sort_by_key(|f| (f.stamp, f.file, f.loc));
+    let mut repeated = Vec::new();
+    let mut kept: Vec<FrameRef> = Vec::with_capacity(frames.len());
+    for f in frames.drain(..) {
+        if kept.last().is_some_and(|k| k.stamp == f.stamp) {
+            repeated.push(f);
+        } else {
+            kept.push(f);
+        }
+    }
+    *frames = kept;
+    repeated
+}
+
+fn file_name(files: &[PathBuf], file: u32) -> String {
+    files
+        .get(file as usize)
+        .map_or_else(|| "?".to_string(), |p| p.display().to_string())
+}
+
+/// Drops (and counts, as `stamp far from log time: <topic>`) the frames whose sensor
+/// stamp is more than [`STAMP_LOG_TOLERANCE_NANOS`] off the channel's median
+/// stamp-to-log-time offset. A channel whose every stamp is offset alike (a replayed bag,
+/// an unsynchronised but steady sensor clock) keeps everything.
+fn drop_stamps_far_from_log_time(t: &mut TopicData, files: &[PathBuf], skipped: &mut SkipReport) {
+    let logs = std::mem::take(&mut t.frame_logs);
+    if logs.len() != t.frames.len() || t.frames.is_empty() {
+        return;
+    }
+    let offsets: Vec<i128> = t
+        .frames
+        .iter()
+        .zip(&logs)
+        .map(|(f, log)| i128::from(f.stamp.nanos()) - i128::from(*log))
+        .collect();
+    let mut sorted = offsets.clone();
+    sorted.sort_unstable();
+    let median = sorted[sorted.len() / 2];
+    let mut keep = Vec::with_capacity(t.frames.len());
+    for ((frame, log), offset) in t.frames.iter().zip(&logs).zip(&offsets) {
+        if (offset - median).abs() <= i128::from(STAMP_LOG_TOLERANCE_NANOS) {
+            keep.push(*frame);
+            continue;
+        }
+        skipped.add(
+            format!("stamp far from log time: {}", t.channel.topic),
+            || {
+                format!(
+                    "{}: {} at {} (log time {log}): the stamp is {:.3} s off the channel's usual \
+                 stamp-to-log-time offset ({:.3} s); the message is skipped",
+                    file_name(files, frame.file),
+                    t.channel.topic,
+                    frame.stamp,
+                    (offset - median) as f64 * 1e-9,
+                    median as f64 * 1e-9,
+                )
+            },
+        );
+    }
+    t.frames = keep;
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::source::MessageLoc;
+
+    fn frame(stamp: i64, index: u32) -> FrameRef {
+        FrameRef {
+            stamp: Stamp::from_nanos(stamp),
+            file: 0,
+            loc: MessageLoc::Chunk { chunk: 0, index },
+        }
+    }
+
+    fn topic(frames: &[(i64, u64)]) -> TopicData {
+        TopicData {
+            channel: ChannelInfo {
+                id: 1,
+                topic: "/lidar".into(),
+                schema: None,
+                message_encoding: "cdr".into(),
+                metadata: BTreeMap::new(),
+            },
+            kind: None,
+            count: frames.len() as u64,
+            frame_id: None,
+            frames: frames
+                .iter()
+                .enumerate()
+                .map(|(i, (s, _))| frame(*s, i as u32))
+                .collect(),
+            frame_logs: frames.iter().map(|(_, l)| *l).collect(),
+            calibrations: Vec::new(),
+            first_log: 0,
+            last_log: 0,
+        }
+    }
+
+    #[test]
+    fn repeated_stamps_are_returned_with_where_they_are() {
+        let mut frames = vec![frame(30, 0), frame(10, 1), frame(30, 2), frame(20, 3)];
+        let repeated = sort_frames(&mut frames);
+        assert_eq!(
+            frames.iter().map(|f| f.stamp.nanos()).collect::<Vec<_>>(),
+            [10, 20, 30]
+        );
+        assert_eq!(repeated, [frame(30, 2)]);
+    }
+
+    #[test]
+    fn a_stamp_far_from_its_log_time_is_skipped_and_counted() {
+        let files = [PathBuf::from("drive.mcap")];
+        let s = 1_000_000_000i64;
+        // Latency 60 ms, one message stamped by a clock since boot, one 1 s late.
+        let mut t = topic(&[
+            (1_700_000_000 * s, (1_700_000_000 * s + 60_000_000) as u64),
+            (1_234 * s, (1_700_000_000 * s + 110_000_000) as u64),
+            (
+                1_700_000_000 * s + 100_000_000,
+                (1_700_000_000 * s + 160_000_000) as u64,
+            ),
+            (
+                1_700_000_000 * s + 150_000_000,
+                (1_700_000_001 * s + 210_000_000) as u64,
+            ),
+        ]);
+        let mut skipped = SkipReport::default();
+        drop_stamps_far_from_log_time(&mut t, &files, &mut skipped);
+        assert_eq!(t.frames.len(), 3);
+        assert!(t.frames.iter().all(|f| f.stamp.nanos() > 1_234 * s));
+        let entry = &skipped.entries["stamp far from log time: /lidar"];
+        assert_eq!(entry.count, 1);
+        assert!(
+            entry.first.contains("drive.mcap: /lidar at ")
+                && entry.first.contains("off the channel's usual"),
+            "{}",
+            entry.first
+        );
+    }
+
+    #[test]
+    fn a_steady_offset_between_stamps_and_log_times_is_kept() {
+        // A replayed bag: stamps from the original drive, log times from today.
+        let files = [PathBuf::from("replay.mcap")];
+        let mut t = topic(&[
+            (1_500_000_000_000_000_000, 1_700_000_000_000_000_000),
+            (1_500_000_000_100_000_000, 1_700_000_000_100_000_000),
+        ]);
+        let mut skipped = SkipReport::default();
+        drop_stamps_far_from_log_time(&mut t, &files, &mut skipped);
+        assert_eq!(t.frames.len(), 2);
+        assert_eq!(skipped.total(), 0);
+    }
+}

@@ -1,0 +1,98 @@
+//! Finding the files of each drive among the inputs: `.mcap` files, directories of them,
+//! rosbag2 directories (one drive in parts) and sidecars (`<name>.<tag>.mcap` joining the
+//! drive of `<name>.mcap`).
+
+use super::dataset::IngestError;
+use std::path::{Path, PathBuf};
+
+/// Groups the inputs into drives: a rosbag2 directory (it holds `metadata.yaml`) is one
+/// drive made of its `.mcap` files in name order; any other directory contributes each
+/// of its `.mcap` files as a drive of its own; a file is a drive. A sidecar —
+/// `<name>.<tag>.mcap` next to `<name>.mcap`, e.g. `drive.superpixels.mcap` with class
+/// maps computed offline — joins the drive of `<name>.mcap` (found next to it even when
+/// only the drive is named) instead of being a drive of its own.
+pub fn drive_groups(inputs: &[PathBuf]) -> Result<Vec<Vec<PathBuf>>, IngestError> {
+    let mut groups: Vec<Vec<PathBuf>> = Vec::new();
+    for input in inputs {
+        let files = mcap_files(std::slice::from_ref(input))?;
+        if input.is_dir() && input.join("metadata.yaml").is_file() {
+            groups.push(files);
+        } else {
+            for file in files {
+                if sidecar_base(&file).is_some_and(|base| base.is_file()) {
+                    continue; // joins its base drive below
+                }
+                let mut group = vec![file.clone()];
+                group.extend(sidecars_of(&file));
+                groups.push(group);
+            }
+        }
+    }
+    for group in &mut groups {
+        let mut seen = std::collections::BTreeSet::new();
+        group.retain(|f| seen.insert(f.clone()));
+    }
+    Ok(groups)
+}
+
+/// `dir/<name>.mcap` for a sidecar `dir/<name>.<tag>.mcap`.
+fn sidecar_base(file: &Path) -> Option<PathBuf> {
+    let stem = file.file_stem()?.to_str()?; // <name>.<tag>
+    let (name, tag) = stem.rsplit_once('.')?;
+    (!name.is_empty() && !tag.is_empty()).then(|| file.with_file_name(format!("{name}.mcap")))
+}
+
+/// Sidecars next to `file` (`<stem>.<tag>.mcap`), in name order.
+fn sidecars_of(file: &Path) -> Vec<PathBuf> {
+    let (Some(dir), Some(stem)) = (file.parent(), file.file_stem().and_then(|s| s.to_str())) else {
+        return Vec::new();
+    };
+    let dir = if dir.as_os_str().is_empty() {
+        Path::new(".")
+    } else {
+        dir
+    };
+    let prefix = format!("{stem}.");
+    let mut found: Vec<PathBuf> = std::fs::read_dir(dir)
+        .map(|entries| {
+            entries
+                .filter_map(|e| e.ok().map(|e| e.path()))
+                .filter(|p| {
+                    p.extension().is_some_and(|e| e == "mcap")
+                        && p.file_name()
+                            .and_then(|n| n.to_str())
+                            .is_some_and(|n| n.starts_with(&prefix) && n.len() > prefix.len() + 5)
+                })
+                .map(|p| file.with_file_name(p.file_name().unwrap_or_default()))
+                .collect()
+        })
+        .unwrap_or_default();
+    found.sort();
+    found
+}
+
+/// All `.mcap` files named or inside the named directories, sorted per directory.
+pub fn mcap_files(inputs: &[PathBuf]) -> Result<Vec<PathBuf>, IngestError> {
+    let mut files = Vec::new();
+    for input in inputs {
+        if input.is_dir() {
+            let io = |source| IngestError::Io {
+                path: input.clone(),
+                source,
+            };
+            let mut found: Vec<PathBuf> = std::fs::read_dir(input)
+                .map_err(io)?
+                .filter_map(|e| e.ok().map(|e| e.path()))
+                .filter(|p| p.extension().is_some_and(|e| e == "mcap"))
+                .collect();
+            found.sort();
+            files.extend(found);
+        } else {
+            files.push(input.clone());
+        }
+    }
+    if files.is_empty() {
+        return Err(IngestError::NoFiles);
+    }
+    Ok(files)
+}

@@ -1,0 +1,171 @@
+//! From the indexed topics to the drive's streams: the role of every channel, the channel
+//! summaries, the LiDAR, the cameras (with their calibration and class maps) and the ego
+//! and map frames.
+
+use super::dataset::{CameraStream, ChannelSummary, LidarStream};
+use super::discover::{self, IngestConfig, Role};
+use super::index::TopicData;
+use super::tf::TransformTree;
+use crate::source::ChannelInfo;
+use std::collections::BTreeMap;
+
+/// Ego frames tried, in order, when the configuration names none.
+pub(super) const EGO_FRAMES: [&str; 5] = [
+    "base_link",
+    "ego",
+    "ego_vehicle",
+    "vehicle",
+    "base_footprint",
+];
+
+/// The streams of a drive, assembled from its index.
+pub(super) struct Streams {
+    pub channels: Vec<ChannelSummary>,
+    pub lidar: Option<LidarStream>,
+    pub cameras: Vec<CameraStream>,
+    pub ego_frame: Option<String>,
+    pub map_frame: Option<String>,
+}
+
+/// The indexed topics with the role of each.
+struct Roles<'a> {
+    topics: &'a BTreeMap<String, TopicData>,
+    roles: Vec<(String, Role)>,
+}
+
+impl Streams {
+    /// Assigns roles to the channels of `topics` and builds the streams.
+    pub fn assemble(
+        topics: &BTreeMap<String, TopicData>,
+        tf: &TransformTree,
+        config: &IngestConfig,
+    ) -> Streams {
+        let channels: Vec<&ChannelInfo> = topics.values().map(|t| &t.channel).collect();
+        let counts = |topic: &str| topics.get(topic).map_or(0, |t| t.count);
+        let roles = Roles {
+            topics,
+            roles: discover::assign_roles(&channels, &counts, config),
+        };
+        let ego_frame = config.ego_frame.clone().or_else(|| {
+            EGO_FRAMES
+                .iter()
+                .find(|f| tf.contains(f))
+                .map(|f| f.to_string())
+        });
+        let map_frame = config
+            .map_frame
+            .clone()
+            .or_else(|| ego_frame.as_deref().and_then(|e| tf.root_of(e).ok()));
+        Streams {
+            channels: roles.channel_summaries(),
+            lidar: roles.lidar(),
+            cameras: roles.cameras(),
+            ego_frame,
+            map_frame,
+        }
+    }
+}
+
+impl Roles<'_> {
+    fn of(&self, topic: &str) -> Role {
+        self.roles
+            .iter()
+            .find(|(t, _)| t == topic)
+            .map_or(Role::Ignored("unknown".into()), |(_, r)| r.clone())
+    }
+
+    /// The topics of role `role`.
+    fn with(&self, role: Role) -> impl Iterator<Item = &TopicData> {
+        self.topics
+            .values()
+            .filter(move |t| self.of(&t.channel.topic) == role)
+    }
+
+    fn channel_summaries(&self) -> Vec<ChannelSummary> {
+        self.topics
+            .values()
+            .map(|t| {
+                let span_nanos = match (t.frames.first(), t.frames.last()) {
+                    (Some(a), Some(b)) if t.frames.len() > 1 => b.stamp.nanos_since(a.stamp),
+                    _ => t.last_log.saturating_sub(t.first_log) as i64,
+                };
+                ChannelSummary {
+                    topic: t.channel.topic.clone(),
+                    role: self.of(&t.channel.topic),
+                    schema: t.channel.schema_name().to_string(),
+                    schema_encoding: t
+                        .channel
+                        .schema
+                        .as_ref()
+                        .map_or(String::new(), |s| s.encoding.clone()),
+                    message_encoding: t.channel.message_encoding.clone(),
+                    message_count: t.count,
+                    rate_hz: (span_nanos > 0 && t.count > 1)
+                        .then(|| (t.count - 1) as f64 / (span_nanos as f64 * 1e-9)),
+                }
+            })
+            .collect()
+    }
+
+    /// The LiDAR: the last decodable topic of role LiDAR.
+    fn lidar(&self) -> Option<LidarStream> {
+        self.with(Role::Lidar)
+            .filter_map(|t| {
+                let (_, dialect) = t.kind?;
+                Some(LidarStream {
+                    topic: t.channel.topic.clone(),
+                    frame_id: t.frame_id.clone().unwrap_or_default(),
+                    dialect,
+                    sweeps: t.frames.clone(),
+                })
+            })
+            .last()
+    }
+
+    /// Every camera, sorted by name.
+    fn cameras(&self) -> Vec<CameraStream> {
+        let mut cameras: Vec<CameraStream> = self
+            .with(Role::Image)
+            .filter_map(|t| self.camera(t))
+            .collect();
+        cameras.sort_by(|a, b| a.name.cmp(&b.name));
+        cameras
+    }
+
+    /// The camera of image topic `t`, with the calibration of its namespace (else of its
+    /// frame) and the class maps of its namespace.
+    fn camera(&self, t: &TopicData) -> Option<CameraStream> {
+        let (image_kind, dialect) = t.kind?;
+        let namespace = discover::camera_namespace(&t.channel.topic);
+        let frame_id = t.frame_id.clone().unwrap_or_default();
+        let in_namespace =
+            |c: &&TopicData| discover::camera_namespace(&c.channel.topic) == namespace;
+        let calibration = self.with(Role::Calibration).find(in_namespace).or_else(|| {
+            self.with(Role::Calibration).find(|c| {
+                c.calibrations
+                    .first()
+                    .is_some_and(|k| k.frame_id == frame_id)
+            })
+        });
+        let superpixels = self.with(Role::Superpixels).find(in_namespace);
+        Some(CameraStream {
+            name: namespace
+                .rsplit('/')
+                .next()
+                .unwrap_or(namespace)
+                .to_string(),
+            image_topic: t.channel.topic.clone(),
+            image_kind,
+            dialect,
+            frame_id,
+            calibration_topic: calibration.map(|c| c.channel.topic.clone()),
+            calibrations: calibration
+                .map(|c| c.calibrations.clone())
+                .unwrap_or_default(),
+            frames: t.frames.clone(),
+            superpixel_topic: superpixels.map(|s| s.channel.topic.clone()),
+            superpixel_kind: superpixels.and_then(|s| s.kind.map(|k| k.0)),
+            superpixels: superpixels.map(|s| s.frames.clone()).unwrap_or_default(),
+        })
+    }
+}

@@ -1,0 +1,314 @@
+//! Tests of the MCAP reader: round trips, truncations, and the damaged files the fuzz
+//! target `mcap_drive` found.
+
+use super::*;
+use mcap::records::{self, op};
+use std::collections::BTreeMap;
+use std::io::Cursor;
+
+/// Writes `n` messages on two channels; chunked or not.
+fn sample_file(chunked: bool, n: u32) -> Vec<u8> {
+    let options = mcap::WriteOptions::new()
+        .use_chunks(chunked)
+        .chunk_size(Some(64))
+        .compression(Some(mcap::Compression::Zstd));
+    let mut writer = options.create(Cursor::new(Vec::new())).unwrap();
+    let schema = writer.add_schema("test.Msg", "raw", b"bytes").unwrap();
+    let a = writer
+        .add_channel(schema, "/a", "raw", &BTreeMap::new())
+        .unwrap();
+    let b = writer
+        .add_channel(schema, "/b", "raw", &BTreeMap::new())
+        .unwrap();
+    for i in 0..n {
+        let channel_id = if i % 3 == 0 { b } else { a };
+        let header = records::MessageHeader {
+            channel_id,
+            sequence: i,
+            log_time: 1_000 + u64::from(i),
+            publish_time: 1_000 + u64::from(i),
+        };
+        writer
+            .write_to_known_channel(&header, format!("message {i}").as_bytes())
+            .unwrap();
+    }
+    writer.finish().unwrap();
+    writer.into_inner().into_inner()
+}
+
+/// Topic, log time, payload and location of a scanned message.
+type Seen = (String, u64, Vec<u8>, MessageLoc);
+
+/// Scans a file whose only chunk (right after the magic) is damaged: no message
+/// comes out and the chunk is reported bad at byte 8.
+fn scan_rejects_the_chunk(name: &str, bytes: &[u8]) {
+    let (file, seen) = scan_bytes(name, bytes);
+    assert!(seen.is_empty());
+    assert!(
+        file.damage
+            .iter()
+            .any(|d| matches!(d, Damage::BadChunk { offset: 8, .. })),
+        "{:?}",
+        file.damage
+    );
+}
+
+fn scan_bytes(name: &str, bytes: &[u8]) -> (McapFile, Vec<Seen>) {
+    let dir = std::env::temp_dir().join(format!("superflow-source-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join(name);
+    std::fs::write(&path, bytes).unwrap();
+    let mut seen = Vec::new();
+    let file = McapFile::scan(&path, |m| {
+        seen.push((m.channel.topic.clone(), m.log_time, m.data.to_vec(), m.loc))
+    })
+    .unwrap();
+    (file, seen)
+}
+
+#[test]
+fn scans_and_reads_back_chunked_and_unchunked_files() {
+    for chunked in [true, false] {
+        let (file, seen) = scan_bytes(&format!("plain_{chunked}.mcap"), &sample_file(chunked, 30));
+        assert!(file.damage.is_empty(), "{:?}", file.damage);
+        assert_eq!(seen.len(), 30);
+        assert_eq!(seen[4].0, "/a");
+        assert_eq!(seen[6].0, "/b");
+        assert_eq!(seen[7].2, b"message 7");
+        let counts: Vec<u64> = file.message_counts.values().copied().collect();
+        assert_eq!(counts, [20, 10]);
+        // Random access in reverse order through a one-chunk cache.
+        let mut cache = ChunkCache::new(1);
+        for (topic, log_time, data, loc) in seen.iter().rev() {
+            let m = file.read_message(*loc, &mut cache).unwrap();
+            assert_eq!(
+                (&m.channel.topic, m.log_time, m.data),
+                (topic, *log_time, &data[..])
+            );
+            assert_eq!(matches!(loc, MessageLoc::Chunk { .. }), chunked);
+        }
+        assert!(cache.entries.len() <= 1);
+        let missing = MessageLoc::Chunk {
+            chunk: 999,
+            index: 0,
+        };
+        assert!(file.read_message(missing, &mut cache).is_err());
+    }
+}
+
+/// A zstd frame holding `content` in one stored (raw) block.
+fn zstd_stored(content: &[u8]) -> Vec<u8> {
+    let size = u8::try_from(content.len()).unwrap();
+    // Magic, single-segment frame with a 1-byte content size, then the block header:
+    // last block, type raw, its size.
+    let mut frame = vec![0x28, 0xb5, 0x2f, 0xfd, 0x20, size];
+    let block = (u32::from(size) << 3) | 1;
+    frame.extend_from_slice(&block.to_le_bytes()[..3]);
+    frame.extend_from_slice(content);
+    frame
+}
+
+/// A chunk record (opcode, length, body) around `compressed` data.
+fn chunk_record(compression: &str, uncompressed_size: u64, compressed: &[u8]) -> Vec<u8> {
+    padded_chunk_record(compression, uncompressed_size, compressed, 0)
+}
+
+/// [`chunk_record`] with `padding` zero bytes after the compressed data.
+fn padded_chunk_record(
+    compression: &str,
+    uncompressed_size: u64,
+    compressed: &[u8],
+    padding: usize,
+) -> Vec<u8> {
+    let mut body = Vec::new();
+    body.extend_from_slice(&0u64.to_le_bytes()); // message start time
+    body.extend_from_slice(&0u64.to_le_bytes()); // message end time
+    body.extend_from_slice(&uncompressed_size.to_le_bytes());
+    body.extend_from_slice(&0u32.to_le_bytes()); // CRC: not checked
+    body.extend_from_slice(&(compression.len() as u32).to_le_bytes());
+    body.extend_from_slice(compression.as_bytes());
+    body.extend_from_slice(&(compressed.len() as u64).to_le_bytes());
+    body.extend_from_slice(compressed);
+    body.resize(body.len() + padding, 0);
+    let mut record = vec![op::CHUNK];
+    record.extend_from_slice(&(body.len() as u64).to_le_bytes());
+    record.extend_from_slice(&body);
+    record
+}
+
+/// Found by the `mcap_drive` fuzz target: a record inside a compressed chunk that
+/// declares an absurd length made mcap's chunk reader allocate that many bytes
+/// before decompressing (the process aborted). Now the chunk is reported as bad.
+#[test]
+fn a_huge_record_length_inside_a_compressed_chunk_is_a_bad_chunk() {
+    let mut content = vec![op::MESSAGE];
+    content.extend_from_slice(&0x6161_6161_6161_6161u64.to_le_bytes());
+    content.extend_from_slice(b"the rest of the chunk");
+    for uncompressed_size in [content.len() as u64, MAX_RECORD_BYTES] {
+        let mut bytes = MAGIC.to_vec();
+        bytes.extend(chunk_record(
+            "zstd",
+            uncompressed_size,
+            &zstd_stored(&content),
+        ));
+        scan_rejects_the_chunk("huge_record_in_chunk.mcap", &bytes);
+    }
+    // The same chunk holding a well-formed record (a schema) still reads.
+    let schema = b"\x01\x00\x01\x00\x00\x00s\x03\x00\x00\x00raw\x00\x00\x00\x00";
+    let mut content = vec![op::SCHEMA];
+    content.extend_from_slice(&(schema.len() as u64).to_le_bytes());
+    content.extend_from_slice(schema);
+    let mut bytes = MAGIC.to_vec();
+    bytes.extend(chunk_record(
+        "zstd",
+        content.len() as u64,
+        &zstd_stored(&content),
+    ));
+    let (file, _) = scan_bytes("sane_chunk.mcap", &bytes);
+    assert_eq!(file.chunks.len(), 1);
+    assert!(
+        !file
+            .damage
+            .iter()
+            .any(|d| matches!(d, Damage::BadChunk { .. })),
+        "{:?}",
+        file.damage
+    );
+    assert_eq!(file.schemas.get(&1).map(|s| s.name.as_str()), Some("s"));
+}
+
+/// Found by the `mcap_drive` fuzz target: a record of an uncompressed chunk longer
+/// than what remains of the chunk made mcap's reader overflow a subtraction (a panic
+/// in debug builds). Now the chunk is reported as bad.
+#[test]
+fn a_record_running_past_an_uncompressed_chunk_is_a_bad_chunk() {
+    // A record claiming 100 bytes where 5 remain.
+    let mut overlong = vec![op::MESSAGE];
+    overlong.extend_from_slice(&100u64.to_le_bytes());
+    overlong.extend_from_slice(b"short");
+    // An empty record, then 3 stray bytes.
+    let mut stray = vec![op::MESSAGE];
+    stray.extend_from_slice(&0u64.to_le_bytes());
+    stray.extend_from_slice(&[op::MESSAGE, 1, 0]);
+    for chunk in [overlong, stray] {
+        let mut bytes = MAGIC.to_vec();
+        // Padding after the records, as a writer may leave: the overlong record
+        // would reach into it.
+        bytes.extend(padded_chunk_record("", chunk.len() as u64, &chunk, 128));
+        scan_rejects_the_chunk("record_past_chunk.mcap", &bytes);
+    }
+}
+
+/// Found by the `mcap_drive` fuzz target: a summary whose chunk index points past
+/// the end of the file made the scan resume there after a corrupt record and
+/// underflow `len - pos` (a panic in debug builds). Such offsets are ignored now.
+#[test]
+fn a_chunk_index_past_the_end_of_the_file_is_ignored() {
+    let bytes = sample_file(true, 12);
+    let (file, _) = scan_bytes("index_past_end.mcap", &bytes);
+    assert!(file.damage.is_empty(), "{:?}", file.damage);
+    // Point every chunk index entry (chunk_start_offset follows the two 8-byte
+    // times) far past the end, and corrupt the first chunk record so that the scan
+    // looks for a place to resume.
+    let mut corrupt = bytes.clone();
+    let first_chunk = file.chunks[0].offset as usize;
+    let summary_start = file
+        .chunks
+        .last()
+        .map_or(0, |c| (c.offset + c.record_len) as usize);
+    let mut at = summary_start;
+    while at + 9 <= corrupt.len() {
+        let opcode = corrupt[at];
+        let len = u64::from_le_bytes(corrupt[at + 1..at + 9].try_into().unwrap()) as usize;
+        if opcode == op::CHUNK_INDEX {
+            let offset = at + 9 + 16;
+            corrupt[offset..offset + 8].copy_from_slice(&(u64::MAX - 4).to_le_bytes());
+        }
+        if opcode == op::FOOTER {
+            // No summary CRC: the edited summary must still be read.
+            corrupt[at + 9 + 16..at + 9 + 20].fill(0);
+            break;
+        }
+        at += 9 + len;
+    }
+    corrupt[first_chunk] = 0xee;
+    let (file, _) = scan_bytes("index_past_end.mcap", &corrupt);
+    assert!(
+        file.damage.iter().any(
+            |d| matches!(d, Damage::BadRecord { offset, .. } if *offset == first_chunk as u64)
+        ),
+        "{:?}",
+        file.damage
+    );
+}
+
+/// Found by the `mcap_drive` fuzz target: an uncompressed chunk in the summary
+/// section, holding a record longer than the chunk, made mcap's `SummaryReader`
+/// overflow a subtraction (a panic in debug builds). A summary with a record of a
+/// kind that does not belong there, or one running past the section, is now no
+/// usable summary (named with its byte offset) and the file is scanned linearly.
+#[test]
+fn a_malformed_summary_section_is_no_summary() {
+    let bytes = sample_file(false, 6);
+    let footer_start = bytes.len() - 37;
+    assert_eq!(bytes[footer_start], op::FOOTER);
+    let summary_start = u64::from_le_bytes(
+        bytes[footer_start + 9..footer_start + 17]
+            .try_into()
+            .unwrap(),
+    );
+    // A chunk whose one record claims 100 bytes where 5 remain (padding after it:
+    // mcap would read on into it).
+    let mut overlong = vec![op::MESSAGE];
+    overlong.extend_from_slice(&100u64.to_le_bytes());
+    overlong.extend_from_slice(b"short");
+    let chunk = padded_chunk_record("", overlong.len() as u64, &overlong, 128);
+    // A schema record running past the summary section into the footer.
+    let mut schema = vec![op::SCHEMA];
+    schema.extend_from_slice(&1000u64.to_le_bytes());
+    schema.extend_from_slice(b"short");
+    for (summary, what) in [(chunk, "opcode 0x06"), (schema, "runs past the end")] {
+        let mut corrupt = bytes[..summary_start as usize].to_vec();
+        corrupt.extend_from_slice(&summary);
+        corrupt.push(op::FOOTER);
+        corrupt.extend_from_slice(&20u64.to_le_bytes());
+        corrupt.extend_from_slice(&summary_start.to_le_bytes());
+        corrupt.extend_from_slice(&0u64.to_le_bytes()); // no summary offsets
+        corrupt.extend_from_slice(&0u32.to_le_bytes()); // no summary CRC
+        corrupt.extend_from_slice(MAGIC);
+        let (file, seen) = scan_bytes("malformed_summary.mcap", &corrupt);
+        assert_eq!(seen.len(), 6, "{:?}", file.damage);
+        assert!(
+            file.damage.iter().any(|d| matches!(
+                d,
+                Damage::NoSummary { reason }
+                    if reason.contains(&format!("byte {summary_start}")) && reason.contains(what)
+            )),
+            "{:?}",
+            file.damage
+        );
+    }
+}
+
+#[test]
+fn every_truncation_is_a_report_not_a_panic() {
+    let bytes = sample_file(true, 12);
+    for cut in (0..bytes.len()).step_by(7) {
+        let dir = std::env::temp_dir().join(format!("superflow-cut-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("cut.mcap");
+        std::fs::write(&path, &bytes[..cut]).unwrap();
+        let mut n = 0;
+        match McapFile::scan(&path, |_| n += 1) {
+            Ok(file) => {
+                assert!(n <= 12);
+                assert!(
+                    !file.damage.is_empty(),
+                    "a cut file at {cut} must report damage"
+                );
+            }
+            Err(SourceError::NotMcap { .. }) => assert!(cut < 8),
+            Err(e) => panic!("unexpected error at {cut}: {e}"),
+        }
+    }
+}
