@@ -2,8 +2,12 @@
 //! their calibration and, when recorded, a per-pixel class map), where the transforms
 //! are — decided from schema names, encodings and topic structure, never from fixed
 //! topic names. [`IngestConfig`] overrides any choice by topic.
+//!
+//! The schema recognition it starts from ([`schema_kind`]: [`SchemaKind`] and
+//! [`Dialect`]) lives in [`crate::decode::schema`], below the decoders; it is re-exported
+//! here.
 
-use crate::decode::ros2;
+pub use crate::decode::schema::{Dialect, SchemaKind, schema_kind};
 use crate::source::ChannelInfo;
 use serde::{Deserialize, Serialize};
 
@@ -70,65 +74,6 @@ impl Role {
             Role::Ignored(_) => "ignored",
         }
     }
-}
-
-/// The sensor kind a schema carries.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum SchemaKind {
-    /// `foxglove.PointCloud` or `sensor_msgs/msg/PointCloud2`.
-    PointCloud,
-    /// `foxglove.CompressedImage` or `sensor_msgs/msg/CompressedImage`.
-    CompressedImage,
-    /// `foxglove.RawImage` or `sensor_msgs/msg/Image`.
-    RawImage,
-    /// `foxglove.CameraCalibration` or `sensor_msgs/msg/CameraInfo`.
-    Calibration,
-    /// `foxglove.FrameTransform`.
-    FrameTransform,
-    /// `foxglove.FrameTransforms`.
-    FrameTransforms,
-    /// `tf2_msgs/msg/TFMessage`.
-    TfMessage,
-}
-
-/// The dialect of a channel's encoding.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Dialect {
-    /// Foxglove protobuf schemas.
-    FoxgloveProtobuf,
-    /// ROS 2 (`ros2msg` + CDR).
-    Ros2,
-}
-
-/// Recognizes a channel's schema (name and encodings); `None` for anything else.
-pub fn schema_kind(channel: &ChannelInfo) -> Option<(SchemaKind, Dialect)> {
-    let name = channel.schema_name();
-    let protobuf = channel.message_encoding == "protobuf";
-    let cdr = channel.message_encoding == ros2::MESSAGE_ENCODING;
-    let kind = match name {
-        "foxglove.PointCloud" if protobuf => (SchemaKind::PointCloud, Dialect::FoxgloveProtobuf),
-        "foxglove.CompressedImage" if protobuf => {
-            (SchemaKind::CompressedImage, Dialect::FoxgloveProtobuf)
-        }
-        "foxglove.RawImage" if protobuf => (SchemaKind::RawImage, Dialect::FoxgloveProtobuf),
-        "foxglove.CameraCalibration" if protobuf => {
-            (SchemaKind::Calibration, Dialect::FoxgloveProtobuf)
-        }
-        "foxglove.FrameTransform" if protobuf => {
-            (SchemaKind::FrameTransform, Dialect::FoxgloveProtobuf)
-        }
-        "foxglove.FrameTransforms" if protobuf => {
-            (SchemaKind::FrameTransforms, Dialect::FoxgloveProtobuf)
-        }
-        ros2::POINT_CLOUD2 if cdr => (SchemaKind::PointCloud, Dialect::Ros2),
-        ros2::COMPRESSED_IMAGE if cdr => (SchemaKind::CompressedImage, Dialect::Ros2),
-        ros2::IMAGE if cdr => (SchemaKind::RawImage, Dialect::Ros2),
-        ros2::CAMERA_INFO if cdr => (SchemaKind::Calibration, Dialect::Ros2),
-        ros2::TF_MESSAGE if cdr => (SchemaKind::TfMessage, Dialect::Ros2),
-        _ => return None,
-    };
-    Some(kind)
 }
 
 /// Trailing topic segments that name an image stream rather than a camera.

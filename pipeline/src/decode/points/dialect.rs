@@ -1,0 +1,177 @@
+//! The per-dialect entry points: ROS 2 `PointCloud2` (row geometry, endianness),
+//! `foxglove.PointCloud` (stride, pose) and MCAP messages dispatched on their schema.
+
+use super::layout::PointLayout;
+use super::read::{Grid, decode_core};
+use super::time::TimeFieldSpec;
+use super::{DecodedCloud, PointsError};
+use crate::decode::DecodeError;
+use crate::decode::context::Ctx;
+use crate::decode::foxglove as fox;
+use crate::decode::ros2::{self, PointCloud2};
+use crate::decode::schema::{Dialect, SchemaKind, schema_kind};
+use crate::source::MessageRef;
+
+/// Schema name of `foxglove.PointCloud`.
+const FOXGLOVE_SCHEMA: &str = "foxglove.PointCloud";
+
+/// Decodes a ROS 2 `sensor_msgs/msg/PointCloud2` (see the module documentation for the
+/// fields read and the time inference that `time` overrides).
+pub fn decode_ros2(
+    msg: &PointCloud2,
+    time: Option<&TimeFieldSpec>,
+) -> Result<DecodedCloud, PointsError> {
+    let ctx = Ctx::ros2(&msg.header);
+    let layout = PointLayout::from_ros2(msg, time)?;
+    let grid = ros2_grid(&ctx, msg)?;
+    decode_core(&ctx, &layout, &msg.data, grid)
+}
+
+/// Decodes a `foxglove.PointCloud` (little-endian; see the module documentation for the
+/// fields read, the time inference that `time` overrides and how `pose` is applied).
+pub fn decode_foxglove(
+    msg: &fox::PointCloud,
+    time: Option<&TimeFieldSpec>,
+) -> Result<DecodedCloud, PointsError> {
+    let ctx = foxglove_ctx(msg)?;
+    let layout = PointLayout::from_foxglove(msg, time)?;
+    let grid = foxglove_grid(&ctx, msg)?;
+    let pose = foxglove_pose(&ctx, msg)?;
+    let mut decoded = decode_core(&ctx, &layout, &msg.data, grid)?;
+    if let Some(frame_from_cloud) = pose {
+        for p in &mut decoded.cloud.xyz {
+            let q = frame_from_cloud
+                * nalgebra::Point3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+            *p = [q.x as f32, q.y as f32, q.z as f32];
+        }
+    }
+    Ok(decoded)
+}
+
+/// Decodes an MCAP message of a point-cloud channel (`sensor_msgs/msg/PointCloud2` in
+/// CDR, or `foxglove.PointCloud` in protobuf) with [`decode_ros2`] or
+/// [`decode_foxglove`].
+pub fn decode_message(
+    msg: &MessageRef<'_>,
+    time: Option<&TimeFieldSpec>,
+) -> Result<DecodedCloud, PointsError> {
+    let channel = msg.channel;
+    let undecodable = |source: DecodeError| PointsError::Message {
+        topic: channel.topic.clone(),
+        source: Box::new(source),
+    };
+    match schema_kind(channel) {
+        Some((SchemaKind::PointCloud, Dialect::Ros2)) => {
+            let cloud: PointCloud2 =
+                ros2::decode(msg.data).map_err(|e| undecodable(DecodeError::from(e)))?;
+            decode_ros2(&cloud, time)
+        }
+        Some((SchemaKind::PointCloud, Dialect::FoxgloveProtobuf)) => {
+            let cloud: fox::PointCloud =
+                fox::decode(FOXGLOVE_SCHEMA, msg.data).map_err(undecodable)?;
+            decode_foxglove(&cloud, time)
+        }
+        _ => Err(PointsError::NotAPointCloud {
+            topic: channel.topic.clone(),
+            schema: channel.schema_name().to_string(),
+            encoding: channel.message_encoding.clone(),
+        }),
+    }
+}
+
+/// The context of a Foxglove cloud: its frame and stamp (an error without a timestamp).
+pub(super) fn foxglove_ctx(msg: &fox::PointCloud) -> Result<Ctx<'_>, PointsError> {
+    Ctx::foxglove(msg).map_err(|_| PointsError::MissingTimestamp {
+        frame_id: msg.frame_id.clone(),
+    })
+}
+
+/// The grid of a Foxglove cloud: one row of `data.len() / point_stride` points.
+fn foxglove_grid(ctx: &Ctx<'_>, msg: &fox::PointCloud) -> Result<Grid, PointsError> {
+    let data: &[u8] = &msg.data;
+    let stride = msg.point_stride as usize;
+    // The layout has a coordinate inside every point, so the stride is at least 1.
+    if stride == 0 || !data.len().is_multiple_of(stride) {
+        return Err(PointsError::NotMultipleOfStride {
+            frame_id: ctx.id(),
+            stamp: ctx.stamp,
+            got: data.len(),
+            point_stride: msg.point_stride,
+        });
+    }
+    Ok(Grid {
+        rows: 1,
+        width: data.len() / stride,
+        row_step: data.len(),
+    })
+}
+
+/// The grid of a ROS cloud, checked against its data.
+fn ros2_grid(ctx: &Ctx<'_>, msg: &PointCloud2) -> Result<Grid, PointsError> {
+    let row_len = u64::from(msg.width) * u64::from(msg.point_step);
+    let row_step = if msg.row_step == 0 {
+        row_len
+    } else {
+        u64::from(msg.row_step)
+    };
+    if row_step < row_len {
+        return Err(PointsError::RowStepTooShort {
+            frame_id: ctx.frame_id.to_string(),
+            stamp: ctx.stamp,
+            row_step: msg.row_step,
+            width: msg.width,
+            point_step: msg.point_step,
+        });
+    }
+    let height = u64::from(msg.height);
+    let full = row_step * height;
+    // The last row's padding may be left out.
+    let trimmed = full - if height > 0 { row_step - row_len } else { 0 };
+    let got = msg.data.len() as u64;
+    if got != full && got != trimmed {
+        return Err(PointsError::DataLength {
+            frame_id: ctx.frame_id.to_string(),
+            stamp: ctx.stamp,
+            got: msg.data.len(),
+            expected: full,
+            width: msg.width,
+            height: msg.height,
+            point_step: msg.point_step,
+            row_step: msg.row_step,
+        });
+    }
+    // Every product is now at most `data.len()`, so it fits; a zero-width grid has no
+    // rows to visit.
+    Ok(Grid {
+        rows: if msg.width == 0 {
+            0
+        } else {
+            msg.height as usize
+        },
+        width: msg.width as usize,
+        row_step: row_step as usize,
+    })
+}
+
+/// `frame_id_from_cloud` of a Foxglove cloud; `None` when absent or the identity.
+fn foxglove_pose(
+    ctx: &Ctx<'_>,
+    msg: &fox::PointCloud,
+) -> Result<Option<nalgebra::Isometry3<f64>>, PointsError> {
+    let Some(pose) = msg.pose else {
+        return Ok(None);
+    };
+    let t = pose.position.unwrap_or_default();
+    let q = pose
+        .orientation
+        .map_or([0.0, 0.0, 0.0, 1.0], |q| [q.x, q.y, q.z, q.w]);
+    let iso = crate::decode::isometry(ctx.stamp, ctx.frame_id, "cloud origin", [t.x, t.y, t.z], q)
+        .map_err(|e| PointsError::BadPose {
+            frame_id: ctx.frame_id.to_string(),
+            stamp: ctx.stamp,
+            reason: e.to_string(),
+        })?;
+    let identity =
+        iso.translation.vector == nalgebra::Vector3::zeros() && iso.rotation.angle() == 0.0;
+    Ok((!identity).then_some(iso))
+}

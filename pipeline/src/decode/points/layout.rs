@@ -1,0 +1,391 @@
+//! Field layouts: the element types of both numbering schemes ([`NumericType`]), how one
+//! field is read ([`FieldPlan`]), and the per-message decoding plan ([`PointLayout`])
+//! built from a ROS 2 or Foxglove field list and checked against the point size.
+
+use super::PointsError;
+use super::time::{TIME_NAMES, TimeFieldSpec, TimePlan, TimeReference, TimeRule, TimeUnit};
+use crate::decode::context::Ctx;
+use crate::decode::foxglove as fox;
+use crate::decode::ros2::PointCloud2;
+
+/// Names of the intensity field, in order of preference.
+const INTENSITY_NAMES: [&str; 2] = ["intensity", "i"];
+/// Name of the intensity fallback, used only when no [`INTENSITY_NAMES`] field exists.
+const INTENSITY_FALLBACK: &str = "reflectivity";
+/// Names of the ring (beam index) field, in order of preference.
+const RING_NAMES: [&str; 4] = ["ring", "channel", "laser_id", "line"];
+
+/// Element type of a field, independent of the dialect's numbering.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum NumericType {
+    /// `i8`.
+    Int8,
+    /// `u8`.
+    Uint8,
+    /// `i16`.
+    Int16,
+    /// `u16`.
+    Uint16,
+    /// `i32`.
+    Int32,
+    /// `u32`.
+    Uint32,
+    /// `f32`.
+    Float32,
+    /// `f64`.
+    Float64,
+}
+
+impl NumericType {
+    /// Size of one element in bytes.
+    pub const fn size(self) -> usize {
+        match self {
+            NumericType::Int8 | NumericType::Uint8 => 1,
+            NumericType::Int16 | NumericType::Uint16 => 2,
+            NumericType::Int32 | NumericType::Uint32 | NumericType::Float32 => 4,
+            NumericType::Float64 => 8,
+        }
+    }
+
+    /// Whether the type is a floating-point type.
+    pub const fn is_float(self) -> bool {
+        matches!(self, NumericType::Float32 | NumericType::Float64)
+    }
+
+    /// The type of a ROS `PointField.datatype` (INT8 = 1 ... FLOAT64 = 8).
+    pub const fn from_ros2(datatype: u8) -> Option<Self> {
+        Some(match datatype {
+            1 => NumericType::Int8,
+            2 => NumericType::Uint8,
+            3 => NumericType::Int16,
+            4 => NumericType::Uint16,
+            5 => NumericType::Int32,
+            6 => NumericType::Uint32,
+            7 => NumericType::Float32,
+            8 => NumericType::Float64,
+            _ => return None,
+        })
+    }
+
+    /// The type of a Foxglove `PackedElementField.type` (UINT8 = 1, INT8 = 2, ...,
+    /// FLOAT64 = 8; 0 is UNKNOWN).
+    pub const fn from_foxglove(numeric_type: i32) -> Option<Self> {
+        Some(match numeric_type {
+            1 => NumericType::Uint8,
+            2 => NumericType::Int8,
+            3 => NumericType::Uint16,
+            4 => NumericType::Int16,
+            5 => NumericType::Uint32,
+            6 => NumericType::Int32,
+            7 => NumericType::Float32,
+            8 => NumericType::Float64,
+            _ => return None,
+        })
+    }
+}
+
+/// Byte order of multi-byte values.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum Endianness {
+    /// Least significant byte first (Foxglove; ROS `is_bigendian = false`).
+    Little,
+    /// Most significant byte first (ROS `is_bigendian = true`).
+    Big,
+}
+
+/// Where and how one field is read in a point.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub struct FieldPlan {
+    /// Byte offset in the point.
+    pub offset: usize,
+    /// Element type.
+    pub numeric: NumericType,
+    /// Byte order.
+    pub endianness: Endianness,
+}
+
+impl FieldPlan {
+    /// The field's value in `point` (the bytes of one point), widened to `f64` (exact for
+    /// every type). Reads 0 if the field does not fit, which a validated
+    /// [`PointLayout`] rules out.
+    #[inline(always)]
+    pub fn read(self, point: &[u8]) -> f64 {
+        macro_rules! get {
+            ($t:ty) => {{
+                let bytes = array::<{ size_of::<$t>() }>(point, self.offset);
+                match self.endianness {
+                    Endianness::Little => <$t>::from_le_bytes(bytes),
+                    Endianness::Big => <$t>::from_be_bytes(bytes),
+                }
+            }};
+        }
+        match self.numeric {
+            NumericType::Int8 => f64::from(get!(i8)),
+            NumericType::Uint8 => f64::from(get!(u8)),
+            NumericType::Int16 => f64::from(get!(i16)),
+            NumericType::Uint16 => f64::from(get!(u16)),
+            NumericType::Int32 => f64::from(get!(i32)),
+            NumericType::Uint32 => f64::from(get!(u32)),
+            NumericType::Float32 => f64::from(get!(f32)),
+            NumericType::Float64 => get!(f64),
+        }
+    }
+}
+
+/// `N` bytes of `point` at `offset`, zeros if they are not all there.
+#[inline(always)]
+pub(super) fn array<const N: usize>(point: &[u8], offset: usize) -> [u8; N] {
+    point
+        .get(offset..)
+        .and_then(<[u8]>::first_chunk::<N>)
+        .copied()
+        .unwrap_or([0; N])
+}
+
+/// A used field: its name and how to read it.
+#[derive(Debug, Clone, PartialEq, Eq, Hash)]
+pub struct NamedField {
+    /// The field's name in the message.
+    pub name: String,
+    /// Where and how to read it.
+    pub plan: FieldPlan,
+}
+
+/// The decoding plan of one message's point layout: for each used field its offset,
+/// element type and byte order, checked against the point size.
+///
+/// Built by [`PointLayout::from_ros2`] or [`PointLayout::from_foxglove`]; the decoders
+/// build it once per message and apply it to every point.
+#[derive(Debug, Clone, PartialEq, Eq, Hash)]
+pub struct PointLayout {
+    pub(super) point_step: usize,
+    pub(super) xyz: [FieldPlan; 3],
+    pub(super) intensity: Option<NamedField>,
+    pub(super) ring: Option<NamedField>,
+    pub(super) time: Option<TimePlan>,
+}
+
+/// A field of either dialect, before checking.
+#[derive(Debug, Clone, Copy)]
+struct RawField<'a> {
+    name: &'a str,
+    offset: u32,
+    numeric: Result<NumericType, i64>,
+    count: u32,
+}
+
+/// The field list of one message with what checking its fields needs: the message's
+/// context, the point size, the byte order and the dialect's name of its datatypes.
+#[derive(Debug)]
+struct FieldList<'a> {
+    ctx: Ctx<'a>,
+    fields: Vec<RawField<'a>>,
+    point_step: u32,
+    endianness: Endianness,
+    /// `"ROS PointField"` or `"Foxglove NumericType"`, for errors.
+    dialect: &'static str,
+}
+
+impl PointLayout {
+    /// The plan for a ROS 2 `PointCloud2`'s `fields`, `point_step` and `is_bigendian`.
+    pub fn from_ros2(msg: &PointCloud2, time: Option<&TimeFieldSpec>) -> Result<Self, PointsError> {
+        let fields = msg
+            .fields
+            .iter()
+            .map(|f| RawField {
+                name: &f.name,
+                offset: f.offset,
+                numeric: NumericType::from_ros2(f.datatype).ok_or(i64::from(f.datatype)),
+                count: f.count,
+            })
+            .collect();
+        let list = FieldList {
+            ctx: Ctx::ros2(&msg.header),
+            fields,
+            point_step: msg.point_step,
+            endianness: if msg.is_bigendian {
+                Endianness::Big
+            } else {
+                Endianness::Little
+            },
+            dialect: "ROS PointField",
+        };
+        list.layout(time)
+    }
+
+    /// The plan for a `foxglove.PointCloud`'s `fields` and `point_stride`
+    /// (little-endian).
+    pub fn from_foxglove(
+        msg: &fox::PointCloud,
+        time: Option<&TimeFieldSpec>,
+    ) -> Result<Self, PointsError> {
+        let fields = msg
+            .fields
+            .iter()
+            .map(|f| RawField {
+                name: &f.name,
+                offset: f.offset,
+                numeric: NumericType::from_foxglove(f.r#type).ok_or(i64::from(f.r#type)),
+                count: 1,
+            })
+            .collect();
+        let list = FieldList {
+            ctx: super::dialect::foxglove_ctx(msg)?,
+            fields,
+            point_step: msg.point_stride,
+            endianness: Endianness::Little,
+            dialect: "Foxglove NumericType",
+        };
+        list.layout(time)
+    }
+
+    /// Bytes per point.
+    pub fn point_step(&self) -> usize {
+        self.point_step
+    }
+
+    /// The plans of `x`, `y` and `z`.
+    pub fn xyz(&self) -> [FieldPlan; 3] {
+        self.xyz
+    }
+
+    /// The intensity field, if any.
+    pub fn intensity(&self) -> Option<&NamedField> {
+        self.intensity.as_ref()
+    }
+
+    /// The ring field, if any.
+    pub fn ring(&self) -> Option<&NamedField> {
+        self.ring.as_ref()
+    }
+
+    /// The per-point time field, if any.
+    pub fn time(&self) -> Option<&NamedField> {
+        self.time.as_ref().map(|t| &t.field)
+    }
+}
+
+impl FieldList<'_> {
+    /// The layout: coordinates, then intensity, ring and time, each checked when used.
+    fn layout(&self, time: Option<&TimeFieldSpec>) -> Result<PointLayout, PointsError> {
+        let xyz = [
+            self.coordinate("x")?,
+            self.coordinate("y")?,
+            self.coordinate("z")?,
+        ];
+        let intensity = self
+            .find(&INTENSITY_NAMES)
+            .or_else(|| self.find(&[INTENSITY_FALLBACK]))
+            .map(|f| self.named(f))
+            .transpose()?;
+        let ring = self.find(&RING_NAMES).map(|f| self.named(f)).transpose()?;
+        let time = self.time(time)?;
+        Ok(PointLayout {
+            point_step: self.point_step as usize,
+            xyz,
+            intensity,
+            ring,
+            time,
+        })
+    }
+
+    /// The field names present, comma-separated (for errors).
+    fn names(&self) -> String {
+        let names: Vec<&str> = self.fields.iter().map(|f| f.name).collect();
+        names.join(", ")
+    }
+
+    /// The first field named as one of `wanted`, in the order of `wanted`.
+    fn find(&self, wanted: &[&str]) -> Option<&RawField<'_>> {
+        wanted
+            .iter()
+            .find_map(|name| self.fields.iter().find(|f| f.name == *name))
+    }
+
+    /// How to read a used field: `count` 1, a known datatype, inside the point.
+    fn plan(&self, f: &RawField<'_>) -> Result<FieldPlan, PointsError> {
+        let ctx = &self.ctx;
+        if f.count != 1 {
+            return Err(PointsError::FieldCount {
+                frame_id: ctx.id(),
+                stamp: ctx.stamp,
+                field: f.name.to_string(),
+                count: f.count,
+            });
+        }
+        let numeric = f.numeric.map_err(|datatype| PointsError::UnknownDatatype {
+            frame_id: ctx.id(),
+            stamp: ctx.stamp,
+            field: f.name.to_string(),
+            dialect: self.dialect,
+            datatype,
+        })?;
+        if u64::from(f.offset) + numeric.size() as u64 > u64::from(self.point_step) {
+            return Err(PointsError::FieldPastPointStep {
+                frame_id: ctx.id(),
+                stamp: ctx.stamp,
+                field: f.name.to_string(),
+                offset: f.offset,
+                size: numeric.size(),
+                point_step: self.point_step,
+            });
+        }
+        Ok(FieldPlan {
+            offset: f.offset as usize,
+            numeric,
+            endianness: self.endianness,
+        })
+    }
+
+    /// [`Self::plan`] with the field's name.
+    fn named(&self, f: &RawField<'_>) -> Result<NamedField, PointsError> {
+        Ok(NamedField {
+            name: f.name.to_string(),
+            plan: self.plan(f)?,
+        })
+    }
+
+    /// The plan of a required coordinate.
+    fn coordinate(&self, axis: &'static str) -> Result<FieldPlan, PointsError> {
+        let field = self
+            .find(&[axis])
+            .ok_or_else(|| PointsError::MissingCoordinate {
+                frame_id: self.ctx.id(),
+                stamp: self.ctx.stamp,
+                axis,
+                fields: self.names(),
+            })?;
+        self.plan(field)
+    }
+
+    /// The time plan: the configured field (required), or the first of [`TIME_NAMES`]
+    /// with the rule its type implies.
+    fn time(&self, spec: Option<&TimeFieldSpec>) -> Result<Option<TimePlan>, PointsError> {
+        let Some(spec) = spec else {
+            return self
+                .find(&TIME_NAMES)
+                .map(|f| {
+                    let field = self.named(f)?;
+                    let rule = if field.plan.numeric.is_float() {
+                        TimeRule::ByMagnitude
+                    } else {
+                        TimeRule::Fixed(TimeUnit::Nanoseconds, TimeReference::RelativeToStamp)
+                    };
+                    Ok(TimePlan { field, rule })
+                })
+                .transpose();
+        };
+        let field =
+            self.find(&[spec.name.as_str()])
+                .ok_or_else(|| PointsError::MissingTimeField {
+                    frame_id: self.ctx.id(),
+                    stamp: self.ctx.stamp,
+                    name: spec.name.clone(),
+                    fields: self.names(),
+                })?;
+        Ok(Some(TimePlan {
+            field: self.named(field)?,
+            rule: TimeRule::Fixed(spec.unit, spec.reference),
+        }))
+    }
+}

@@ -1,0 +1,293 @@
+//! The per-point loop: reads every point of a checked [`Grid`] with a [`PointLayout`],
+//! drops the non-finite ones, converts ring and time, and resolves a float time field's
+//! unit by the magnitude of its values.
+
+use super::layout::{Endianness, FieldPlan, NamedField, NumericType, PointLayout, array};
+use super::time::{
+    TimeConversion, TimeFieldSpec, TimeReference, TimeRule, TimeUnit, magnitude_rule,
+};
+use super::{DecodedCloud, PointsError};
+use crate::decode::context::Ctx;
+use superflow_schemas::sensor::PointCloud;
+
+/// Where the points lie in `data`: `rows` rows `row_step` bytes apart, each starting
+/// with `width` points. Checked against the data's length before use.
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Grid {
+    /// Rows to visit.
+    pub(super) rows: usize,
+    /// Points per row.
+    pub(super) width: usize,
+    /// Bytes from one row's start to the next.
+    pub(super) row_step: usize,
+}
+
+/// The bytes of each row's points.
+fn rows(data: &[u8], grid: Grid, point_step: usize) -> impl Iterator<Item = &[u8]> {
+    let row_len = grid.width * point_step;
+    (0..grid.rows).map(move |r| {
+        let start = r * grid.row_step;
+        data.get(start..start + row_len).unwrap_or(&[])
+    })
+}
+
+/// Reads the position of a point. Implemented once for any layout ([`AnyXyz`]) and once,
+/// without a type dispatch per point, for the usual FLOAT32 coordinates ([`Float32Xyz`]).
+trait XyzReader: Copy {
+    fn xyz(self, point: &[u8]) -> [f32; 3];
+}
+
+/// FLOAT32 `x`, `y`, `z` at these offsets, big-endian when `BIG`.
+#[derive(Debug, Clone, Copy)]
+struct Float32Xyz<const BIG: bool>([usize; 3]);
+
+impl<const BIG: bool> XyzReader for Float32Xyz<BIG> {
+    #[inline(always)]
+    fn xyz(self, point: &[u8]) -> [f32; 3] {
+        self.0.map(|offset| {
+            let bytes = array::<4>(point, offset);
+            if BIG {
+                f32::from_be_bytes(bytes)
+            } else {
+                f32::from_le_bytes(bytes)
+            }
+        })
+    }
+}
+
+/// Coordinates of any type.
+#[derive(Debug, Clone, Copy)]
+struct AnyXyz([FieldPlan; 3]);
+
+impl XyzReader for AnyXyz {
+    #[inline(always)]
+    fn xyz(self, point: &[u8]) -> [f32; 3] {
+        self.0.map(|f| f.read(point) as f32)
+    }
+}
+
+/// The optional attributes to read from each kept point.
+#[derive(Debug, Clone, Copy)]
+struct Attributes {
+    intensity: Option<FieldPlan>,
+    ring: Option<FieldPlan>,
+    time: Option<TimeConversion>,
+}
+
+/// The columns of the kept points.
+#[derive(Debug)]
+struct Points {
+    xyz: Vec<[f32; 3]>,
+    intensity: Vec<f32>,
+    ring: Option<Vec<u16>>,
+    time_offset: Option<Vec<f32>>,
+    dropped: usize,
+    /// The largest `|value|` of the time field over the kept points (0 without one).
+    max_abs_time: f64,
+}
+
+/// The per-point loop: reads every point of `data` (laid out as `grid`), drops the
+/// non-finite ones and converts the attributes of the others.
+#[inline(always)]
+fn fill<X: XyzReader>(
+    ctx: &Ctx<'_>,
+    layout: &PointLayout,
+    data: &[u8],
+    grid: Grid,
+    capacity: usize,
+    position: X,
+    attributes: Attributes,
+) -> Result<Points, PointsError> {
+    let step = layout.point_step.max(1);
+    let Attributes {
+        intensity: intensity_plan,
+        ring: ring_plan,
+        time,
+    } = attributes;
+    // Columns of `capacity` (the number of points) zeros, written in place and cut to the
+    // kept points at the end: no capacity checks or growth calls in the loop.
+    let sized = |wanted: bool| if wanted { capacity } else { 0 };
+    let mut xyz = vec![[0f32; 3]; capacity];
+    let mut intensity = vec![0f32; capacity];
+    let mut ring = vec![0u16; sized(ring_plan.is_some())];
+    let mut time_offset = vec![0f32; sized(time.is_some())];
+    let mut kept = 0usize;
+    let mut index = 0usize;
+    let mut max_abs_time = 0.0f64;
+
+    for row in rows(data, grid, step) {
+        for p in row.chunks_exact(step) {
+            let i = index;
+            index += 1;
+            let [x, y, z] = position.xyz(p);
+            if !(x.is_finite() && y.is_finite() && z.is_finite()) {
+                continue;
+            }
+            if let Some(slot) = xyz.get_mut(kept) {
+                *slot = [x, y, z];
+            }
+            if let (Some(plan), Some(slot)) = (intensity_plan, intensity.get_mut(kept)) {
+                *slot = plan.read(p) as f32;
+            }
+            if let (Some(plan), Some(slot)) = (ring_plan, ring.get_mut(kept)) {
+                let value = plan.read(p);
+                // The cast saturates (NaN gives 0): the value is a ring index exactly when
+                // it survives the round trip.
+                let ring_index = value as u16;
+                if f64::from(ring_index) != value {
+                    return Err(bad_value(ctx, layout.ring.as_ref(), i, value, true));
+                }
+                *slot = ring_index;
+            }
+            if let (Some(conv), Some(slot)) = (time, time_offset.get_mut(kept)) {
+                let value = conv.field.read(p);
+                max_abs_time = max_abs_time.max(value.abs());
+                let offset = conv.offset_secs(value) as f32;
+                if !offset.is_finite() {
+                    return Err(bad_value(ctx, layout.time(), i, value, false));
+                }
+                *slot = offset;
+            }
+            kept += 1;
+        }
+    }
+
+    xyz.truncate(kept);
+    intensity.truncate(kept);
+    ring.truncate(kept);
+    time_offset.truncate(kept);
+    Ok(Points {
+        xyz,
+        intensity,
+        ring: ring_plan.map(|_| ring),
+        time_offset: time.map(|_| time_offset),
+        dropped: index - kept,
+        max_abs_time,
+    })
+}
+
+/// The error for a ring (`ring` true) or time value that cannot be converted.
+#[cold]
+fn bad_value(
+    ctx: &Ctx<'_>,
+    field: Option<&NamedField>,
+    index: usize,
+    value: f64,
+    ring: bool,
+) -> PointsError {
+    let frame_id = ctx.frame_id.to_string();
+    let stamp = ctx.stamp;
+    let field = field.map_or_else(String::new, |f| f.name.clone());
+    if ring {
+        PointsError::BadRing {
+            frame_id,
+            stamp,
+            field,
+            index,
+            value,
+        }
+    } else {
+        PointsError::BadTime {
+            frame_id,
+            stamp,
+            field,
+            index,
+            value,
+        }
+    }
+}
+
+/// Applies `layout` to every point of `data` (laid out as `grid`, already checked).
+///
+/// A float time field under inference is first read as relative seconds (velodyne, the
+/// common case) while its largest magnitude is tracked; only when that shows absolute
+/// values is the time column read again, with the inferred unit and the stamp
+/// subtracted. The decision thus rests on the kept points only, and costs no extra pass
+/// over relative clouds.
+pub(super) fn decode_core(
+    ctx: &Ctx<'_>,
+    layout: &PointLayout,
+    data: &[u8],
+    grid: Grid,
+) -> Result<DecodedCloud, PointsError> {
+    // A validated layout has a field inside every point, so this is at least 1.
+    let step = layout.point_step.max(1);
+    let capacity = grid.rows.saturating_mul(grid.width).min(data.len() / step);
+    let [px, py, pz] = layout.xyz;
+    let float32 = [px, py, pz]
+        .iter()
+        .all(|f| f.numeric == NumericType::Float32);
+    let offsets = [px.offset, py.offset, pz.offset];
+    let run = |attributes: Attributes| match (float32, px.endianness) {
+        (true, Endianness::Little) => {
+            let position = Float32Xyz::<false>(offsets);
+            fill(ctx, layout, data, grid, capacity, position, attributes)
+        }
+        (true, Endianness::Big) => {
+            let position = Float32Xyz::<true>(offsets);
+            fill(ctx, layout, data, grid, capacity, position, attributes)
+        }
+        (false, _) => fill(
+            ctx,
+            layout,
+            data,
+            grid,
+            capacity,
+            AnyXyz(layout.xyz),
+            attributes,
+        ),
+    };
+
+    let (first_unit, first_reference) = match layout.time.as_ref().map(|t| t.rule) {
+        Some(TimeRule::Fixed(unit, reference)) => (unit, reference),
+        _ => (TimeUnit::Seconds, TimeReference::RelativeToStamp),
+    };
+    let time_conversion = |unit, reference| {
+        layout
+            .time
+            .as_ref()
+            .map(|t| TimeConversion::new(t.field.plan, unit, reference, ctx.stamp))
+    };
+    let mut points = run(Attributes {
+        intensity: layout.intensity.as_ref().map(|f| f.plan),
+        ring: layout.ring.as_ref().map(|f| f.plan),
+        time: time_conversion(first_unit, first_reference),
+    })?;
+
+    let time_field = match &layout.time {
+        None => None,
+        Some(plan) => {
+            let (unit, reference) = match plan.rule {
+                TimeRule::Fixed(unit, reference) => (unit, reference),
+                TimeRule::ByMagnitude => magnitude_rule(points.max_abs_time),
+            };
+            if (unit, reference) != (first_unit, first_reference) {
+                points.time_offset = run(Attributes {
+                    intensity: None,
+                    ring: None,
+                    time: time_conversion(unit, reference),
+                })?
+                .time_offset;
+            }
+            Some(TimeFieldSpec {
+                name: plan.field.name.clone(),
+                unit,
+                reference,
+            })
+        }
+    };
+
+    Ok(DecodedCloud {
+        cloud: PointCloud {
+            stamp: ctx.stamp,
+            frame_id: ctx.frame_id.to_string(),
+            xyz: points.xyz,
+            intensity: points.intensity,
+            ring: points.ring,
+            time_offset_secs: points.time_offset,
+        },
+        dropped_non_finite: points.dropped,
+        has_intensity: layout.intensity.is_some(),
+        time_field,
+    })
+}
