@@ -5,7 +5,8 @@
 //! and drive types, what a drive answers (sensor checks, keyframes) and the reading of
 //! one sensor message.
 
-use super::discover::{self, Dialect, IngestConfig, Role, SchemaKind};
+use super::discover::{IngestConfig, Role};
+use crate::decode::{Dialect, SchemaKind, schema_kind};
 use super::streams::EGO_FRAMES;
 use super::tf::TransformTree;
 use crate::decode::image::{self, ImageError, Target};
@@ -502,7 +503,7 @@ impl Drive {
 /// Decodes an image message of either dialect, compressed or raw.
 fn decode_image(message: &MessageRef<'_>, target: Target) -> Result<Image, ImageReadError> {
     let data = message.data;
-    Ok(match discover::schema_kind(message.channel) {
+    Ok(match schema_kind(message.channel) {
         Some((SchemaKind::CompressedImage, Dialect::Ros2)) => {
             let m = ros2::decode(data).map_err(DecodeError::from)?;
             image::decode_ros2_compressed(&m, target)?

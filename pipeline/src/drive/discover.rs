@@ -4,10 +4,10 @@
 //! topic names. [`IngestConfig`] overrides any choice by topic.
 //!
 //! The schema recognition it starts from ([`schema_kind`]: [`SchemaKind`] and
-//! [`Dialect`]) lives in [`crate::decode::schema`], below the decoders; it is re-exported
-//! here.
+//! [`Dialect`](crate::decode::Dialect)) lives in [`crate::decode::schema`], below both the decoders and this
+//! module.
 
-pub use crate::decode::schema::{Dialect, SchemaKind, schema_kind};
+use crate::decode::{SchemaKind, schema_kind};
 use crate::source::ChannelInfo;
 use serde::{Deserialize, Serialize};
 

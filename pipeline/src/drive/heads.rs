@@ -2,7 +2,7 @@
 //! is skipped without being copied (prost skips unknown fields; CDR decoding stops after
 //! the header).
 
-use super::discover::{Dialect, SchemaKind};
+use crate::decode::{Dialect, SchemaKind};
 use crate::decode::{DecodeError, foxglove, ros2};
 use serde::Deserialize;
 use superflow_schemas::Stamp;

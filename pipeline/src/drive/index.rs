@@ -4,7 +4,8 @@
 //! far from their log time) and what was skipped logged.
 
 use super::dataset::{Drive, FrameRef, IngestError};
-use super::discover::{self, Dialect, IngestConfig, SchemaKind};
+use super::discover::IngestConfig;
+use crate::decode::{Dialect, SchemaKind, schema_kind};
 use super::heads::stamp_and_frame;
 use super::skips::{DamageKind, SkipReport};
 use super::streams::Streams;
@@ -171,7 +172,7 @@ impl Index {
             .entry(m.channel.topic.clone())
             .or_insert_with(|| TopicData {
                 channel: m.channel.clone(),
-                kind: discover::schema_kind(m.channel),
+                kind: schema_kind(m.channel),
                 count: 0,
                 frame_id: None,
                 frames: Vec::new(),
