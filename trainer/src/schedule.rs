@@ -57,7 +57,7 @@ impl OneCycle {
             ("optim.div_factor", self.div_factor),
             ("optim.final_div_factor", self.final_div_factor),
         ] {
-            if !(value > 0.0) {
+            if value.is_nan() || value <= 0.0 {
                 return Err(InvalidConfig::new(setting, value, "must be positive"));
             }
         }

@@ -127,7 +127,7 @@ impl VitConfig {
                 "must be a multiple of vit.heads",
             ));
         }
-        if !(self.eps > 0.0) {
+        if self.eps.is_nan() || self.eps <= 0.0 {
             return Err(InvalidConfig::new("vit.eps", self.eps, "must be positive"));
         }
         Ok(())
