@@ -21,7 +21,7 @@
 //!   (official code);
 //! * total = w_sc·L_sc + w_tc·L_tc + w_d2s·L_d2s. A term without slots is 0.
 //!
-//! InfoNCE(a, b) = mean_i −log softmax_j(a_i·b_j / τ)[i].
+//! InfoNCE(a, b) = mean_i −log softmax_j(a_i·b_j / τ)\[i\].
 
 use crate::sparse::index_tensor;
 use burn::tensor::activation::log_softmax;

@@ -58,7 +58,7 @@ impl FromStr for VitPreset {
 #[error("unknown ViT preset `{0}`: expected tiny, small, base or large")]
 pub struct UnknownPreset(pub String);
 
-/// The shape of a [`DinoVit`].
+/// The shape of a [`DinoVit`](super::DinoVit).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct VitConfig {
     /// Token width (embedding dimension).
