@@ -7,6 +7,8 @@
 //! the newest checkpoint) is replaced by a rename as well. A crash at any point leaves
 //! `latest` naming a complete checkpoint.
 
+use crate::error::TrainerError;
+use crate::stream::StreamPosition;
 use serde::{Deserialize, Serialize};
 use std::fs::{self, File};
 use std::io::Write as _;
@@ -31,6 +33,13 @@ pub struct CheckpointState {
     pub lr: f64,
     /// Loss of the last step.
     pub loss: f64,
+}
+
+impl CheckpointState {
+    /// The stream position of the next batch to train on.
+    pub fn next(&self) -> StreamPosition {
+        StreamPosition::new(self.next_epoch, self.next_batch)
+    }
 }
 
 /// The format tag of [`CheckpointState`].
@@ -74,45 +83,48 @@ pub fn save(
     model: &[u8],
     optim: &[u8],
     keep: usize,
-) -> anyhow::Result<PathBuf> {
-    let ctx = |what: &str, p: &Path, e: std::io::Error| {
-        anyhow::anyhow!("checkpoint: {what} {}: {e}", p.display())
-    };
-    fs::create_dir_all(root).map_err(|e| ctx("creating", root, e))?;
+) -> Result<PathBuf, TrainerError> {
+    let ctx = |action: &'static str, p: &Path, e| TrainerError::io(action, p, e);
+    fs::create_dir_all(root).map_err(|e| ctx("checkpoint: creating", root, e))?;
     let name = format!("step-{:08}", state.step);
     let tmp = root.join(format!(".{name}.tmp-{}", std::process::id()));
     if tmp.exists() {
-        fs::remove_dir_all(&tmp).map_err(|e| ctx("removing", &tmp, e))?;
+        fs::remove_dir_all(&tmp).map_err(|e| ctx("checkpoint: removing", &tmp, e))?;
     }
-    fs::create_dir(&tmp).map_err(|e| ctx("creating", &tmp, e))?;
-    let json = serde_json::to_vec_pretty(state)?;
+    fs::create_dir(&tmp).map_err(|e| ctx("checkpoint: creating", &tmp, e))?;
+    let json = serde_json::to_vec_pretty(state).map_err(|error| TrainerError::Json {
+        path: tmp.join("state.json"),
+        error,
+    })?;
     for (file, bytes) in [
         ("model.bpk", model),
         ("optim.bpk", optim),
         ("state.json", &json[..]),
     ] {
         let p = tmp.join(file);
-        write_synced(&p, bytes).map_err(|e| ctx("writing", &p, e))?;
+        write_synced(&p, bytes).map_err(|e| ctx("checkpoint: writing", &p, e))?;
     }
-    sync_dir(&tmp).map_err(|e| ctx("syncing", &tmp, e))?;
+    sync_dir(&tmp).map_err(|e| ctx("checkpoint: syncing", &tmp, e))?;
     let dir = root.join(&name);
     if dir.exists() {
-        fs::remove_dir_all(&dir).map_err(|e| ctx("replacing", &dir, e))?;
+        fs::remove_dir_all(&dir).map_err(|e| ctx("checkpoint: replacing", &dir, e))?;
     }
-    fs::rename(&tmp, &dir).map_err(|e| ctx("renaming into", &dir, e))?;
+    fs::rename(&tmp, &dir).map_err(|e| ctx("checkpoint: renaming into", &dir, e))?;
     let latest_tmp = root.join(format!(".latest.tmp-{}", std::process::id()));
-    write_synced(&latest_tmp, name.as_bytes()).map_err(|e| ctx("writing", &latest_tmp, e))?;
+    write_synced(&latest_tmp, name.as_bytes())
+        .map_err(|e| ctx("checkpoint: writing", &latest_tmp, e))?;
     let latest = root.join("latest");
-    fs::rename(&latest_tmp, &latest).map_err(|e| ctx("renaming into", &latest, e))?;
-    sync_dir(root).map_err(|e| ctx("syncing", root, e))?;
+    fs::rename(&latest_tmp, &latest).map_err(|e| ctx("checkpoint: renaming into", &latest, e))?;
+    sync_dir(root).map_err(|e| ctx("checkpoint: syncing", root, e))?;
     prune(root, keep)?;
     Ok(dir)
 }
 
 /// Removes all but the `keep` newest complete checkpoints (never the one `latest` names).
-fn prune(root: &Path, keep: usize) -> anyhow::Result<()> {
+fn prune(root: &Path, keep: usize) -> Result<(), TrainerError> {
     let latest = fs::read_to_string(root.join("latest")).unwrap_or_default();
-    let mut names: Vec<String> = fs::read_dir(root)?
+    let mut names: Vec<String> = fs::read_dir(root)
+        .map_err(|e| TrainerError::io("checkpoint: listing", root, e))?
         .filter_map(|e| e.ok())
         .filter_map(|e| e.file_name().into_string().ok())
         .filter(|n| n.starts_with("step-"))
@@ -121,32 +133,40 @@ fn prune(root: &Path, keep: usize) -> anyhow::Result<()> {
     let excess = names.len().saturating_sub(keep);
     for name in names.into_iter().take(excess) {
         if name != latest.trim() {
-            fs::remove_dir_all(root.join(&name))?;
+            let dir = root.join(&name);
+            fs::remove_dir_all(&dir)
+                .map_err(|e| TrainerError::io("checkpoint: removing", dir, e))?;
         }
     }
     Ok(())
 }
 
 /// The checkpoint `latest` names in `root`, if any. A damaged one is an error naming it.
-pub fn latest(root: &Path) -> anyhow::Result<Option<Checkpoint>> {
+pub fn latest(root: &Path) -> Result<Option<Checkpoint>, TrainerError> {
     let pointer = root.join("latest");
     let name = match fs::read_to_string(&pointer) {
         Ok(n) => n.trim().to_string(),
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
-        Err(e) => anyhow::bail!("reading {}: {e}", pointer.display()),
+        Err(e) => return Err(TrainerError::io("reading", pointer, e)),
     };
     let dir = root.join(&name);
     let state_path = dir.join("state.json");
-    let text = fs::read(&state_path)
-        .map_err(|e| anyhow::anyhow!("reading {}: {e}", state_path.display()))?;
-    let state: CheckpointState = serde_json::from_slice(&text)
-        .map_err(|e| anyhow::anyhow!("{}: {e}", state_path.display()))?;
+    let text = fs::read(&state_path).map_err(|e| TrainerError::io("reading", &state_path, e))?;
+    let state: CheckpointState = match serde_json::from_slice(&text) {
+        Ok(state) => state,
+        Err(error) => {
+            return Err(TrainerError::Json {
+                path: state_path,
+                error,
+            });
+        }
+    };
     if state.format != FORMAT {
-        anyhow::bail!(
-            "{}: format {:?}, expected {FORMAT:?}",
-            state_path.display(),
-            state.format
-        );
+        return Err(TrainerError::CheckpointFormat {
+            path: state_path,
+            found: state.format,
+            expected: FORMAT,
+        });
     }
     Ok(Some(Checkpoint { dir, state }))
 }

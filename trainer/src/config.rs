@@ -2,6 +2,7 @@
 //! Every field has the official code's default; the command line overrides the common
 //! ones. Unknown fields are errors (a typo must not silently train something else).
 
+use crate::error::{InvalidConfig, TrainerError};
 use crate::loss::LossConfig;
 use crate::schedule::OneCycle;
 use crate::sparse::{UNetConfig, UNetPreset};
@@ -130,40 +131,65 @@ impl Default for CheckpointConfig {
 }
 
 impl TrainerConfig {
-    /// Reads `path`; errors name the file.
-    pub fn load(path: &Path) -> anyhow::Result<Self> {
+    /// Reads and validates `path`; errors name the file.
+    pub fn load(path: &Path) -> Result<Self, TrainerError> {
         let text = std::fs::read_to_string(path)
-            .map_err(|e| anyhow::anyhow!("reading {}: {e}", path.display()))?;
-        let config: Self =
-            toml::from_str(&text).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+            .map_err(|error| TrainerError::io("reading", path, error))?;
+        let config: Self = toml::from_str(&text).map_err(|error| TrainerError::Toml {
+            path: path.to_path_buf(),
+            error,
+        })?;
         config
             .validate()
-            .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+            .map_err(|error| TrainerError::ConfigFile {
+                path: path.to_path_buf(),
+                error,
+            })?;
         Ok(config)
     }
 
-    /// Checks values a run cannot use.
-    pub fn validate(&self) -> Result<(), String> {
+    /// Checks values a run cannot use; the error names the setting (`optim.steps`, ...).
+    pub fn validate(&self) -> Result<(), InvalidConfig> {
         self.optim.schedule().validate()?;
         let l = &self.loss;
         if !(l.temperature > 0.0 && l.temperature.is_finite()) {
-            return Err(format!(
-                "[loss] temperature {} must be positive",
-                l.temperature
+            return Err(InvalidConfig::new(
+                "loss.temperature",
+                l.temperature,
+                "must be positive",
             ));
         }
         if l.pixel_stride == 0 {
-            return Err("[loss] pixel_stride must be at least 1".into());
+            return Err(InvalidConfig::new(
+                "loss.pixel_stride",
+                l.pixel_stride,
+                "must be at least 1",
+            ));
         }
         let o = &self.optim;
-        if !(o.lr > 0.0 && o.eps > 0.0 && o.weight_decay >= 0.0) {
-            return Err("[optim] lr and eps must be positive, weight_decay ≥ 0".into());
+        for (setting, value, ok, rule) in [
+            ("optim.lr", o.lr, o.lr > 0.0, "must be positive"),
+            ("optim.eps", o.eps, o.eps > 0.0, "must be positive"),
+            (
+                "optim.weight_decay",
+                o.weight_decay,
+                o.weight_decay >= 0.0,
+                "must be ≥ 0",
+            ),
+        ] {
+            if !ok {
+                return Err(InvalidConfig::new(setting, value, rule));
+            }
         }
-        if o.betas.iter().any(|b| !(0.0..1.0).contains(b)) {
-            return Err("[optim] betas must be in [0, 1)".into());
+        if let Some(b) = o.betas.iter().find(|b| !(0.0..1.0).contains(*b)) {
+            return Err(InvalidConfig::new("optim.betas", b, "must be in [0, 1)"));
         }
         if self.checkpoint.keep == 0 {
-            return Err("[checkpoint] keep must be at least 1".into());
+            return Err(InvalidConfig::new(
+                "checkpoint.keep",
+                self.checkpoint.keep,
+                "must be at least 1",
+            ));
         }
         Ok(())
     }
@@ -184,6 +210,8 @@ mod tests {
         assert!(err.to_string().contains("temprature"), "{err}");
         let mut c = TrainerConfig::default();
         c.optim.steps = 1;
-        assert!(c.validate().is_err());
+        let err = c.validate().expect_err("one step");
+        assert_eq!(err.setting, "optim.steps", "{err}");
+        assert!(err.to_string().starts_with("optim.steps = 1 "), "{err}");
     }
 }

@@ -21,7 +21,7 @@
 //!   (official code);
 //! * total = w_sc·L_sc + w_tc·L_tc + w_d2s·L_d2s. A term without slots is 0.
 //!
-//! InfoNCE(a, b) = mean_i −log softmax_j(a_i·b_j / τ)[i].
+//! InfoNCE(a, b) = mean_i −log softmax_j(a_i·b_j / τ)\[i\].
 
 use crate::sparse::index_tensor;
 use burn::tensor::activation::log_softmax;
@@ -168,162 +168,16 @@ pub struct LossPlan {
 impl LossPlan {
     /// Plans the pooling and the matched slots; checks every id against its frame's
     /// superpixel count.
-    // (b, f, c) index several tables at once: plain index loops read best here.
-    #[allow(clippy::needless_range_loop)]
     pub fn new(
         x: &LossInputs<'_>,
         pixel_stride: usize,
         device: &Device,
     ) -> Result<Self, PlanError> {
-        let (b_n, f_n, k_n) = (x.batch, x.frames, x.cameras);
-        let c_n = f_n + 1;
-        let (h, w) = (x.height, x.width);
-        if x.num_superpixels.len() != b_n * f_n {
-            return Err(bad("num_superpixels", "expected B×F entries"));
-        }
-        if x.superpixels.len() != b_n * f_n * k_n * h * w {
-            return Err(bad("superpixels", "expected B·F·K×H×W entries"));
-        }
-        if x.pairing_clouds.len() != b_n * c_n + 1 {
-            return Err(bad("pairing_clouds", "expected B·C+1 entries"));
-        }
-        if x.key_frame >= f_n {
-            return Err(bad("frame_offsets", "no key frame"));
-        }
-        let n = |b: usize, f: usize| x.num_superpixels[b * f_n + f] as usize;
-        let frame_of = |c: usize| if c == f_n { x.key_frame } else { c };
-        // Superpoint slot bases: [cloud kind][sample].
-        let mut pt_base = vec![vec![0usize; b_n]; c_n];
-        let mut next = 0;
-        for (c, bases) in pt_base.iter_mut().enumerate() {
-            for (b, base) in bases.iter_mut().enumerate() {
-                *base = next;
-                next += n(b, frame_of(c));
-            }
-        }
-        let point_slots = next;
-        // Superpixel slot bases: [frame][sample].
-        let mut px_base = vec![vec![0usize; b_n]; f_n];
-        let mut next = 0;
-        for (f, bases) in px_base.iter_mut().enumerate() {
-            for (b, base) in bases.iter_mut().enumerate() {
-                *base = next;
-                next += n(b, f);
-            }
-        }
-        let pixel_slots = next;
-
-        // Pairings → superpoint slots.
-        let pairings = x.pairing_point.len();
-        if x.pairing_superpixel.len() != pairings
-            || x.pairing_clouds[b_n * c_n] as usize != pairings
-        {
-            return Err(bad("pairing_clouds", "does not cover the pairings"));
-        }
-        let mut pt_count = vec![0u32; point_slots];
-        let mut pairing_slot = Vec::with_capacity(pairings);
-        for b in 0..b_n {
-            for c in 0..c_n {
-                let cloud = b * c_n + c;
-                let (s, e) = (
-                    x.pairing_clouds[cloud] as usize,
-                    x.pairing_clouds[cloud + 1] as usize,
-                );
-                if s > e || e > pairings {
-                    return Err(bad("pairing_clouds", "offsets not increasing"));
-                }
-                let limit = n(b, frame_of(c));
-                for &id in &x.pairing_superpixel[s..e] {
-                    let id = id as usize;
-                    if id >= limit {
-                        return Err(bad(
-                            "pairing_superpixel",
-                            format!(
-                                "id {id} of cloud {cloud} is not below its frame's {limit} superpixels"
-                            ),
-                        ));
-                    }
-                    let slot = pt_base[c][b] + id;
-                    pt_count[slot] += 1;
-                    pairing_slot.push(slot as i64);
-                }
-            }
-        }
-
-        // Sampled pixels → superpixel slots.
-        let stride = pixel_stride.max(1);
-        let mut px_count = vec![0u32; pixel_slots];
-        let mut pixels = Vec::new();
-        let mut pixel_slot = Vec::new();
-        for b in 0..b_n {
-            for f in 0..f_n {
-                let limit = n(b, f);
-                for k in 0..k_n {
-                    let image = (b * f_n + f) * k_n + k;
-                    let map = &x.superpixels[image * h * w..(image + 1) * h * w];
-                    for r in (stride / 2..h).step_by(stride) {
-                        for col in (stride / 2..w).step_by(stride) {
-                            let id = map[r * w + col] as usize;
-                            if id >= limit {
-                                return Err(bad(
-                                    "superpixels",
-                                    format!(
-                                        "id {id} in image {image} is not below its frame's {limit} superpixels"
-                                    ),
-                                ));
-                            }
-                            let slot = px_base[f][b] + id;
-                            px_count[slot] += 1;
-                            pixels.push([image as u32, r as u32, col as u32]);
-                            pixel_slot.push(slot as i64);
-                        }
-                    }
-                }
-            }
-        }
-
-        // Kept slots of each term.
-        let mut sc = Vec::with_capacity(f_n);
-        for f in 0..f_n {
-            let (mut a, mut bb) = (Vec::new(), Vec::new());
-            for b in 0..b_n {
-                for s in 0..n(b, f) {
-                    let (p, q) = (pt_base[f][b] + s, px_base[f][b] + s);
-                    if pt_count[p] > 0 && px_count[q] > 0 {
-                        a.push(p as i64);
-                        bb.push(q as i64);
-                    }
-                }
-            }
-            sc.push(Matched::new(a, bb, device));
-        }
-        let key = x.key_frame;
-        let mut tc = Vec::new();
-        for f in (0..f_n).filter(|&f| f != key) {
-            let (mut a, mut bb) = (Vec::new(), Vec::new());
-            for b in 0..b_n {
-                for s in 0..n(b, key).min(n(b, f)) {
-                    let (p, q) = (pt_base[key][b] + s, pt_base[f][b] + s);
-                    if pt_count[p] > 0 && pt_count[q] > 0 {
-                        a.push(p as i64);
-                        bb.push(q as i64);
-                    }
-                }
-            }
-            tc.push(Matched::new(a, bb, device));
-        }
-        let (mut a, mut bb) = (Vec::new(), Vec::new());
-        for b in 0..b_n {
-            for s in 0..n(b, key) {
-                let (p, q) = (pt_base[key][b] + s, pt_base[f_n][b] + s);
-                if pt_count[p] > 0 && pt_count[q] > 0 {
-                    a.push(p as i64);
-                    bb.push(q as i64);
-                }
-            }
-        }
-        let d2s = Matched::new(a, bb, device);
-
+        check_lengths(x)?;
+        let slots = Slots::new(x);
+        let (pt_count, pairing_slot) = slots.pairings()?;
+        let sampled = slots.pixels(pixel_stride)?;
+        let (sc, tc, d2s) = slots.matched(&pt_count, &sampled.count, device);
         let counts = |c: Vec<u32>| {
             let len = c.len();
             let values: Vec<f32> = c.into_iter().map(|v| v.max(1) as f32).collect();
@@ -336,21 +190,245 @@ impl LossPlan {
             ),
             pairing_slot: index_tensor(pairing_slot, device),
             point_counts: counts(pt_count),
-            point_slots,
-            pixels,
-            pixel_slot: index_tensor(pixel_slot, device),
-            pixel_counts: counts(px_count),
-            pixel_slots,
+            point_slots: slots.point_slots,
+            pixels: sampled.pixels,
+            pixel_slot: index_tensor(sampled.slot, device),
+            pixel_counts: counts(sampled.count),
+            pixel_slots: slots.pixel_slots,
             sc,
             tc,
             d2s,
-            image_size: [h, w],
+            image_size: [x.height, x.width],
         })
     }
 
     /// Pixels the superpixel pooling samples, over all images.
     pub fn sampled_pixels(&self) -> usize {
         self.pixels.len()
+    }
+}
+
+/// Checks that the sections have the lengths their shapes promise.
+fn check_lengths(x: &LossInputs<'_>) -> Result<(), PlanError> {
+    let (b_n, f_n, k_n) = (x.batch, x.frames, x.cameras);
+    if x.num_superpixels.len() != b_n * f_n {
+        return Err(bad("num_superpixels", "expected B×F entries"));
+    }
+    if x.superpixels.len() != b_n * f_n * k_n * x.height * x.width {
+        return Err(bad("superpixels", "expected B·F·K×H×W entries"));
+    }
+    if x.pairing_clouds.len() != b_n * (f_n + 1) + 1 {
+        return Err(bad("pairing_clouds", "expected B·C+1 entries"));
+    }
+    if x.key_frame >= f_n {
+        return Err(bad("frame_offsets", "no key frame"));
+    }
+    Ok(())
+}
+
+/// The slot layout of a batch: where each sample's superpoint slots (per cloud kind) and
+/// superpixel slots (per frame) begin. Clouds `0..F` are the frames' sweeps, cloud `F`
+/// the dense cloud (numbered with the key frame's superpixels).
+struct Slots<'x, 'a> {
+    x: &'x LossInputs<'a>,
+    /// Superpoint slot bases: `[cloud kind][sample]`.
+    pt_base: Vec<Vec<usize>>,
+    point_slots: usize,
+    /// Superpixel slot bases: `[frame][sample]`.
+    px_base: Vec<Vec<usize>>,
+    pixel_slots: usize,
+}
+
+/// The sampled pixels of a batch and their superpixel slots.
+struct SampledPixels {
+    /// Image number, row, column.
+    pixels: Vec<[u32; 3]>,
+    /// Superpixel slot of each.
+    slot: Vec<i64>,
+    /// Sampled pixels per superpixel slot.
+    count: Vec<u32>,
+}
+
+// (b, f, c) index several tables at once: plain index loops read best here.
+#[allow(clippy::needless_range_loop)]
+impl<'x, 'a> Slots<'x, 'a> {
+    fn new(x: &'x LossInputs<'a>) -> Self {
+        let mut slots = Self {
+            x,
+            pt_base: vec![vec![0; x.batch]; x.frames + 1],
+            point_slots: 0,
+            px_base: vec![vec![0; x.batch]; x.frames],
+            pixel_slots: 0,
+        };
+        let mut next = 0;
+        for c in 0..=x.frames {
+            for b in 0..x.batch {
+                slots.pt_base[c][b] = next;
+                next += slots.n(b, slots.frame_of(c));
+            }
+        }
+        slots.point_slots = next;
+        let mut next = 0;
+        for f in 0..x.frames {
+            for b in 0..x.batch {
+                slots.px_base[f][b] = next;
+                next += slots.n(b, f);
+            }
+        }
+        slots.pixel_slots = next;
+        slots
+    }
+
+    /// Superpixels of sample `b` at frame `f`.
+    fn n(&self, b: usize, f: usize) -> usize {
+        self.x.num_superpixels[b * self.x.frames + f] as usize
+    }
+
+    /// The frame whose superpixel ids cloud kind `c` uses.
+    fn frame_of(&self, c: usize) -> usize {
+        if c == self.x.frames {
+            self.x.key_frame
+        } else {
+            c
+        }
+    }
+
+    /// Pairings → superpoint slots: the pairings per slot and each pairing's slot.
+    fn pairings(&self) -> Result<(Vec<u32>, Vec<i64>), PlanError> {
+        let x = self.x;
+        let c_n = x.frames + 1;
+        let pairings = x.pairing_point.len();
+        if x.pairing_superpixel.len() != pairings
+            || x.pairing_clouds[x.batch * c_n] as usize != pairings
+        {
+            return Err(bad("pairing_clouds", "does not cover the pairings"));
+        }
+        let mut count = vec![0u32; self.point_slots];
+        let mut slot_of = Vec::with_capacity(pairings);
+        for b in 0..x.batch {
+            for c in 0..c_n {
+                let cloud = b * c_n + c;
+                let (s, e) = (
+                    x.pairing_clouds[cloud] as usize,
+                    x.pairing_clouds[cloud + 1] as usize,
+                );
+                if s > e || e > pairings {
+                    return Err(bad("pairing_clouds", "offsets not increasing"));
+                }
+                let limit = self.n(b, self.frame_of(c));
+                for &id in &x.pairing_superpixel[s..e] {
+                    let id = id as usize;
+                    if id >= limit {
+                        return Err(bad(
+                            "pairing_superpixel",
+                            format!(
+                                "id {id} of cloud {cloud} is not below its frame's {limit} superpixels"
+                            ),
+                        ));
+                    }
+                    let slot = self.pt_base[c][b] + id;
+                    count[slot] += 1;
+                    slot_of.push(slot as i64);
+                }
+            }
+        }
+        Ok((count, slot_of))
+    }
+
+    /// Sampled pixels (every `pixel_stride`-th of each row and column) → superpixel slots.
+    fn pixels(&self, pixel_stride: usize) -> Result<SampledPixels, PlanError> {
+        let x = self.x;
+        let (h, w) = (x.height, x.width);
+        let stride = pixel_stride.max(1);
+        let mut sampled = SampledPixels {
+            pixels: Vec::new(),
+            slot: Vec::new(),
+            count: vec![0u32; self.pixel_slots],
+        };
+        for b in 0..x.batch {
+            for f in 0..x.frames {
+                let limit = self.n(b, f);
+                for k in 0..x.cameras {
+                    let image = (b * x.frames + f) * x.cameras + k;
+                    let map = &x.superpixels[image * h * w..(image + 1) * h * w];
+                    for r in (stride / 2..h).step_by(stride) {
+                        for col in (stride / 2..w).step_by(stride) {
+                            let id = map[r * w + col] as usize;
+                            if id >= limit {
+                                return Err(bad(
+                                    "superpixels",
+                                    format!(
+                                        "id {id} in image {image} is not below its frame's {limit} superpixels"
+                                    ),
+                                ));
+                            }
+                            let slot = self.px_base[f][b] + id;
+                            sampled.count[slot] += 1;
+                            sampled.pixels.push([image as u32, r as u32, col as u32]);
+                            sampled.slot.push(slot as i64);
+                        }
+                    }
+                }
+            }
+        }
+        Ok(sampled)
+    }
+
+    /// The kept slots of each term: `L_sc` per frame, `L_tc` per non-key frame, `L_d2s`.
+    fn matched(
+        &self,
+        pt_count: &[u32],
+        px_count: &[u32],
+        device: &Device,
+    ) -> (Vec<Matched>, Vec<Matched>, Matched) {
+        let (f_n, key) = (self.x.frames, self.x.key_frame);
+        // Pairs (a_base + s, b_base + s) of every sample, over its ids below `ids(b)`,
+        // kept where both slots are non-empty.
+        let pairs = |a_base: &[usize],
+                     a_count: &[u32],
+                     b_base: &[usize],
+                     b_count: &[u32],
+                     ids: &dyn Fn(usize) -> usize| {
+            let (mut a, mut bb) = (Vec::new(), Vec::new());
+            for b in 0..self.x.batch {
+                for s in 0..ids(b) {
+                    let (p, q) = (a_base[b] + s, b_base[b] + s);
+                    if a_count[p] > 0 && b_count[q] > 0 {
+                        a.push(p as i64);
+                        bb.push(q as i64);
+                    }
+                }
+            }
+            Matched::new(a, bb, device)
+        };
+        let sc = (0..f_n)
+            .map(|f| {
+                let ids = |b| self.n(b, f);
+                pairs(&self.pt_base[f], pt_count, &self.px_base[f], px_count, &ids)
+            })
+            .collect();
+        let tc = (0..f_n)
+            .filter(|&f| f != key)
+            .map(|f| {
+                let ids = |b| self.n(b, key).min(self.n(b, f));
+                pairs(
+                    &self.pt_base[key],
+                    pt_count,
+                    &self.pt_base[f],
+                    pt_count,
+                    &ids,
+                )
+            })
+            .collect();
+        let ids = |b| self.n(b, key);
+        let d2s = pairs(
+            &self.pt_base[key],
+            pt_count,
+            &self.pt_base[f_n],
+            pt_count,
+            &ids,
+        );
+        (sc, tc, d2s)
     }
 }
 

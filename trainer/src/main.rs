@@ -8,11 +8,14 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicI32, Ordering};
 use std::time::{Duration, Instant};
+use superflow_schemas::batch::BatchMeta;
 use superflow_trainer::config::TrainerConfig;
+use superflow_trainer::loss::LossValues;
 use superflow_trainer::metrics::{self, MetricsWriter, StepRecord};
 use superflow_trainer::sparse::UNetPreset;
+use superflow_trainer::stream::{Action, StreamPosition, StreamTracker};
 use superflow_trainer::subscribe::{Received, Subscription, Target};
-use superflow_trainer::train::Trainer;
+use superflow_trainer::train::{StepOutcome, Trainer};
 use superflow_trainer::vit::VitPreset;
 
 /// Trains a 3D network on SuperFlow batches received over shared memory.
@@ -112,9 +115,18 @@ impl Args {
         if let Some(v) = self.checkpoint_every {
             c.checkpoint.every = v;
         }
-        c.validate()
-            .map_err(|e| anyhow::anyhow!("configuration: {e}"))?;
+        c.validate().context("configuration")?;
         Ok(c)
+    }
+
+    /// `--rank` must be below `--world-size`.
+    fn check_rank(&self) -> anyhow::Result<()> {
+        if let (Some(rank), Some(world)) = (self.rank, self.world_size)
+            && rank >= world
+        {
+            anyhow::bail!("--rank {rank} is not below --world-size {world}");
+        }
+        Ok(())
     }
 
     fn out_dir(&self) -> PathBuf {
@@ -225,13 +237,37 @@ fn next_batch(
     }
 }
 
+/// The files of a run.
+#[derive(Debug)]
+struct RunPaths {
+    /// Output directory.
+    out: PathBuf,
+    /// Checkpoint directory.
+    checkpoints: PathBuf,
+    /// `metrics.jsonl`.
+    metrics: PathBuf,
+}
+
+impl RunPaths {
+    fn new(args: &Args, config: &TrainerConfig) -> Self {
+        let out = args.out_dir();
+        let checkpoints = config
+            .checkpoint
+            .dir
+            .clone()
+            .unwrap_or_else(|| out.join("checkpoints"));
+        let metrics = out.join("metrics.jsonl");
+        Self {
+            out,
+            checkpoints,
+            metrics,
+        }
+    }
+}
+
 /// Trains; `Some(code)` when stopped early by a signal (after a checkpoint).
 fn run(args: &Args) -> anyhow::Result<Option<i32>> {
-    if let (Some(rank), Some(world)) = (args.rank, args.world_size)
-        && rank >= world
-    {
-        anyhow::bail!("--rank {rank} is not below --world-size {world}");
-    }
+    args.check_rank()?;
     let config = args.config()?;
     let iox = superflow_schemas::service::iceoryx2_config(args.iox_prefix.as_deref())
         .map_err(|e| anyhow::anyhow!(e))?;
@@ -239,71 +275,102 @@ fn run(args: &Args) -> anyhow::Result<Option<i32>> {
     let target = args.rank.map_or(Target::Broadcast, Target::Rank);
     let subscription = Subscription::open(&args.run, target, &iox, 2)
         .with_context(|| format!("subscribing to run {}", args.run))?;
-    let out = args.out_dir();
-    let ckpt_dir = config
-        .checkpoint
-        .dir
-        .clone()
-        .unwrap_or_else(|| out.join("checkpoints"));
-    let steps = config.optim.steps;
-    let every = config.checkpoint.every;
+    let paths = RunPaths::new(args, &config);
+    let (steps, every) = (config.optim.steps, config.checkpoint.every);
     let device = device(&args.backend, args.device_index)?;
     tracing::info!(backend = %args.backend, ?device, "compute device");
     let mut trainer = Trainer::new(config, &device)?;
+    let resumed_at = if args.resume {
+        resume(args, &mut trainer, &subscription, &paths)?
+    } else {
+        start_fresh(&paths)?;
+        None
+    };
+    let metrics = MetricsWriter::open(&paths.metrics)?;
+    let bar = progress_bar(steps, trainer.step_count());
+    let mut session = Session {
+        args,
+        subscription,
+        stop,
+        trainer,
+        metrics,
+        stream: StreamTracker::new(resumed_at),
+        bar,
+        started: Instant::now(),
+        waiting: 0.0,
+        computing: 0.0,
+        last: None,
+        steps,
+        every,
+        paths,
+    };
+    tracing::info!(run = %args.run, ?target, steps, out = %session.paths.out.display(), "training");
+    session.train()?;
+    session.finish()
+}
 
-    let metrics_path = out.join("metrics.jsonl");
-    let mut resumed_at = None;
-    if args.resume {
-        match trainer.restore_latest(&ckpt_dir)? {
-            Some(state) => {
-                let reply = subscription
-                    .resume(
-                        state.next_epoch,
-                        state.next_batch,
-                        Duration::from_secs(args.timeout_secs),
-                    )
-                    .with_context(|| format!("asking run {} to resume", args.run))?;
-                if reply.accepted != 1 {
-                    anyhow::bail!(
-                        "the pipeline refused to resume run {} at epoch {} batch {} (reason {}): \
-                         is it the same recording and configuration?",
-                        args.run,
-                        state.next_epoch,
-                        state.next_batch,
-                        reply.reason
-                    );
-                }
-                tracing::info!(
-                    step = state.step,
-                    epoch = state.next_epoch,
-                    batch = state.next_batch,
-                    "resuming: the pipeline continues at the checkpoint's next batch"
-                );
-                let redone = metrics::truncate_after(&metrics_path, state.step)?;
-                if redone > 0 {
-                    tracing::warn!(
-                        steps = redone,
-                        after = state.step,
-                        "steps trained after the checkpoint are lost and will be redone on the same batches; their metrics lines are dropped"
-                    );
-                }
-                resumed_at = Some((state.next_epoch, state.next_batch));
-            }
-            None => {
-                tracing::warn!(dir = %ckpt_dir.display(), "--resume: no checkpoint yet, starting fresh")
-            }
-        }
-    } else if superflow_trainer::checkpoint::latest(&ckpt_dir)?.is_some() {
+/// `--resume`: restores the newest checkpoint and asks the pipeline to continue at its
+/// next batch (`None` when there is no checkpoint yet: a fresh start).
+fn resume(
+    args: &Args,
+    trainer: &mut Trainer,
+    subscription: &Subscription,
+    paths: &RunPaths,
+) -> anyhow::Result<Option<StreamPosition>> {
+    let Some(state) = trainer.restore_latest(&paths.checkpoints)? else {
+        tracing::warn!(dir = %paths.checkpoints.display(), "--resume: no checkpoint yet, starting fresh");
+        return Ok(None);
+    };
+    let reply = subscription
+        .resume(
+            state.next_epoch,
+            state.next_batch,
+            Duration::from_secs(args.timeout_secs),
+        )
+        .with_context(|| format!("asking run {} to resume", args.run))?;
+    if reply.accepted != 1 {
+        anyhow::bail!(
+            "the pipeline refused to resume run {} at epoch {} batch {} (reason {}): \
+             is it the same recording and configuration?",
+            args.run,
+            state.next_epoch,
+            state.next_batch,
+            reply.reason
+        );
+    }
+    tracing::info!(
+        step = state.step,
+        epoch = state.next_epoch,
+        batch = state.next_batch,
+        "resuming: the pipeline continues at the checkpoint's next batch"
+    );
+    let redone = metrics::truncate_after(&paths.metrics, state.step)?;
+    if redone > 0 {
+        tracing::warn!(
+            steps = redone,
+            after = state.step,
+            "steps trained after the checkpoint are lost and will be redone on the same batches; their metrics lines are dropped"
+        );
+    }
+    Ok(Some(state.next()))
+}
+
+/// A fresh run: refuses an output directory holding checkpoints, drops old metrics.
+fn start_fresh(paths: &RunPaths) -> anyhow::Result<()> {
+    if superflow_trainer::checkpoint::latest(&paths.checkpoints)?.is_some() {
         anyhow::bail!(
             "{} already holds checkpoints: pass --resume to continue that run, or choose another --out",
-            ckpt_dir.display()
+            paths.checkpoints.display()
         );
-    } else if metrics_path.exists() {
-        std::fs::remove_file(&metrics_path)
-            .with_context(|| format!("replacing {}", metrics_path.display()))?;
     }
-    let mut metrics = MetricsWriter::open(&metrics_path)?;
+    if paths.metrics.exists() {
+        std::fs::remove_file(&paths.metrics)
+            .with_context(|| format!("replacing {}", paths.metrics.display()))?;
+    }
+    Ok(())
+}
 
+fn progress_bar(steps: u64, position: u64) -> ProgressBar {
     let bar = ProgressBar::new(steps);
     bar.set_style(
         ProgressStyle::with_template(
@@ -311,169 +378,232 @@ fn run(args: &Args) -> anyhow::Result<Option<i32>> {
         )
         .unwrap_or_else(|_| ProgressStyle::default_bar()),
     );
-    bar.set_position(trainer.step_count());
-    let started = Instant::now();
-    let (mut waiting, mut computing) = (0.0_f64, 0.0_f64);
-    let mut last = None;
-    // The stream position of the next batch to train on, once known, and the pipeline
-    // (publisher) that sends it.
-    let mut expected: Option<(u64, u64)> = resumed_at;
-    let mut origin: Option<u128> = None;
-    let mut skipped = 0u64;
-    tracing::info!(run = %args.run, ?target, steps, out = %out.display(), "training");
-    while trainer.step_count() < steps {
-        let t = Instant::now();
-        let Some(batch) = next_batch(
-            &subscription,
-            &args.run,
-            Duration::from_secs(args.timeout_secs),
-            &stop,
-        )?
-        else {
-            break;
-        };
-        let position = (batch.header().epoch, batch.header().step);
-        let restarted = origin.is_some_and(|o| o != batch.origin());
-        // Broadcast: another trainer's resume moved the shared stream past this one.
-        let gap = |next: (u64, u64)| position.0 == next.0 && position.1 > next.1;
-        if let Some(next) = expected
-            && position != next
-            && (restarted || gap(next))
-        {
-            // A new pipeline (the old one died and was restarted) began elsewhere, or
-            // the stream jumped ahead: ask it to continue where this trainer is.
-            tracing::warn!(
-                got_epoch = position.0,
-                got_batch = position.1,
-                epoch = next.0,
-                batch = next.1,
-                restarted,
-                "the stream is not at this trainer's next batch (a restarted pipeline, or another trainer's resume); asking it to continue there"
-            );
-            drop(batch);
-            let reply = subscription
-                .resume(next.0, next.1, Duration::from_secs(args.timeout_secs))
-                .with_context(|| format!("asking run {} to resume", args.run))?;
-            if reply.accepted != 1 {
-                anyhow::bail!(
-                    "the restarted pipeline of run {} refused to continue at epoch {} batch {} (reason {})",
-                    args.run,
-                    next.0,
-                    next.1,
-                    reply.reason
-                );
+    bar.set_position(position);
+    bar
+}
+
+/// A run in progress: the stream, the trainer and what it writes.
+struct Session<'a> {
+    args: &'a Args,
+    subscription: Subscription,
+    stop: Arc<AtomicI32>,
+    trainer: Trainer,
+    metrics: MetricsWriter,
+    stream: StreamTracker,
+    bar: ProgressBar,
+    started: Instant,
+    /// Seconds spent waiting for batches, and computing steps.
+    waiting: f64,
+    computing: f64,
+    /// The losses of the last step.
+    last: Option<LossValues>,
+    steps: u64,
+    every: u64,
+    paths: RunPaths,
+}
+
+impl Session<'_> {
+    fn timeout(&self) -> Duration {
+        Duration::from_secs(self.args.timeout_secs)
+    }
+
+    /// Steps until the run's length, the end of the stream or a stop signal.
+    fn train(&mut self) -> anyhow::Result<()> {
+        while self.trainer.step_count() < self.steps {
+            let t = Instant::now();
+            let Some(batch) = next_batch(
+                &self.subscription,
+                &self.args.run,
+                self.timeout(),
+                &self.stop,
+            )?
+            else {
+                break;
+            };
+            let position = StreamPosition::new(batch.header().epoch, batch.header().step);
+            match self.stream.classify(batch.origin(), position) {
+                Action::Train => {}
+                Action::Skip { skipped } => {
+                    tracing::warn!(
+                        epoch = position.epoch,
+                        batch = position.batch,
+                        skipped,
+                        "already trained on this batch: skipped"
+                    );
+                    continue;
+                }
+                Action::Resume { at, restarted } => {
+                    drop(batch);
+                    self.continue_at(position, at, restarted)?;
+                    continue;
+                }
             }
-            origin = Some(reply.publisher());
-            continue;
+            let wait = t.elapsed().as_secs_f64();
+            if self.step(batch, wait)? {
+                break;
+            }
         }
-        if expected.is_some_and(|next| position < next) {
-            // Broadcast: another subscriber rewound the shared stream (its resume).
-            skipped += 1;
-            tracing::warn!(
-                epoch = position.0,
-                batch = position.1,
-                skipped,
-                "already trained on this batch: skipped"
+        Ok(())
+    }
+
+    /// The stream is not at this trainer's next batch `at` (a new pipeline, the old one
+    /// died and was restarted, began elsewhere, or the stream jumped ahead): asks it to
+    /// continue there.
+    fn continue_at(
+        &mut self,
+        got: StreamPosition,
+        at: StreamPosition,
+        restarted: bool,
+    ) -> anyhow::Result<()> {
+        tracing::warn!(
+            got_epoch = got.epoch,
+            got_batch = got.batch,
+            epoch = at.epoch,
+            batch = at.batch,
+            restarted,
+            "the stream is not at this trainer's next batch (a restarted pipeline, or another trainer's resume); asking it to continue there"
+        );
+        let run = &self.args.run;
+        let reply = self
+            .subscription
+            .resume(at.epoch, at.batch, self.timeout())
+            .with_context(|| format!("asking run {run} to resume"))?;
+        if reply.accepted != 1 {
+            anyhow::bail!(
+                "the restarted pipeline of run {run} refused to continue at epoch {} batch {} (reason {})",
+                at.epoch,
+                at.batch,
+                reply.reason
             );
-            continue;
         }
-        origin = Some(batch.origin());
-        let wait = t.elapsed().as_secs_f64();
+        self.stream.resumed(reply.publisher());
+        Ok(())
+    }
+
+    /// One step on `batch` (waited for `wait` seconds): metrics, log, progress and the
+    /// periodic checkpoint. `true` when a stop signal was caught: the run ends here.
+    fn step(&mut self, batch: Received, wait: f64) -> anyhow::Result<bool> {
         let view = batch.view().context("invalid batch")?;
         let meta = view.meta().clone();
-        let outcome = trainer.step(&view).with_context(|| {
+        let outcome = self.trainer.step(&view).with_context(|| {
             format!(
                 "step {} (epoch {}, batch {})",
-                trainer.step_count() + 1,
+                self.trainer.step_count() + 1,
                 meta.epoch,
                 meta.step
             )
         })?;
         drop(view);
         drop(batch);
-        waiting += wait;
-        computing += outcome.seconds;
-        let next = (meta.epoch, meta.step + 1);
-        expected = Some(next);
-        let record = StepRecord {
-            step: trainer.step_count(),
-            epoch: meta.epoch,
-            batch: meta.step,
-            loss: outcome.losses.total,
-            l_sc: outcome.losses.sc,
-            l_tc: outcome.losses.tc,
-            l_d2s: outcome.losses.d2s,
-            lr: outcome.lr,
-            wait_ms: wait * 1e3,
-            step_ms: outcome.seconds * 1e3,
-            samples_per_s: meta.sample_count as f64 / (wait + outcome.seconds).max(1e-9),
-            samples: meta.sample_count as usize,
-            points: outcome.counts[0],
-            pairings: outcome.counts[1],
-            voxels: outcome.counts[2],
-            sample_ids: outcome.sample_ids.clone(),
-        };
-        metrics.write(&record)?;
-        tracing::info!(
-            step = record.step,
-            epoch = meta.epoch,
-            batch = meta.step,
-            loss = format_args!("{:.4}", record.loss),
-            l_sc = format_args!("{:.4}", record.l_sc),
-            l_tc = format_args!("{:.4}", record.l_tc),
-            l_d2s = format_args!("{:.4}", record.l_d2s),
-            lr = format_args!("{:.2e}", record.lr),
-            wait_ms = format_args!("{:.1}", record.wait_ms),
-            step_ms = format_args!("{:.1}", record.step_ms),
-            vit_ms = format_args!("{:.1}", outcome.phases.vit * 1e3),
-            forward_ms = format_args!("{:.1}", outcome.phases.forward * 1e3),
-            backward_ms = format_args!("{:.1}", outcome.phases.backward * 1e3),
-            "step"
-        );
-        bar.set_position(record.step);
-        bar.set_message(format!("loss {:.4}", record.loss));
-        let stopping = stop.load(Ordering::SeqCst) != 0;
-        if every > 0 && record.step.is_multiple_of(every) && record.step < steps && !stopping {
-            let dir = trainer.save_checkpoint(&ckpt_dir, &args.run, next, &outcome.losses)?;
+        self.waiting += wait;
+        self.computing += outcome.seconds;
+        self.stream
+            .trained(StreamPosition::new(meta.epoch, meta.step));
+        let record = step_record(self.trainer.step_count(), &meta, &outcome, wait);
+        self.metrics.write(&record)?;
+        log_step(&record, &outcome);
+        self.bar.set_position(record.step);
+        self.bar.set_message(format!("loss {:.4}", record.loss));
+        let stopping = self.stop.load(Ordering::SeqCst) != 0;
+        let periodic = self.every > 0 && record.step.is_multiple_of(self.every);
+        if periodic && record.step < self.steps && !stopping {
+            let dir = self.save_checkpoint(&outcome.losses)?;
             tracing::info!(checkpoint = %dir.display(), "checkpoint saved");
         }
-        last = Some(outcome.losses);
-        if stopping {
-            break;
-        }
+        self.last = Some(outcome.losses);
+        Ok(stopping)
     }
-    bar.finish_and_clear();
-    let signal = stop.load(Ordering::SeqCst);
-    if let (Some(losses), Some(next)) = (last, expected) {
-        let dir = trainer.save_checkpoint(&ckpt_dir, &args.run, next, &losses)?;
+
+    fn save_checkpoint(&self, losses: &LossValues) -> anyhow::Result<PathBuf> {
+        let next = self
+            .stream
+            .next()
+            .context("a checkpoint before the first step")?;
+        Ok(self
+            .trainer
+            .save_checkpoint(&self.paths.checkpoints, &self.args.run, next, losses)?)
+    }
+
+    /// The final checkpoint, the plot and the summary; `Some(128 + signal)` when stopped
+    /// by a signal.
+    fn finish(self) -> anyhow::Result<Option<i32>> {
+        self.bar.finish_and_clear();
+        let signal = self.stop.load(Ordering::SeqCst);
+        if let Some(losses) = &self.last
+            && self.stream.next().is_some()
+        {
+            let dir = self.save_checkpoint(losses)?;
+            if signal != 0 {
+                tracing::warn!(
+                    checkpoint = %dir.display(),
+                    step = self.trainer.step_count(),
+                    "stopped by a signal; checkpoint saved: continue with --resume"
+                );
+            } else {
+                tracing::info!(checkpoint = %dir.display(), "final checkpoint saved");
+            }
+        }
         if signal != 0 {
-            tracing::warn!(
-                checkpoint = %dir.display(),
-                step = trainer.step_count(),
-                "stopped by a signal; checkpoint saved: continue with --resume"
-            );
-        } else {
-            tracing::info!(checkpoint = %dir.display(), "final checkpoint saved");
+            return Ok(Some(128 + signal));
         }
+        if self.args.plot {
+            let svg = self.paths.out.join("losses.svg");
+            metrics::plot_svg(&metrics::read(&self.paths.metrics)?, &svg)?;
+            tracing::info!(plot = %svg.display(), "loss curves written");
+        }
+        let total = self.started.elapsed().as_secs_f64();
+        tracing::info!(
+            steps = self.trainer.step_count(),
+            seconds = format_args!("{total:.1}"),
+            data_stall_fraction = format_args!("{:.3}", self.waiting / total.max(1e-9)),
+            compute_fraction = format_args!("{:.3}", self.computing / total.max(1e-9)),
+            metrics = %self.paths.metrics.display(),
+            "done training"
+        );
+        Ok(None)
     }
-    if signal != 0 {
-        return Ok(Some(128 + signal));
+}
+
+/// The metrics line of step `step`, trained on the batch `meta` after waiting `wait`
+/// seconds for it.
+fn step_record(step: u64, meta: &BatchMeta, outcome: &StepOutcome, wait: f64) -> StepRecord {
+    StepRecord {
+        step,
+        epoch: meta.epoch,
+        batch: meta.step,
+        loss: outcome.losses.total,
+        l_sc: outcome.losses.sc,
+        l_tc: outcome.losses.tc,
+        l_d2s: outcome.losses.d2s,
+        lr: outcome.lr,
+        wait_ms: wait * 1e3,
+        step_ms: outcome.seconds * 1e3,
+        samples_per_s: meta.sample_count as f64 / (wait + outcome.seconds).max(1e-9),
+        samples: meta.sample_count as usize,
+        points: outcome.counts[0],
+        pairings: outcome.counts[1],
+        voxels: outcome.counts[2],
+        sample_ids: outcome.sample_ids.clone(),
     }
-    if args.plot {
-        let svg = out.join("losses.svg");
-        metrics::plot_svg(&metrics::read(&metrics_path)?, &svg)?;
-        tracing::info!(plot = %svg.display(), "loss curves written");
-    }
-    let total = started.elapsed().as_secs_f64();
+}
+
+fn log_step(record: &StepRecord, outcome: &StepOutcome) {
     tracing::info!(
-        steps = trainer.step_count(),
-        seconds = format_args!("{total:.1}"),
-        data_stall_fraction = format_args!("{:.3}", waiting / total.max(1e-9)),
-        compute_fraction = format_args!("{:.3}", computing / total.max(1e-9)),
-        metrics = %metrics_path.display(),
-        "done training"
+        step = record.step,
+        epoch = record.epoch,
+        batch = record.batch,
+        loss = format_args!("{:.4}", record.loss),
+        l_sc = format_args!("{:.4}", record.l_sc),
+        l_tc = format_args!("{:.4}", record.l_tc),
+        l_d2s = format_args!("{:.4}", record.l_d2s),
+        lr = format_args!("{:.2e}", record.lr),
+        wait_ms = format_args!("{:.1}", record.wait_ms),
+        step_ms = format_args!("{:.1}", record.step_ms),
+        vit_ms = format_args!("{:.1}", outcome.phases.vit * 1e3),
+        forward_ms = format_args!("{:.1}", outcome.phases.forward * 1e3),
+        backward_ms = format_args!("{:.1}", outcome.phases.backward * 1e3),
+        "step"
     );
-    Ok(None)
 }
 
 fn main() -> std::process::ExitCode {

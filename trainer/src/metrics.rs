@@ -1,6 +1,7 @@
 //! Per-step metrics: one JSON object per line (`superflow.metrics/1`), and an optional
 //! SVG of the loss curves at the end of a run.
 
+use crate::error::TrainerError;
 use serde::{Deserialize, Serialize};
 use std::fs::{File, OpenOptions};
 use std::io::{BufWriter, Write as _};
@@ -52,15 +53,15 @@ pub struct MetricsWriter {
 
 impl MetricsWriter {
     /// Opens `path` for appending (a resumed run continues the same file).
-    pub fn open(path: &Path) -> anyhow::Result<Self> {
+    pub fn open(path: &Path) -> Result<Self, TrainerError> {
         if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
-            std::fs::create_dir_all(parent)?;
+            std::fs::create_dir_all(parent).map_err(|e| TrainerError::io("creating", parent, e))?;
         }
         let file = OpenOptions::new()
             .create(true)
             .append(true)
             .open(path)
-            .map_err(|e| anyhow::anyhow!("opening {}: {e}", path.display()))?;
+            .map_err(|e| TrainerError::io("opening", path, e))?;
         Ok(Self {
             path: path.to_path_buf(),
             out: BufWriter::new(file),
@@ -68,12 +69,15 @@ impl MetricsWriter {
     }
 
     /// Writes one line and flushes it (a killed trainer loses no finished step).
-    pub fn write(&mut self, record: &StepRecord) -> anyhow::Result<()> {
-        serde_json::to_writer(&mut self.out, record)?;
-        self.out.write_all(b"\n")?;
+    pub fn write(&mut self, record: &StepRecord) -> Result<(), TrainerError> {
+        serde_json::to_writer(&mut self.out, record).map_err(|error| TrainerError::Json {
+            path: self.path.clone(),
+            error,
+        })?;
         self.out
-            .flush()
-            .map_err(|e| anyhow::anyhow!("writing {}: {e}", self.path.display()))
+            .write_all(b"\n")
+            .and_then(|()| self.out.flush())
+            .map_err(|e| TrainerError::io("writing", &self.path, e))
     }
 }
 
@@ -82,11 +86,11 @@ impl MetricsWriter {
 /// record per trained step (the lineage of the model). A last line cut short by a
 /// kill is dropped too. Returns how many records were dropped; the file is replaced
 /// atomically (written aside, then renamed).
-pub fn truncate_after(path: &Path, step: u64) -> anyhow::Result<usize> {
+pub fn truncate_after(path: &Path, step: u64) -> Result<usize, TrainerError> {
     let text = match std::fs::read_to_string(path) {
         Ok(text) => text,
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(0),
-        Err(e) => anyhow::bail!("reading {}: {e}", path.display()),
+        Err(e) => return Err(TrainerError::io("reading", path, e)),
     };
     let lines: Vec<&str> = text.lines().filter(|l| !l.trim().is_empty()).collect();
     let mut kept = String::with_capacity(text.len());
@@ -100,29 +104,35 @@ pub fn truncate_after(path: &Path, step: u64) -> anyhow::Result<usize> {
             Ok(_) => dropped += 1,
             // Only the last line can be partial (each line is flushed whole).
             Err(_) if i + 1 == lines.len() && !text.ends_with('\n') => dropped += 1,
-            Err(e) => anyhow::bail!("{}:{}: {e}", path.display(), i + 1),
+            Err(error) => {
+                return Err(TrainerError::JsonLine {
+                    path: path.to_path_buf(),
+                    line: i + 1,
+                    error,
+                });
+            }
         }
     }
     if dropped > 0 {
         let aside = path.with_extension("jsonl.tmp");
-        std::fs::write(&aside, kept)
-            .map_err(|e| anyhow::anyhow!("writing {}: {e}", aside.display()))?;
-        std::fs::rename(&aside, path)
-            .map_err(|e| anyhow::anyhow!("replacing {}: {e}", path.display()))?;
+        std::fs::write(&aside, kept).map_err(|e| TrainerError::io("writing", &aside, e))?;
+        std::fs::rename(&aside, path).map_err(|e| TrainerError::io("replacing", path, e))?;
     }
     Ok(dropped)
 }
 
 /// Reads a metrics file (for plots and tests).
-pub fn read(path: &Path) -> anyhow::Result<Vec<StepRecord>> {
-    let text = std::fs::read_to_string(path)
-        .map_err(|e| anyhow::anyhow!("reading {}: {e}", path.display()))?;
+pub fn read(path: &Path) -> Result<Vec<StepRecord>, TrainerError> {
+    let text = std::fs::read_to_string(path).map_err(|e| TrainerError::io("reading", path, e))?;
     text.lines()
         .filter(|l| !l.trim().is_empty())
         .enumerate()
         .map(|(i, l)| {
-            serde_json::from_str(l)
-                .map_err(|e| anyhow::anyhow!("{}:{}: {e}", path.display(), i + 1))
+            serde_json::from_str(l).map_err(|error| TrainerError::JsonLine {
+                path: path.to_path_buf(),
+                line: i + 1,
+                error,
+            })
         })
         .collect()
 }
@@ -132,11 +142,18 @@ type Series = (&'static str, fn(&StepRecord) -> f64, &'static str);
 
 /// Draws the loss terms against the step as an SVG (axes, ticks, legend; opens in any
 /// browser, no font or plotting library needed).
-pub fn plot_svg(records: &[StepRecord], path: &Path) -> anyhow::Result<()> {
-    use std::fmt::Write as _;
+pub fn plot_svg(records: &[StepRecord], path: &Path) -> Result<(), TrainerError> {
     if records.is_empty() {
-        anyhow::bail!("no steps to plot");
+        return Err(TrainerError::NothingToPlot);
     }
+    // Writing into a String cannot fail.
+    let svg = svg(records).unwrap_or_default();
+    std::fs::write(path, svg).map_err(|e| TrainerError::io("writing", path, e))
+}
+
+/// The SVG text of [`plot_svg`] (`records` is not empty).
+fn svg(records: &[StepRecord]) -> Result<String, std::fmt::Error> {
+    use std::fmt::Write as _;
     let (w, h, left, right, top, bottom) = (960.0, 540.0, 70.0, 20.0, 30.0, 50.0);
     let x0 = records.first().map_or(0, |r| r.step) as f64;
     let x1 = (records.last().map_or(1, |r| r.step) as f64).max(x0 + 1.0);
@@ -218,7 +235,7 @@ pub fn plot_svg(records: &[StepRecord], path: &Path) -> anyhow::Result<()> {
         )?;
     }
     writeln!(svg, "</svg>")?;
-    std::fs::write(path, svg).map_err(|e| anyhow::anyhow!("writing {}: {e}", path.display()))
+    Ok(svg)
 }
 
 #[cfg(test)]

@@ -4,6 +4,8 @@
 //! `max_lr / div_factor / final_div_factor`. burn 0.22 has no one-cycle scheduler; this
 //! is the curve, step by step, for the optimizer to use.
 
+use crate::error::InvalidConfig;
+
 /// One-cycle parameters (defaults = the official config: lr 0.01, warm-up 20 %, div 25,
 /// final div 100).
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -32,19 +34,32 @@ impl OneCycle {
         }
     }
 
-    /// Checks the parameters (PyTorch's rules: at least 2 steps, pct in (0, 1)).
-    pub fn validate(&self) -> Result<(), String> {
+    /// Checks the parameters (PyTorch's rules: at least 2 steps, pct in (0, 1), positive
+    /// rates and factors). Errors name the settings of trainer.toml's `[optim]`, which
+    /// [`OptimConfig::schedule`](crate::config::OptimConfig::schedule) builds this from.
+    pub fn validate(&self) -> Result<(), InvalidConfig> {
         if self.total_steps < 2 {
-            return Err(format!(
-                "one-cycle needs at least 2 steps, got {}",
-                self.total_steps
+            return Err(InvalidConfig::new(
+                "optim.steps",
+                self.total_steps,
+                "must be at least 2 (one-cycle schedule)",
             ));
         }
         if !(self.pct_start > 0.0 && self.pct_start < 1.0) {
-            return Err(format!("pct_start = {} must be in (0, 1)", self.pct_start));
+            return Err(InvalidConfig::new(
+                "optim.pct_start",
+                self.pct_start,
+                "must be in (0, 1)",
+            ));
         }
-        if !(self.max_lr > 0.0 && self.div_factor > 0.0 && self.final_div_factor > 0.0) {
-            return Err("max_lr, div_factor and final_div_factor must be positive".into());
+        for (setting, value) in [
+            ("optim.lr", self.max_lr),
+            ("optim.div_factor", self.div_factor),
+            ("optim.final_div_factor", self.final_div_factor),
+        ] {
+            if value.is_nan() || value <= 0.0 {
+                return Err(InvalidConfig::new(setting, value, "must be positive"));
+            }
         }
         Ok(())
     }

@@ -3,10 +3,12 @@
 
 use crate::checkpoint::{self, CheckpointState};
 use crate::config::TrainerConfig;
+use crate::error::TrainerError;
 use crate::inputs::StepInputs;
 use crate::loss::{LossValues, SuperFlowLoss};
 use crate::model::SuperFlowModel;
 use crate::schedule::OneCycle;
+use crate::stream::StreamPosition;
 use crate::vit::{DinoVit, VitConfig, imagenet_normalize};
 use burn::module::Module;
 use burn::optim::{AdamWConfig, GradientsParams, ModuleOptimizer};
@@ -77,8 +79,8 @@ impl std::fmt::Debug for Trainer {
 impl Trainer {
     /// A fresh run on `device` (the training device; autodiff is enabled on it and the
     /// frozen ViT runs on the same hardware without it).
-    pub fn new(config: TrainerConfig, device: &Device) -> anyhow::Result<Self> {
-        config.validate().map_err(|e| anyhow::anyhow!(e))?;
+    pub fn new(config: TrainerConfig, device: &Device) -> Result<Self, TrainerError> {
+        config.validate()?;
         let device = device.clone().autodiff();
         let vit_device = device.clone().inner();
         let vit = match &config.model.image_weights {
@@ -150,7 +152,7 @@ impl Trainer {
     }
 
     /// One step on `view`: tensors, frozen ViT, 3D network, losses, backward, AdamW.
-    pub fn step(&mut self, view: &BatchView<'_>) -> anyhow::Result<StepOutcome> {
+    pub fn step(&mut self, view: &BatchView<'_>) -> Result<StepOutcome, TrainerError> {
         let started = Instant::now();
         let mut phases = StepPhases::default();
         let mut lap = Instant::now();
@@ -190,13 +192,12 @@ impl Trainer {
         mark(&mut phases.update);
         let losses = terms.values();
         if !losses.total.is_finite() {
-            anyhow::bail!(
-                "loss is {} at step {} (epoch {}, batch {})",
-                losses.total,
-                self.step,
-                view.meta().epoch,
-                view.meta().step
-            );
+            return Err(TrainerError::NonFiniteLoss {
+                loss: losses.total,
+                step: self.step,
+                epoch: view.meta().epoch,
+                batch: view.meta().step,
+            });
         }
         let sc_frames = terms
             .sc_frames
@@ -221,21 +222,33 @@ impl Trainer {
         })
     }
 
-    /// Saves model, optimizer and positions into `root` (atomically).
+    /// Saves model, optimizer, schedule position and `next`, the stream position of the
+    /// next batch to train on, into `root` (atomically).
     pub fn save_checkpoint(
         &self,
         root: &Path,
         run: &str,
-        next: (u64, u64),
+        next: StreamPosition,
         last: &LossValues,
-    ) -> anyhow::Result<PathBuf> {
-        let model = self.model().clone().into_record().into_bytes()?;
-        let optim = self.optim.into_bytes()?;
+    ) -> Result<PathBuf, TrainerError> {
+        let model = (self.model().clone().into_record().into_bytes()).map_err(|error| {
+            TrainerError::Encode {
+                what: "model",
+                error,
+            }
+        })?;
+        let optim = self
+            .optim
+            .into_bytes()
+            .map_err(|error| TrainerError::Encode {
+                what: "optimizer",
+                error,
+            })?;
         let state = CheckpointState {
             format: checkpoint::FORMAT.into(),
             step: self.step,
-            next_epoch: next.0,
-            next_batch: next.1,
+            next_epoch: next.epoch,
+            next_batch: next.batch,
             run: run.to_string(),
             config: toml::to_string(&self.config).unwrap_or_default(),
             lr: self.schedule.lr(self.step.saturating_sub(1)),
@@ -246,15 +259,16 @@ impl Trainer {
 
     /// Restores the newest checkpoint of `root`; returns its state (None if there is
     /// none).
-    pub fn restore_latest(&mut self, root: &Path) -> anyhow::Result<Option<CheckpointState>> {
+    pub fn restore_latest(&mut self, root: &Path) -> Result<Option<CheckpointState>, TrainerError> {
         let Some(ckpt) = checkpoint::latest(root)? else {
             return Ok(None);
         };
-        let read = |p: PathBuf| {
-            std::fs::read(&p).map_err(|e| anyhow::anyhow!("reading {}: {e}", p.display()))
-        };
+        let read = |p: PathBuf| std::fs::read(&p).map_err(|e| TrainerError::io("reading", p, e));
         let record = ModuleRecord::from_bytes(Bytes::from_bytes_vec(read(ckpt.model_path())?))
-            .map_err(|e| anyhow::anyhow!("{}: {e:?}", ckpt.model_path().display()))?;
+            .map_err(|error| TrainerError::Record {
+                path: ckpt.model_path(),
+                error,
+            })?;
         let model = self
             .model
             .take()
@@ -263,7 +277,10 @@ impl Trainer {
         let optim = std::mem::replace(&mut self.optim, AdamWConfig::new().init());
         self.optim = optim
             .from_bytes(Bytes::from_bytes_vec(read(ckpt.optim_path())?))
-            .map_err(|e| anyhow::anyhow!("{}: {e:?}", ckpt.optim_path().display()))?;
+            .map_err(|error| TrainerError::Record {
+                path: ckpt.optim_path(),
+                error,
+            })?;
         self.step = ckpt.state.step;
         tracing::info!(checkpoint = %ckpt.dir.display(), step = self.step, "restored");
         Ok(Some(ckpt.state))

@@ -1,0 +1,271 @@
+//! Where a trainer is in the pipeline's stream of batches, and what to do with each batch
+//! that arrives: train on it, skip it, or ask the pipeline to continue elsewhere.
+//!
+//! Every batch carries its stream position (epoch, batch in epoch) and the id of the
+//! publisher (pipeline process) that sent it. A [`StreamTracker`] remembers the position
+//! of the next batch to train on (unknown until the first step, or the checkpoint's when
+//! resuming) and the publisher of the last trained batch, and decides:
+//!
+//! * the first batch, and every batch at the expected position → [`Action::Train`];
+//! * a batch from another publisher (the pipeline died and was restarted) at another
+//!   position, or a batch further along the same epoch (the shared broadcast stream was
+//!   moved ahead by another trainer's resume) → [`Action::Resume`] at the expected position;
+//! * a batch before the expected position (another broadcast subscriber rewound the shared
+//!   stream by its resume) → [`Action::Skip`]: it was trained on already;
+//! * a batch of a later epoch from the same publisher → trained on (the pipeline moved on).
+//!
+//! ```
+//! use superflow_trainer::stream::{Action, StreamPosition, StreamTracker};
+//!
+//! let mut stream = StreamTracker::new(None);
+//! let first = StreamPosition::new(0, 0);
+//! assert_eq!(stream.classify(7, first), Action::Train);
+//! stream.trained(first);
+//! // Publisher 9 (a restarted pipeline) starts over at batch 0: ask it for batch 1.
+//! let at = StreamPosition::new(0, 1);
+//! assert_eq!(stream.classify(9, first), Action::Resume { at, restarted: true });
+//! stream.resumed(9);
+//! assert_eq!(stream.classify(9, at), Action::Train);
+//! ```
+
+use std::fmt;
+
+/// A batch's place in a run's stream: its epoch and its number within the epoch
+/// (`BatchHeader::epoch`, `BatchHeader::step`). Ordered by epoch, then batch.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord, Hash, Default)]
+pub struct StreamPosition {
+    /// Epoch.
+    pub epoch: u64,
+    /// Batch within the epoch.
+    pub batch: u64,
+}
+
+impl StreamPosition {
+    /// Batch `batch` of epoch `epoch`.
+    pub fn new(epoch: u64, batch: u64) -> Self {
+        Self { epoch, batch }
+    }
+
+    /// The position after this one in the same epoch (where a trainer continues after
+    /// training on this batch; the pipeline moves to the next epoch by itself).
+    pub fn following(self) -> Self {
+        Self::new(self.epoch, self.batch + 1)
+    }
+}
+
+impl fmt::Display for StreamPosition {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "epoch {} batch {}", self.epoch, self.batch)
+    }
+}
+
+/// What to do with a received batch.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Action {
+    /// Train on it.
+    Train,
+    /// Drop it: this trainer trained on it already (a broadcast stream rewound by
+    /// another subscriber's resume). `skipped` counts such batches so far.
+    Skip {
+        /// Batches skipped so far, this one included.
+        skipped: u64,
+    },
+    /// Drop it and ask the pipeline to continue the stream at `at`, then report the
+    /// answering publisher with [`StreamTracker::resumed`].
+    Resume {
+        /// The position to continue at: this trainer's next batch.
+        at: StreamPosition,
+        /// Whether the batch came from another publisher than the last trained one (a
+        /// restarted pipeline) rather than from a stream moved ahead.
+        restarted: bool,
+    },
+}
+
+/// The stream-position protocol of one trainer (see the [module docs](self)).
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct StreamTracker {
+    /// The position of the next batch to train on, once known.
+    expected: Option<StreamPosition>,
+    /// The publisher of the last trained batch (or the one that accepted a resume).
+    origin: Option<u128>,
+    /// Batches skipped as already trained on.
+    skipped: u64,
+}
+
+impl StreamTracker {
+    /// A tracker for a fresh run (`None`: the first batch is trained on, wherever the
+    /// stream is) or for a run resumed from a checkpoint whose next batch is `resumed_at`
+    /// (the pipeline was asked to continue there).
+    pub fn new(resumed_at: Option<StreamPosition>) -> Self {
+        Self {
+            expected: resumed_at,
+            ..Self::default()
+        }
+    }
+
+    /// Decides what to do with a batch at `position` sent by publisher `origin`. A
+    /// [`Action::Train`] takes `origin` as the stream's publisher; call
+    /// [`trained`](Self::trained) once the step succeeded.
+    pub fn classify(&mut self, origin: u128, position: StreamPosition) -> Action {
+        let restarted = self.origin.is_some_and(|o| o != origin);
+        if let Some(next) = self.expected
+            && position != next
+            // A new pipeline began elsewhere, or (broadcast) another trainer's resume
+            // moved the shared stream ahead within the epoch.
+            && (restarted || (position.epoch == next.epoch && position.batch > next.batch))
+        {
+            return Action::Resume {
+                at: next,
+                restarted,
+            };
+        }
+        if self.expected.is_some_and(|next| position < next) {
+            self.skipped += 1;
+            return Action::Skip {
+                skipped: self.skipped,
+            };
+        }
+        self.origin = Some(origin);
+        Action::Train
+    }
+
+    /// Records a finished step on the batch at `position`: the next one is expected.
+    pub fn trained(&mut self, position: StreamPosition) {
+        self.expected = Some(position.following());
+    }
+
+    /// Records that `publisher` accepted to continue at the expected position.
+    pub fn resumed(&mut self, publisher: u128) {
+        self.origin = Some(publisher);
+    }
+
+    /// The position of the next batch to train on (what a checkpoint records), once known.
+    pub fn next(&self) -> Option<StreamPosition> {
+        self.expected
+    }
+
+    /// Batches skipped so far as already trained on.
+    pub fn skipped(&self) -> u64 {
+        self.skipped
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const A: u128 = 1;
+    const B: u128 = 2;
+
+    fn at(epoch: u64, batch: u64) -> StreamPosition {
+        StreamPosition::new(epoch, batch)
+    }
+
+    /// A tracker that trained on `position` from publisher `origin`.
+    fn after(origin: u128, position: StreamPosition) -> StreamTracker {
+        let mut s = StreamTracker::new(None);
+        assert_eq!(s.classify(origin, position), Action::Train);
+        s.trained(position);
+        s
+    }
+
+    #[test]
+    fn the_first_batch_is_trained_wherever_the_stream_is() {
+        let mut s = StreamTracker::new(None);
+        assert_eq!(s.next(), None);
+        assert_eq!(s.classify(A, at(3, 17)), Action::Train);
+        s.trained(at(3, 17));
+        assert_eq!(s.next(), Some(at(3, 18)));
+        assert_eq!(s.skipped(), 0);
+    }
+
+    #[test]
+    fn batches_in_order_are_trained() {
+        let mut s = after(A, at(0, 0));
+        for batch in 1..5 {
+            assert_eq!(s.classify(A, at(0, batch)), Action::Train);
+            s.trained(at(0, batch));
+        }
+        assert_eq!(s.next(), Some(at(0, 5)));
+        // The pipeline moves on to the next epoch by itself.
+        assert_eq!(s.classify(A, at(1, 0)), Action::Train);
+        s.trained(at(1, 0));
+        assert_eq!(s.next(), Some(at(1, 1)));
+    }
+
+    #[test]
+    fn a_restarted_publisher_elsewhere_is_asked_to_continue_here() {
+        let mut s = after(A, at(0, 4));
+        // The restarted pipeline begins at the start, or anywhere else.
+        for other in [at(0, 0), at(0, 9), at(2, 0)] {
+            assert_eq!(
+                s.classify(B, other),
+                Action::Resume {
+                    at: at(0, 5),
+                    restarted: true
+                }
+            );
+        }
+        s.resumed(B);
+        assert_eq!(s.classify(B, at(0, 5)), Action::Train);
+        s.trained(at(0, 5));
+        assert_eq!(s.next(), Some(at(0, 6)));
+        assert_eq!(s.skipped(), 0);
+    }
+
+    #[test]
+    fn a_restarted_publisher_at_the_expected_position_is_trained() {
+        let mut s = after(A, at(0, 4));
+        assert_eq!(s.classify(B, at(0, 5)), Action::Train);
+        s.trained(at(0, 5));
+        // B is now the stream's publisher: its next batch is in order.
+        assert_eq!(s.classify(B, at(0, 6)), Action::Train);
+    }
+
+    #[test]
+    fn a_gap_in_the_epoch_asks_to_continue_here() {
+        let mut s = after(A, at(1, 2));
+        assert_eq!(
+            s.classify(A, at(1, 7)),
+            Action::Resume {
+                at: at(1, 3),
+                restarted: false
+            }
+        );
+        s.resumed(A);
+        assert_eq!(s.classify(A, at(1, 3)), Action::Train);
+    }
+
+    #[test]
+    fn a_broadcast_rewind_is_skipped_and_counted() {
+        let mut s = after(A, at(0, 6));
+        assert_eq!(s.classify(A, at(0, 2)), Action::Skip { skipped: 1 });
+        assert_eq!(s.classify(A, at(0, 3)), Action::Skip { skipped: 2 });
+        // An earlier epoch is behind too.
+        let mut later = after(A, at(2, 0));
+        assert_eq!(later.classify(A, at(1, 9)), Action::Skip { skipped: 1 });
+        // Back at the expected position: trained; skipping did not move it.
+        assert_eq!(s.next(), Some(at(0, 7)));
+        assert_eq!(s.classify(A, at(0, 7)), Action::Train);
+        assert_eq!(s.skipped(), 2);
+    }
+
+    #[test]
+    fn after_a_checkpoint_the_stream_continues_at_its_next_batch() {
+        // Resumed from a checkpoint whose next batch is (2, 10); the publisher is unknown.
+        let mut s = StreamTracker::new(Some(at(2, 10)));
+        assert_eq!(s.next(), Some(at(2, 10)));
+        // Batches of the old position still queued: behind → skipped, ahead → resume.
+        assert_eq!(s.classify(A, at(2, 4)), Action::Skip { skipped: 1 });
+        assert_eq!(
+            s.classify(A, at(2, 12)),
+            Action::Resume {
+                at: at(2, 10),
+                restarted: false
+            }
+        );
+        assert_eq!(s.classify(A, at(2, 10)), Action::Train);
+        s.trained(at(2, 10));
+        assert_eq!(s.next(), Some(at(2, 11)));
+    }
+}
