@@ -1,10 +1,36 @@
 //! `superflow-pipeline`: reads recorded drives (MCAP) and turns them into SuperFlow
-//! training batches.
+//! training batches in shared memory. The modules, in the order data flows through them
+//! (each uses only the ones above it):
 //!
-//! * [`decode`]: the message types of each recording dialect (Foxglove protobuf, ROS 2
-//!   CDR) and their conversion into the sensor model of `superflow-schemas`.
-//! * [`drive`]: a drive in time — the [`drive::TransformTree`] answers `a_from_b` at any
-//!   stamp by interpolating the recorded transforms.
+//! 1. [`source`]: one MCAP file — [`source::McapFile`] scans it once (summary and chunk
+//!    index when present, a linear scan of a damaged file otherwise, every loss a
+//!    [`source::Damage`]) and reads any message back through a small
+//!    [`source::ChunkCache`].
+//! 2. [`decode`]: the wire formats — [`decode::schema_kind`] tells each channel's
+//!    [`decode::Dialect`] and [`decode::SchemaKind`] from its schema; [`decode::points`],
+//!    [`decode::image`], [`decode::ros2`] and [`decode::foxglove`] turn messages into
+//!    the sensor model of `superflow-schemas` (point clouds, images, calibrations,
+//!    transforms).
+//! 3. [`drive`]: a drive in time — [`drive::Dataset`] opens the inputs (files, rosbag2
+//!    directories, sidecars), finds the channels ([`drive::IngestConfig`] overrides),
+//!    indexes every [`drive::Drive`] and keeps its [`drive::TransformTree`], which
+//!    answers `a_from_b` at any stamp.
+//! 4. [`sample`]: the recipe ([`sample::SampleConfig`]) — a [`sample::Plan`] of
+//!    keyframes and temporal triplets, and the [`sample::SampleBuilder`] that makes one
+//!    [`sample::Sample`]: dense clouds, projection and pairings, images, superpixels,
+//!    augmentation, voxels and sparse-convolution maps.
+//! 5. [`batch`]: samples → the sections of one batch ([`batch::BatchPlan`]), written in
+//!    place through `superflow_schemas::batch`, whose section table is the contract.
+//! 6. [`publish`]: the service — [`publish::serve`] builds batches ahead on a producer
+//!    thread and publishes them over iceoryx2 by the [`publish::Schedule`] (epochs,
+//!    shards, hosts), with backpressure, resume ([`publish`]'s control server) and
+//!    [`publish::Metrics`].
+//!
+//! Beside them: [`config::PipelineConfig`] (`pipeline.toml`: `[ingest]`, `[sample]`,
+//! `[service]`; a setting out of range is an [`invalid::InvalidSetting`]) and
+//! [`inspect`] (what `superflow-pipeline inspect` reports about a drive).
+//!
+//! For example, the transform tree interpolates between recorded poses:
 //!
 //! ```
 //! use superflow_pipeline::drive::TransformTree;
