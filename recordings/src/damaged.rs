@@ -16,7 +16,7 @@ use anyhow::Context as _;
 use foxglove::messages::{PointCloud, Timestamp};
 use prost::Message as _;
 use std::collections::BTreeMap;
-use superflow_pipeline::decode::ros2::{self, CompressedImage, PointCloud2, Ros2Time};
+use superflow_schemas::ros2::{self, CompressedImage, PointCloud2, Ros2Time};
 
 /// One damaged recording.
 #[derive(Debug, Clone)]

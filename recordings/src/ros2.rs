@@ -11,11 +11,11 @@ use crate::{Dialect, GeneratedDrive, Simulation, WrittenDrive, encode_jpeg};
 use anyhow::Context as _;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 use std::collections::BTreeMap;
-use superflow_pipeline::decode::ros2::{
+use superflow_schemas::Stamp;
+use superflow_schemas::ros2::{
     self, CameraInfo, CompressedImage, Header, Image, PointCloud2, PointField, Quaternion,
     Ros2Message, Ros2Time, TfMessage, Transform, TransformStamped, Vector3,
 };
-use superflow_schemas::Stamp;
 
 /// The world frame.
 pub const MAP_FRAME: &str = "map";
