@@ -1,6 +1,6 @@
 //! The damaged recordings of `recordings/damaged/`: a short drive
 //! ([`DriveOptions::short`]) in both dialects, damaged the ways real recordings are
-//! (`../shared/RECORDING_LAYOUTS.md`): cut short, a corrupt chunk, a calibration or the
+//! (`recordings/LAYOUTS.md`): cut short, a corrupt chunk, a calibration or the
 //! `/tf` channel never recorded, sweeps with NaN and infinite points, and wrong sensor
 //! stamps. Each is a pure function of the code, like the sample drives; next to each
 //! file, `<name>.expected.json` (written by hand, not generated) states what the pipeline
