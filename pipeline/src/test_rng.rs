@@ -18,9 +18,4 @@ impl TestRng {
     pub(crate) fn below(&mut self, n: u64) -> u64 {
         self.next() % n
     }
-
-    /// An index into a slice of `len > 0` elements.
-    pub(crate) fn index(&mut self, len: usize) -> usize {
-        self.below(len as u64) as usize
-    }
 }

@@ -1,6 +1,6 @@
 //! The damaged recordings of `recordings/damaged/`: a short drive
 //! ([`DriveOptions::short`]) in both dialects, damaged the ways real recordings are
-//! (`../shared/RECORDING_LAYOUTS.md`): cut short, a corrupt chunk, a calibration or the
+//! (`recordings/LAYOUTS.md`): cut short, a corrupt chunk, a calibration or the
 //! `/tf` channel never recorded, sweeps with NaN and infinite points, and wrong sensor
 //! stamps. Each is a pure function of the code, like the sample drives; next to each
 //! file, `<name>.expected.json` (written by hand, not generated) states what the pipeline
@@ -16,7 +16,7 @@ use anyhow::Context as _;
 use foxglove::messages::{PointCloud, Timestamp};
 use prost::Message as _;
 use std::collections::BTreeMap;
-use superflow_pipeline::decode::ros2::{self, CompressedImage, PointCloud2, Ros2Time};
+use superflow_schemas::ros2::{self, CompressedImage, PointCloud2, Ros2Time};
 
 /// One damaged recording.
 #[derive(Debug, Clone)]

@@ -5,17 +5,18 @@
 //! extrinsics (`base_link → cam_*_link → cam_*_optical_frame`) once on `/tf_static`.
 
 use crate::out::McapOut;
-use crate::sim::body_from_optical;
+use crate::sim::{CameraRig, Return, body_from_optical};
 use crate::truth::{CameraTruth, FramesTruth, PoseTruth, SweepTruth};
 use crate::{Dialect, GeneratedDrive, Simulation, WrittenDrive, encode_jpeg};
 use anyhow::Context as _;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 use std::collections::BTreeMap;
-use superflow_pipeline::decode::ros2::{
+use superflow_schemas::Stamp;
+use superflow_schemas::ros2::{
     self, CameraInfo, CompressedImage, Header, Image, PointCloud2, PointField, Quaternion,
     Ros2Message, Ros2Time, TfMessage, Transform, TransformStamped, Vector3,
 };
-use superflow_schemas::Stamp;
+use superflow_schemas::sensor::CameraCalibration;
 
 /// The world frame.
 pub const MAP_FRAME: &str = "map";
@@ -103,261 +104,48 @@ const TF_LATENCY_NANOS: i64 = 1_200_000;
 /// `publish_time` precedes `log_time` by this.
 const TRANSPORT_NANOS: i64 = 400_000;
 
+/// Queues `data`, stamped `stamp`, as received `latency` after it (`log_time`) and
+/// published [`TRANSPORT_NANOS`] before that.
+fn queue(out: &mut McapOut, channel: usize, stamp: Stamp, latency: i64, data: Vec<u8>) {
+    let log_time = stamp.nanos() + latency;
+    out.message(channel, log_time, log_time - TRANSPORT_NANOS, data);
+}
+
+/// Declares a channel of `T` with the volatile QoS of a sensor topic.
+fn channel<T: Ros2Message>(out: &mut McapOut, topic: &str, role: &str) -> usize {
+    out.channel(
+        topic,
+        role,
+        schema::<T>(),
+        ros2::MESSAGE_ENCODING,
+        qos(false),
+    )
+}
+
 /// Writes the drive; returns the MCAP bytes and the ground truth.
 pub fn write(sim: &Simulation) -> anyhow::Result<GeneratedDrive> {
     let mut out = McapOut::default();
     out.set_chunk_size(sim.options.chunk_size);
-    let enc = ros2::MESSAGE_ENCODING;
-    let start = sim.timing.start;
-    let end = start.add_nanos(sim.timing.duration_nanos);
-    let queue = |out: &mut McapOut, channel, stamp: Stamp, latency: i64, data: Vec<u8>| {
-        let log_time = stamp.nanos() + latency;
-        out.message(channel, log_time, log_time - TRANSPORT_NANOS, data);
-    };
-
     let tf_static = out.channel(
         "/tf_static",
         "static_transforms",
         schema::<TfMessage>(),
-        enc,
+        ros2::MESSAGE_ENCODING,
         qos(true),
     );
-    let tf = out.channel("/tf", "transforms", schema::<TfMessage>(), enc, qos(false));
-    let lidar = out.channel(
-        LIDAR_TOPIC,
-        "lidar",
-        schema::<PointCloud2>(),
-        enc,
-        qos(false),
-    );
+    let tf = channel::<TfMessage>(&mut out, "/tf", "transforms");
+    let lidar = channel::<PointCloud2>(&mut out, LIDAR_TOPIC, "lidar");
 
-    // Static extrinsics, once, at the start (latched).
-    let mut statics = vec![transform_stamped(
-        start,
-        EGO_FRAME,
-        LIDAR_FRAME,
-        &sim.rig.ego_from_lidar,
-    )?];
-    for cam in &sim.rig.cameras {
-        let base = camera_base(cam.name);
-        let link = format!("{base}_link");
-        statics.push(transform_stamped(
-            start,
-            EGO_FRAME,
-            &link,
-            &cam.ego_from_camera_body,
-        )?);
-        statics.push(transform_stamped(
-            start,
-            &link,
-            &format!("{base}_optical_frame"),
-            &body_from_optical(),
-        )?);
-    }
-    queue(
-        &mut out,
-        tf_static,
-        start,
-        0,
-        ros2::encode(&TfMessage {
-            transforms: statics,
-        })?,
-    );
-
-    // Odometry at 50 Hz and localisation at 10 Hz, covering the drive with a margin.
-    let mut n = -2i64;
-    loop {
-        let stamp = start.add_nanos(n * 20_000_000);
-        if stamp > end.add_nanos(40_000_000) {
-            break;
-        }
-        let odom_from_ego = map_from_odom(start, stamp).inverse() * sim.map_from_ego(stamp);
-        let mut transforms = vec![transform_stamped(
-            stamp,
-            ODOM_FRAME,
-            EGO_FRAME,
-            &odom_from_ego,
-        )?];
-        if n.rem_euclid(5) == 0 {
-            transforms.push(transform_stamped(
-                stamp,
-                MAP_FRAME,
-                ODOM_FRAME,
-                &map_from_odom(start, stamp),
-            )?);
-        }
-        queue(
-            &mut out,
-            tf,
-            stamp,
-            TF_LATENCY_NANOS,
-            ros2::encode(&TfMessage { transforms })?,
-        );
-        n += 1;
-    }
-
-    // LiDAR: velodyne XYZIRT layout (point_step 22), stamped at the start of the sweep,
-    // each point in the LiDAR frame at its own firing time.
-    let field = |name: &str, offset, datatype| PointField {
-        name: name.into(),
-        offset,
-        datatype,
-        count: 1,
-    };
-    let fields = vec![
-        field("x", 0, PointField::FLOAT32),
-        field("y", 4, PointField::FLOAT32),
-        field("z", 8, PointField::FLOAT32),
-        field("intensity", 12, PointField::FLOAT32),
-        field("ring", 16, PointField::UINT16),
-        field("time", 18, PointField::FLOAT32),
-    ];
-    let mut sweeps = Vec::new();
-    let mut lidar_stamps = Vec::new();
-    for (k, returns) in sim.sweeps.iter().enumerate() {
-        let (begin, _) = sim.timing.sweep_span(k);
-        let mut data = Vec::with_capacity(returns.len() * 22);
-        let mut column_stamp = None;
-        let mut lidar_from_map = Isometry3::identity();
-        for r in returns {
-            if column_stamp != Some(r.stamp) {
-                column_stamp = Some(r.stamp);
-                lidar_from_map = (sim.map_from_ego(r.stamp) * sim.rig.ego_from_lidar).inverse();
-            }
-            let p = lidar_from_map * r.point_in_map;
-            for v in [p.x as f32, p.y as f32, p.z as f32, r.intensity] {
-                data.extend_from_slice(&v.to_le_bytes());
-            }
-            data.extend_from_slice(&r.ring.to_le_bytes());
-            data.extend_from_slice(&(r.stamp.secs_since(begin) as f32).to_le_bytes());
-        }
-        let width = u32::try_from(returns.len())?;
-        let cloud = PointCloud2 {
-            header: header(begin, LIDAR_FRAME)?,
-            height: 1,
-            width,
-            fields: fields.clone(),
-            is_bigendian: false,
-            point_step: 22,
-            row_step: 22 * width,
-            data,
-            is_dense: true,
-        };
-        queue(
-            &mut out,
-            lidar,
-            begin,
-            LIDAR_LATENCY_NANOS,
-            ros2::encode(&cloud)?,
-        );
-        sweeps.push(SweepTruth {
-            stamp_nanos: begin.nanos(),
-            points: u64::from(width),
-        });
-        lidar_stamps.push(begin);
-    }
-
-    let mut cameras = Vec::new();
-    for (i, cam) in sim.rig.cameras.iter().enumerate() {
-        let base = camera_base(cam.name);
-        let optical = format!("{base}_optical_frame");
-        let image_topic = format!("/{base}/image_raw/compressed");
-        let info_topic = format!("/{base}/camera_info");
-        let superpixel_topic = format!("/{base}/superpixels");
-        let image_channel = out.channel(
-            &image_topic,
-            "image",
-            schema::<CompressedImage>(),
-            enc,
-            qos(false),
-        );
-        let info_channel = out.channel(
-            &info_topic,
-            "calibration",
-            schema::<CameraInfo>(),
-            enc,
-            qos(false),
-        );
-        let superpixel_channel = out.channel(
-            &superpixel_topic,
-            "superpixels",
-            schema::<Image>(),
-            enc,
-            qos(false),
-        );
-        let calibration = &cam.calibration;
-        let k: Vec<f64> = calibration.k.transpose().iter().copied().collect(); // row-major
-        let k9: [f64; 9] = k
-            .clone()
-            .try_into()
-            .map_err(|_| anyhow::anyhow!("K is 3x3"))?;
-        let d = calibration.distortion.coeffs();
-        let mut p = [0.0; 12];
-        for row in 0..3 {
-            p[row * 4..row * 4 + 3].copy_from_slice(&k[row * 3..row * 3 + 3]);
-        }
-        let stamps = &sim.camera_stamps[i];
-        for (frame, stamp) in sim.frames[i].iter().zip(stamps) {
-            let jpeg = encode_jpeg(&frame.image)?;
-            queue(
-                &mut out,
-                image_channel,
-                *stamp,
-                CAMERA_LATENCY_NANOS,
-                ros2::encode(&CompressedImage {
-                    header: header(*stamp, &optical)?,
-                    format: "rgb8; jpeg compressed bgr8".into(),
-                    data: jpeg,
-                })?,
-            );
-            queue(
-                &mut out,
-                info_channel,
-                *stamp,
-                CAMERA_LATENCY_NANOS,
-                ros2::encode(&CameraInfo {
-                    header: header(*stamp, &optical)?,
-                    height: calibration.height,
-                    width: calibration.width,
-                    distortion_model: calibration.distortion.model_name().into(),
-                    d: d.clone(),
-                    k: k9,
-                    r: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
-                    p,
-                    ..Default::default()
-                })?,
-            );
-            queue(
-                &mut out,
-                superpixel_channel,
-                *stamp,
-                CAMERA_LATENCY_NANOS + 9_000_000,
-                ros2::encode(&Image {
-                    header: header(*stamp, &optical)?,
-                    height: frame.classes.height,
-                    width: frame.classes.width,
-                    encoding: "mono8".into(),
-                    is_bigendian: 0,
-                    step: frame.classes.width,
-                    data: frame.classes.data.clone(),
-                })?,
-            );
-        }
-        cameras.push(CameraTruth {
-            name: cam.name.to_string(),
-            image_topic,
-            calibration_topic: info_topic,
-            superpixel_topic,
-            frame_id: optical,
-            width: calibration.width,
-            height: calibration.height,
-            k: k9,
-            distortion_model: calibration.distortion.model_name().into(),
-            d,
-            ego_from_camera: PoseTruth::from(&cam.ego_from_optical()),
-            stamps_nanos: stamps.iter().map(|s| s.nanos()).collect(),
-        });
-    }
+    write_static_transforms(&mut out, tf_static, sim)?;
+    write_odometry(&mut out, tf, sim)?;
+    let (sweeps, lidar_stamps) = write_lidar(&mut out, lidar, sim)?;
+    let cameras = sim
+        .rig
+        .cameras
+        .iter()
+        .enumerate()
+        .map(|(i, cam)| write_camera(&mut out, sim, i, cam))
+        .collect::<anyhow::Result<Vec<_>>>()?;
 
     out.metadata(
         "rosbag2",
@@ -385,4 +173,269 @@ pub fn write(sim: &Simulation) -> anyhow::Result<GeneratedDrive> {
         cameras,
     });
     Ok(GeneratedDrive { mcap, truth })
+}
+
+/// The static extrinsics, once, at the start (latched): `base_link → lidar_top` and,
+/// per camera, `base_link → cam_*_link → cam_*_optical_frame`.
+fn write_static_transforms(
+    out: &mut McapOut,
+    channel: usize,
+    sim: &Simulation,
+) -> anyhow::Result<()> {
+    let start = sim.timing.start;
+    let mut statics = vec![transform_stamped(
+        start,
+        EGO_FRAME,
+        LIDAR_FRAME,
+        &sim.rig.ego_from_lidar,
+    )?];
+    for cam in &sim.rig.cameras {
+        let base = camera_base(cam.name);
+        let link = format!("{base}_link");
+        statics.push(transform_stamped(
+            start,
+            EGO_FRAME,
+            &link,
+            &cam.ego_from_camera_body,
+        )?);
+        statics.push(transform_stamped(
+            start,
+            &link,
+            &format!("{base}_optical_frame"),
+            &body_from_optical(),
+        )?);
+    }
+    queue(
+        out,
+        channel,
+        start,
+        0,
+        ros2::encode(&TfMessage {
+            transforms: statics,
+        })?,
+    );
+    Ok(())
+}
+
+/// Odometry (`odom → base_link`) at 50 Hz and localisation (`map → odom`) at 10 Hz on
+/// `/tf`, covering the drive with a margin.
+fn write_odometry(out: &mut McapOut, channel: usize, sim: &Simulation) -> anyhow::Result<()> {
+    let start = sim.timing.start;
+    let end = start.add_nanos(sim.timing.duration_nanos);
+    let mut n = -2i64;
+    loop {
+        let stamp = start.add_nanos(n * 20_000_000);
+        if stamp > end.add_nanos(40_000_000) {
+            break;
+        }
+        let odom_from_ego = map_from_odom(start, stamp).inverse() * sim.map_from_ego(stamp);
+        let mut transforms = vec![transform_stamped(
+            stamp,
+            ODOM_FRAME,
+            EGO_FRAME,
+            &odom_from_ego,
+        )?];
+        if n.rem_euclid(5) == 0 {
+            transforms.push(transform_stamped(
+                stamp,
+                MAP_FRAME,
+                ODOM_FRAME,
+                &map_from_odom(start, stamp),
+            )?);
+        }
+        queue(
+            out,
+            channel,
+            stamp,
+            TF_LATENCY_NANOS,
+            ros2::encode(&TfMessage { transforms })?,
+        );
+        n += 1;
+    }
+    Ok(())
+}
+
+/// The LiDAR: velodyne XYZIRT layout (point_step 22), stamped at the start of the
+/// sweep, each point in the LiDAR frame at its own firing time. Returns the sweeps'
+/// truth and stamps.
+fn write_lidar(
+    out: &mut McapOut,
+    channel: usize,
+    sim: &Simulation,
+) -> anyhow::Result<(Vec<SweepTruth>, Vec<Stamp>)> {
+    let field = |name: &str, offset, datatype| PointField {
+        name: name.into(),
+        offset,
+        datatype,
+        count: 1,
+    };
+    let fields = vec![
+        field("x", 0, PointField::FLOAT32),
+        field("y", 4, PointField::FLOAT32),
+        field("z", 8, PointField::FLOAT32),
+        field("intensity", 12, PointField::FLOAT32),
+        field("ring", 16, PointField::UINT16),
+        field("time", 18, PointField::FLOAT32),
+    ];
+    let mut sweeps = Vec::new();
+    let mut lidar_stamps = Vec::new();
+    for (k, returns) in sim.sweeps.iter().enumerate() {
+        let (begin, _) = sim.timing.sweep_span(k);
+        let data = sweep_data(sim, begin, returns);
+        let width = u32::try_from(returns.len())?;
+        let cloud = PointCloud2 {
+            header: header(begin, LIDAR_FRAME)?,
+            height: 1,
+            width,
+            fields: fields.clone(),
+            is_bigendian: false,
+            point_step: 22,
+            row_step: 22 * width,
+            data,
+            is_dense: true,
+        };
+        queue(
+            out,
+            channel,
+            begin,
+            LIDAR_LATENCY_NANOS,
+            ros2::encode(&cloud)?,
+        );
+        sweeps.push(SweepTruth {
+            stamp_nanos: begin.nanos(),
+            points: u64::from(width),
+        });
+        lidar_stamps.push(begin);
+    }
+    Ok((sweeps, lidar_stamps))
+}
+
+/// The points of a sweep that began at `begin`, 22 bytes each: x, y, z and intensity
+/// (`f32`) in the LiDAR frame at the point's firing time, ring (`u16`), time since
+/// `begin` in seconds (`f32`).
+fn sweep_data(sim: &Simulation, begin: Stamp, returns: &[Return]) -> Vec<u8> {
+    let mut data = Vec::with_capacity(returns.len() * 22);
+    let mut column_stamp = None;
+    let mut lidar_from_map = Isometry3::identity();
+    for r in returns {
+        if column_stamp != Some(r.stamp) {
+            column_stamp = Some(r.stamp);
+            lidar_from_map = (sim.map_from_ego(r.stamp) * sim.rig.ego_from_lidar).inverse();
+        }
+        let p = lidar_from_map * r.point_in_map;
+        for v in [p.x as f32, p.y as f32, p.z as f32, r.intensity] {
+            data.extend_from_slice(&v.to_le_bytes());
+        }
+        data.extend_from_slice(&r.ring.to_le_bytes());
+        data.extend_from_slice(&(r.stamp.secs_since(begin) as f32).to_le_bytes());
+    }
+    data
+}
+
+/// A camera's calibration as `CameraInfo` puts it: row-major `K`, `D` of the
+/// distortion model, `P` = `[K | 0]`.
+struct Intrinsics {
+    k: [f64; 9],
+    d: Vec<f64>,
+    p: [f64; 12],
+}
+
+impl Intrinsics {
+    fn of(calibration: &CameraCalibration) -> anyhow::Result<Self> {
+        let k: Vec<f64> = calibration.k.transpose().iter().copied().collect(); // row-major
+        let mut p = [0.0; 12];
+        for row in 0..3 {
+            p[row * 4..row * 4 + 3].copy_from_slice(&k[row * 3..row * 3 + 3]);
+        }
+        Ok(Self {
+            k: k.try_into().map_err(|_| anyhow::anyhow!("K is 3x3"))?,
+            d: calibration.distortion.coeffs(),
+            p,
+        })
+    }
+}
+
+/// Camera `i`: its three channels (compressed image, `CameraInfo`, superpixel class
+/// map), every frame on each; returns the camera's truth.
+fn write_camera(
+    out: &mut McapOut,
+    sim: &Simulation,
+    i: usize,
+    cam: &CameraRig,
+) -> anyhow::Result<CameraTruth> {
+    let base = camera_base(cam.name);
+    let optical = format!("{base}_optical_frame");
+    let image_topic = format!("/{base}/image_raw/compressed");
+    let info_topic = format!("/{base}/camera_info");
+    let superpixel_topic = format!("/{base}/superpixels");
+    let image_channel = channel::<CompressedImage>(out, &image_topic, "image");
+    let info_channel = channel::<CameraInfo>(out, &info_topic, "calibration");
+    let superpixel_channel = channel::<Image>(out, &superpixel_topic, "superpixels");
+    let calibration = &cam.calibration;
+    let intrinsics = Intrinsics::of(calibration)?;
+    let stamps = &sim.camera_stamps[i];
+    for (frame, stamp) in sim.frames[i].iter().zip(stamps) {
+        let header = header(*stamp, &optical)?;
+        let image = CompressedImage {
+            header: header.clone(),
+            format: "rgb8; jpeg compressed bgr8".into(),
+            data: encode_jpeg(&frame.image)?,
+        };
+        queue(
+            out,
+            image_channel,
+            *stamp,
+            CAMERA_LATENCY_NANOS,
+            ros2::encode(&image)?,
+        );
+        let info = CameraInfo {
+            header: header.clone(),
+            height: calibration.height,
+            width: calibration.width,
+            distortion_model: calibration.distortion.model_name().into(),
+            d: intrinsics.d.clone(),
+            k: intrinsics.k,
+            r: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
+            p: intrinsics.p,
+            ..Default::default()
+        };
+        queue(
+            out,
+            info_channel,
+            *stamp,
+            CAMERA_LATENCY_NANOS,
+            ros2::encode(&info)?,
+        );
+        let superpixels = Image {
+            header,
+            height: frame.classes.height,
+            width: frame.classes.width,
+            encoding: "mono8".into(),
+            is_bigendian: 0,
+            step: frame.classes.width,
+            data: frame.classes.data.clone(),
+        };
+        let latency = CAMERA_LATENCY_NANOS + 9_000_000;
+        queue(
+            out,
+            superpixel_channel,
+            *stamp,
+            latency,
+            ros2::encode(&superpixels)?,
+        );
+    }
+    Ok(CameraTruth {
+        name: cam.name.to_string(),
+        image_topic,
+        calibration_topic: info_topic,
+        superpixel_topic,
+        frame_id: optical,
+        width: calibration.width,
+        height: calibration.height,
+        k: intrinsics.k,
+        distortion_model: calibration.distortion.model_name().into(),
+        d: intrinsics.d,
+        ego_from_camera: PoseTruth::from(&cam.ego_from_optical()),
+        stamps_nanos: stamps.iter().map(|s| s.nanos()).collect(),
+    })
 }

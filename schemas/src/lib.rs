@@ -11,6 +11,9 @@
 //!   [`batch::BatchWriter`]; a consumer reads through a validated [`batch::BatchView`].
 //!   `BATCH_FORMAT.md` documents the bytes for readers in other languages.
 //! * [`service`]: the iceoryx2 service names (`superflow/<run>/batches`, ...).
+//! * [`ros2`]: the ROS 2 message definitions as rosbag2 stores them (serde mirrors,
+//!   `ros2msg` schema texts, the CDR codec), shared by the pipeline's decoder and the
+//!   recording generator.
 //!
 //! ```
 //! use superflow_schemas::batch::{BatchLayout, BatchMeta, BatchView, BatchWriter};
@@ -29,6 +32,7 @@
 //! ```
 
 pub mod batch;
+pub mod ros2;
 pub mod sensor;
 pub mod service;
 pub mod time;
