@@ -75,7 +75,7 @@ impl PipelineConfig {
                 "ingest.tf_tolerance_ms = {tol} is not in 0..=10000"
             ));
         }
-        self.sample.validate()?;
+        self.sample.validate().map_err(|e| e.to_string())?;
         self.service.validate()
     }
 }

@@ -3,8 +3,8 @@
 //! by depth, and the superpixels with the points in their superpixel's colour. Those
 //! pictures are how a user checks a calibration.
 
-use super::builder::{Cloud, Frame, Sample};
 use super::recipe::SampleConfig;
+use super::types::{Cloud, Frame, Sample};
 use npyz::WriterBuilder;
 use serde_json::json;
 use std::fs::File;
