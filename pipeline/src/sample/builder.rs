@@ -8,8 +8,8 @@
 
 use super::cloud::DenseCloud;
 use super::error::SampleError;
-use super::load::SampleContext;
-use super::plan::Plan;
+use super::load::{FrameInputs, SampleContext};
+use super::plan::{KeyframeRef, Plan};
 use super::recipe::{SampleConfig, SuperpixelSource};
 use super::rng::{Purpose, SampleRng};
 use super::types::{Frame, SampleId};
@@ -127,77 +127,13 @@ impl<'d> SampleBuilder<'d> {
             class_superpixels: self.class_superpixels[key.drive as usize],
             chosen: &chosen,
         };
-        let offsets = cfg.frame_offsets();
-        let key_frame = offsets.iter().position(|o| *o == 0).unwrap_or(0);
-
-        // Frames (sweep + images) and earlier sweeps load in parallel.
-        let earlier: Vec<u32> = (1..=cfg.dense_sweeps)
-            .filter_map(|j| key.sweep.checked_sub(j))
-            .collect();
-        let (frames, dense_parts) = rayon::join(
-            || {
-                key.frame_sweeps
-                    .par_iter()
-                    .enumerate()
-                    .map(|(f, &sweep)| ctx.load_frame(f as u32, sweep))
-                    .collect::<Result<Vec<_>, _>>()
-            },
-            || {
-                earlier
-                    .par_iter()
-                    .map(|&s| ctx.load_into_key_frame(s, key.sweep))
-                    .collect::<Vec<_>>()
-            },
-        );
-        let frames = frames?;
-        let key_inputs = &frames[key_frame];
-        let missing = cfg.dense_sweeps - earlier.len() as u32;
-        let dense = DenseCloud::assemble(&key_inputs.sweep, dense_parts, missing, keyframe);
-
-        // Pairing, augmentation, voxels and maps of every cloud: the frames' in order,
-        // then the dense one (paired with the keyframe's images).
-        let n_frames = frames.len() as u32;
-        let (frame_clouds, (dense_cloud, dense_times)) = rayon::join(
-            || {
-                frames
-                    .par_iter()
-                    .enumerate()
-                    .map(|(f, fr)| {
-                        let source = vec![0u8; fr.sweep.cloud.len()];
-                        ctx.finish_cloud(f as u32, &fr.sweep.cloud, source, &fr.images)
-                    })
-                    .collect::<Vec<_>>()
-            },
-            || {
-                ctx.finish_cloud(
-                    n_frames,
-                    &dense.cloud,
-                    dense.source_sweep,
-                    &key_inputs.images,
-                )
-            },
-        );
-        let mut times = dense.times;
-        times.add(&dense_times);
-        let out_frames = frames
-            .into_iter()
-            .zip(frame_clouds)
-            .enumerate()
-            .map(|(f, (inputs, (cloud, t)))| {
-                times.add(&t);
-                times.add(&inputs.times);
-                times.add(&inputs.sweep.times);
-                Frame {
-                    offset: offsets[f],
-                    sweep: key.frame_sweeps[f],
-                    lidar_stamp: inputs.sweep.cloud.stamp,
-                    images: inputs.images,
-                    num_superpixels: inputs.num_superpixels,
-                    cloud,
-                    dropped_non_finite: inputs.sweep.dropped,
-                }
-            })
-            .collect();
+        let key_frame = cfg
+            .frame_offsets()
+            .iter()
+            .position(|o| *o == 0)
+            .unwrap_or(0);
+        let (frames, mut dense) = load_keyframe(&ctx, key, key_frame)?;
+        let (frames, dense_cloud, times) = finish_frames(&ctx, key, frames, &mut dense, key_frame);
         Ok(Sample {
             id,
             seed: cfg.seed,
@@ -206,7 +142,7 @@ impl<'d> SampleBuilder<'d> {
                 .iter()
                 .map(|&c| drive.cameras[c].name.clone())
                 .collect(),
-            frames: out_frames,
+            frames,
             key_frame,
             dense: dense_cloud,
             dense_stamps: dense.stamps,
@@ -216,4 +152,90 @@ impl<'d> SampleBuilder<'d> {
             times,
         })
     }
+}
+
+/// The temporal frames of `key` (sweep and images each) and the earlier sweeps of its
+/// dense cloud, all loaded in parallel; `key_frame` is the keyframe's position among
+/// the frames.
+fn load_keyframe(
+    ctx: &SampleContext<'_>,
+    key: &KeyframeRef,
+    key_frame: usize,
+) -> Result<(Vec<FrameInputs>, DenseCloud), SampleError> {
+    let dense_sweeps = ctx.config.dense_sweeps;
+    let earlier: Vec<u32> = (1..=dense_sweeps)
+        .filter_map(|j| key.sweep.checked_sub(j))
+        .collect();
+    let (frames, dense_parts) = rayon::join(
+        || {
+            key.frame_sweeps
+                .par_iter()
+                .enumerate()
+                .map(|(f, &sweep)| ctx.load_frame(f as u32, sweep))
+                .collect::<Result<Vec<_>, _>>()
+        },
+        || {
+            earlier
+                .par_iter()
+                .map(|&s| ctx.load_into_key_frame(s, key.sweep))
+                .collect::<Vec<_>>()
+        },
+    );
+    let frames = frames?;
+    let missing = dense_sweeps - earlier.len() as u32;
+    let keyframe = ctx.id.keyframe as usize;
+    let dense = DenseCloud::assemble(&frames[key_frame].sweep, dense_parts, missing, keyframe);
+    Ok((frames, dense))
+}
+
+/// Pairing, augmentation, voxels and maps of every cloud: the frames' in order, then
+/// the dense one (paired with the keyframe's images; its source sweeps move into the
+/// result). Returns the frames, the dense cloud and the time of it all, loading
+/// included.
+fn finish_frames(
+    ctx: &SampleContext<'_>,
+    key: &KeyframeRef,
+    frames: Vec<FrameInputs>,
+    dense: &mut DenseCloud,
+    key_frame: usize,
+) -> (Vec<Frame>, Cloud, StageTimes) {
+    let n_frames = frames.len() as u32;
+    let dense_source = std::mem::take(&mut dense.source_sweep);
+    let key_images = &frames[key_frame].images;
+    let (frame_clouds, (dense_cloud, dense_times)) = rayon::join(
+        || {
+            frames
+                .par_iter()
+                .enumerate()
+                .map(|(f, fr)| {
+                    let source = vec![0u8; fr.sweep.cloud.len()];
+                    ctx.finish_cloud(f as u32, &fr.sweep.cloud, source, &fr.images)
+                })
+                .collect::<Vec<_>>()
+        },
+        || ctx.finish_cloud(n_frames, &dense.cloud, dense_source, key_images),
+    );
+    let mut times = dense.times;
+    times.add(&dense_times);
+    let offsets = ctx.config.frame_offsets();
+    let frames = frames
+        .into_iter()
+        .zip(frame_clouds)
+        .enumerate()
+        .map(|(f, (inputs, (cloud, t)))| {
+            times.add(&t);
+            times.add(&inputs.times);
+            times.add(&inputs.sweep.times);
+            Frame {
+                offset: offsets[f],
+                sweep: key.frame_sweeps[f],
+                lidar_stamp: inputs.sweep.cloud.stamp,
+                images: inputs.images,
+                num_superpixels: inputs.num_superpixels,
+                cloud,
+                dropped_non_finite: inputs.sweep.dropped,
+            }
+        })
+        .collect();
+    (frames, dense_cloud, times)
 }
