@@ -87,25 +87,8 @@ impl PipelineConfig {
                 "is not in 0..=10000",
             ));
         }
-        self.sample.validate().map_err(as_invalid)?;
+        self.sample.validate()?;
         self.service.validate()
-    }
-}
-
-/// `SampleConfig::validate`'s error as an [`InvalidSetting`], the same message: until it
-/// returns one itself (being changed on another branch; then this is the identity and
-/// the `map_err` can go), a `setting = value rule` string is taken apart.
-fn as_invalid<E: std::fmt::Display + 'static>(error: E) -> InvalidSetting {
-    if let Some(invalid) = (&error as &dyn std::any::Any).downcast_ref::<InvalidSetting>() {
-        return invalid.clone();
-    }
-    let message = error.to_string();
-    match message.split_once(" = ") {
-        Some((setting, rest)) if !setting.contains(' ') => {
-            let (value, rule) = rest.split_once(' ').unwrap_or((rest, ""));
-            InvalidSetting::new(setting, value, rule)
-        }
-        _ => InvalidSetting::new("sample", "?", message),
     }
 }
 

@@ -8,10 +8,9 @@
 
 use nalgebra::Point3;
 use superflow_pipeline::drive::Dataset;
-use superflow_pipeline::sample::builder::Sample;
 use superflow_pipeline::sample::project::{CameraView, camera_from_lidar};
 use superflow_pipeline::sample::recipe::{EdgePolicy, SuperpixelSource};
-use superflow_pipeline::sample::{SampleBuilder, SampleConfig, SampleError};
+use superflow_pipeline::sample::{Sample, SampleBuilder, SampleConfig, SampleError};
 use superflow_recordings::sim::{DriveTiming, Rig, simulate_sweep};
 use superflow_recordings::{Dialect, IMAGE_SIZE, SCENE_SEED, scene::Scene};
 use superflow_schemas::Stamp;

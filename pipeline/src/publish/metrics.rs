@@ -20,15 +20,15 @@ pub struct Metrics {
     pub write_nanos: AtomicU64,
     /// CPU time building samples, by stage, ns.
     pub stage_decode_nanos: AtomicU64,
-    /// See [`crate::sample::builder::StageTimes`].
+    /// See [`crate::sample::StageTimes`].
     pub stage_sweeps_nanos: AtomicU64,
-    /// See [`crate::sample::builder::StageTimes`].
+    /// See [`crate::sample::StageTimes`].
     pub stage_images_nanos: AtomicU64,
-    /// See [`crate::sample::builder::StageTimes`].
+    /// See [`crate::sample::StageTimes`].
     pub stage_projection_nanos: AtomicU64,
-    /// See [`crate::sample::builder::StageTimes`].
+    /// See [`crate::sample::StageTimes`].
     pub stage_superpixels_nanos: AtomicU64,
-    /// See [`crate::sample::builder::StageTimes`].
+    /// See [`crate::sample::StageTimes`].
     pub stage_voxels_nanos: AtomicU64,
     /// Subscribers found dead and cleaned up.
     pub dead_subscribers: AtomicU64,
@@ -43,7 +43,7 @@ pub struct Metrics {
 
 impl Metrics {
     /// Adds one sample's CPU time per stage.
-    pub fn add_stages(&self, t: &crate::sample::builder::StageTimes) {
+    pub fn add_stages(&self, t: &crate::sample::StageTimes) {
         for (counter, nanos) in [
             (&self.stage_decode_nanos, t.decode),
             (&self.stage_sweeps_nanos, t.sweeps),

@@ -3,8 +3,8 @@
 //! by depth, and the superpixels with the points in their superpixel's colour. Those
 //! pictures are how a user checks a calibration.
 
-use super::builder::{Cloud, Frame, Sample};
 use super::recipe::SampleConfig;
+use super::types::{Cloud, Frame, Sample};
 use npyz::WriterBuilder;
 use serde_json::json;
 use std::fs::File;
@@ -222,6 +222,57 @@ fn overlays(
     Ok(names)
 }
 
+/// `sample.json`'s entry of one temporal frame.
+fn frame_json(frame: &Frame) -> serde_json::Value {
+    let mut cloud = cloud_json(&frame.cloud);
+    cloud["offset_dt"] = json!(frame.offset);
+    cloud["sweep"] = json!(frame.sweep);
+    cloud["lidar_stamp_nanos"] = json!(frame.lidar_stamp.nanos());
+    cloud["num_superpixels"] = json!(frame.num_superpixels);
+    cloud["dropped_non_finite"] = json!(frame.dropped_non_finite);
+    cloud["images"] = frame
+        .images
+        .iter()
+        .map(|i| {
+            json!({
+                "camera": i.camera,
+                "topic": i.topic,
+                "stamp_nanos": i.stamp.nanos(),
+                "native_width": i.native_size.0,
+                "native_height": i.native_size.1,
+                "flipped": i.flipped,
+                "distortion": i.calibration.distortion.model_name(),
+            })
+        })
+        .collect();
+    cloud
+}
+
+/// `sample.json`'s entry of the dense cloud.
+fn dense_json(sample: &Sample) -> serde_json::Value {
+    let mut dense = cloud_json(&sample.dense);
+    dense["stamps_nanos"] = json!(
+        sample
+            .dense_stamps
+            .iter()
+            .map(|s| s.nanos())
+            .collect::<Vec<_>>()
+    );
+    dense["missing_sweeps"] = json!(sample.dense_missing);
+    dense["dropped_non_finite"] = json!(sample.dense_dropped_non_finite);
+    dense["points_per_sweep"] = json!(
+        (0..sample.dense_stamps.len())
+            .map(|s| sample
+                .dense
+                .source_sweep
+                .iter()
+                .filter(|&&x| x as usize == s)
+                .count())
+            .collect::<Vec<_>>()
+    );
+    dense
+}
+
 /// Writes `sample` into `dir` (created if needed): arrays `frame{f}_*` for each temporal
 /// frame (time order) and `dense_*`, `sample.json`, and overlay PNGs. Returns the paths
 /// written.
@@ -258,28 +309,7 @@ pub fn write_sample(
                 .flat_map(|i| i.superpixels.iter().copied()),
         )?;
         pngs.extend(overlays(dir, f, frame, config)?);
-        let mut cloud = cloud_json(&frame.cloud);
-        cloud["offset_dt"] = json!(frame.offset);
-        cloud["sweep"] = json!(frame.sweep);
-        cloud["lidar_stamp_nanos"] = json!(frame.lidar_stamp.nanos());
-        cloud["num_superpixels"] = json!(frame.num_superpixels);
-        cloud["dropped_non_finite"] = json!(frame.dropped_non_finite);
-        cloud["images"] = frame
-            .images
-            .iter()
-            .map(|i| {
-                json!({
-                    "camera": i.camera,
-                    "topic": i.topic,
-                    "stamp_nanos": i.stamp.nanos(),
-                    "native_width": i.native_size.0,
-                    "native_height": i.native_size.1,
-                    "flipped": i.flipped,
-                    "distortion": i.calibration.distortion.model_name(),
-                })
-            })
-            .collect();
-        frames_json.push(cloud);
+        frames_json.push(frame_json(frame));
     }
     cloud_arrays(dir, "dense", &sample.dense)?;
     npy(
@@ -288,26 +318,6 @@ pub fn write_sample(
         &[sample.dense.source_sweep.len() as u64],
         sample.dense.source_sweep.iter().copied(),
     )?;
-    let mut dense = cloud_json(&sample.dense);
-    dense["stamps_nanos"] = json!(
-        sample
-            .dense_stamps
-            .iter()
-            .map(|s| s.nanos())
-            .collect::<Vec<_>>()
-    );
-    dense["missing_sweeps"] = json!(sample.dense_missing);
-    dense["dropped_non_finite"] = json!(sample.dense_dropped_non_finite);
-    dense["points_per_sweep"] = json!(
-        (0..sample.dense_stamps.len())
-            .map(|s| sample
-                .dense
-                .source_sweep
-                .iter()
-                .filter(|&&x| x as usize == s)
-                .count())
-            .collect::<Vec<_>>()
-    );
     let doc = json!({
         "format": "superflow.sample/1",
         "drive": drive_files,
@@ -317,7 +327,7 @@ pub fn write_sample(
         "key_frame": sample.key_frame,
         "superpixels": if sample.class_superpixels { "class_map" } else { "slic" },
         "frames": frames_json,
-        "dense": dense,
+        "dense": dense_json(sample),
         "stage_nanos": sample.times,
         "config": config,
         "png": pngs,

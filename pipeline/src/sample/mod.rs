@@ -1,12 +1,20 @@
-//! Building SuperFlow samples (`../shared/DESIGN.md` §3): a [`builder::Plan`] of
-//! keyframes with their temporal context, and [`builder::SampleBuilder`] that turns
-//! `(epoch, index)` into a [`builder::Sample`].
+//! Building SuperFlow samples (the recipe and its numbers: `pipeline/docs/RECIPE.md`).
+//! In the order data flows: a [`SampleConfig`] (the recipe) and a dataset make a
+//! [`Plan`] of keyframes with their temporal context; [`SampleBuilder`] turns
+//! `(epoch, index)` into a [`Sample`] of temporal [`Frame`]s — each with its
+//! [`SampleImage`]s and [`Cloud`] — plus the dense cloud, or a [`SampleError`].
 //!
 //! * [`recipe`]: the `[sample]` config with the paper's defaults;
+//! * [`plan`]: the keyframes and their context sweeps, the epoch's shuffled order;
+//! * [`builder`]: [`SampleBuilder`], a sample from its loaded parts (`load.rs`: sweeps
+//!   and frames; `images.rs`: one camera image with its superpixels; `cloud.rs`: the
+//!   dense cloud, pairing, augmentation, voxels and maps);
+//! * [`types`]: what a sample is made of, and [`StageTimes`];
 //! * [`project`]: LiDAR → camera through the ego poses at both stamps (paper Eq. 1) with
 //!   the lens distortion and strict bounds, and per-point de-skew of raw sweeps;
 //! * [`image_ops`]: bilinear / nearest resize, flips, raw → resized pixel;
 //! * [`slic`]: SLIC superpixels when the recording has no class maps;
+//! * [`augment`]: the 3D augmentation (flip, rotation about z, scale) of a cloud;
 //! * [`voxel`]: cylindrical (ρ 0.1 m, φ 1°, z 0.1 m) or cartesian voxelization — unique
 //!   cells, a representative point per cell, the point→voxel map;
 //! * [`sparse`]: the sparse-convolution maps of every UNet level — 3×3×3 neighbour maps,
@@ -15,15 +23,27 @@
 //!   `(seed, epoch, index)`;
 //! * [`export`]: a sample as `.npy` arrays, `sample.json` and overlay PNGs.
 
+pub mod augment;
 pub mod builder;
+mod cloud;
+mod error;
 pub mod export;
 pub mod image_ops;
+mod images;
+mod load;
+pub mod plan;
 pub mod project;
 pub mod recipe;
 pub mod rng;
 pub mod slic;
 pub mod sparse;
+pub mod types;
 pub mod voxel;
 
-pub use builder::{Plan, Sample, SampleBuilder, SampleError};
+pub use augment::Augmentation;
+pub use builder::SampleBuilder;
+pub use error::SampleError;
+pub use images::CLASS_MAP_TOLERANCE_NANOS;
+pub use plan::{KeyframeRef, Plan};
 pub use recipe::SampleConfig;
+pub use types::{Cloud, Frame, Pair, Sample, SampleId, SampleImage, StageTimes};

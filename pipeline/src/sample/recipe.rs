@@ -1,8 +1,9 @@
 //! `[sample]` of `pipeline.toml`: the sample recipe. Every default is the paper's (or its
-//! official code's where the two differ; see `../shared/DESIGN.md` §3).
+//! official code's where the two differ; see `pipeline/docs/RECIPE.md`).
 
 use super::slic::SlicParams;
 use super::voxel::VoxelGrid;
+use crate::invalid::InvalidSetting;
 use serde::{Deserialize, Serialize};
 
 /// What to do with a keyframe whose t−Δt or t+Δt frame falls outside the drive.
@@ -131,82 +132,81 @@ impl Default for SampleConfig {
 }
 
 impl SampleConfig {
-    /// Checks ranges; the message names the field.
-    pub fn validate(&self) -> Result<(), String> {
+    /// Checks ranges; the error names the setting (`sample.…`).
+    pub fn validate(&self) -> Result<(), InvalidSetting> {
         let positive = |name: &str, v: f64| {
             if v.is_finite() && v > 0.0 {
                 Ok(())
             } else {
-                Err(format!("sample.{name} = {v} must be finite and positive"))
+                Err(InvalidSetting::new(
+                    format!("sample.{name}"),
+                    v,
+                    "must be finite and positive",
+                ))
             }
         };
         let probability = |name: &str, v: f64| {
             if (0.0..=1.0).contains(&v) {
                 Ok(())
             } else {
-                Err(format!("sample.{name} = {v} is not a probability"))
+                Err(InvalidSetting::new(
+                    format!("sample.{name}"),
+                    v,
+                    "is not a probability",
+                ))
+            }
+        };
+        let within = |name: &str, v: u32, range: std::ops::RangeInclusive<u32>| {
+            if range.contains(&v) {
+                Ok(())
+            } else {
+                let rule = format!("must be {}..={}", range.start(), range.end());
+                Err(InvalidSetting::new(format!("sample.{name}"), v, rule))
             }
         };
         positive("keyframe_interval_secs", self.keyframe_interval_secs)?;
         positive("delta_t_secs", self.delta_t_secs)?;
         if !(2..=3).contains(&self.temporal_frames) {
-            return Err(format!(
-                "sample.temporal_frames = {} must be 2 or 3",
-                self.temporal_frames
+            return Err(InvalidSetting::new(
+                "sample.temporal_frames",
+                self.temporal_frames,
+                "must be 2 or 3",
             ));
         }
         if self.dense_sweeps > 32 {
-            return Err(format!(
-                "sample.dense_sweeps = {} is more than 32",
-                self.dense_sweeps
+            return Err(InvalidSetting::new(
+                "sample.dense_sweeps",
+                self.dense_sweeps,
+                "is more than 32",
             ));
         }
-        if !(1..=255).contains(&self.cameras) {
-            return Err(format!("sample.cameras = {} must be 1..=255", self.cameras));
-        }
-        if !(1..=8192).contains(&self.image_height) || !(1..=8192).contains(&self.image_width) {
-            return Err(format!(
-                "sample image size {}x{} must be 1..=8192 each way",
-                self.image_height, self.image_width
-            ));
-        }
+        within("cameras", self.cameras, 1..=255)?;
+        within("image_height", self.image_height, 1..=8192)?;
+        within("image_width", self.image_width, 1..=8192)?;
         probability("image_flip_probability", self.image_flip_probability)?;
-        if self.num_classes == 0 || self.num_classes > 65_536 {
-            return Err(format!(
-                "sample.num_classes = {} must be 1..=65536",
-                self.num_classes
-            ));
-        }
-        self.slic
-            .validate()
-            .map_err(|e| format!("sample.slic: {e}"))?;
+        within("num_classes", self.num_classes, 1..=65_536)?;
+        self.slic.validate().map_err(in_sample)?;
         let a = &self.augment;
         probability("augment.flip_x_probability", a.flip_x_probability)?;
         probability("augment.flip_y_probability", a.flip_y_probability)?;
         if !(a.rotation_max_rad.is_finite() && a.rotation_max_rad >= 0.0) {
-            return Err(format!(
-                "sample.augment.rotation_max_rad = {} must be finite and >= 0",
-                a.rotation_max_rad
+            return Err(InvalidSetting::new(
+                "sample.augment.rotation_max_rad",
+                a.rotation_max_rad,
+                "must be finite and >= 0",
             ));
         }
         positive("augment.scale_min", a.scale_min)?;
         positive("augment.scale_max", a.scale_max)?;
         if a.scale_min > a.scale_max {
-            return Err(format!(
-                "sample.augment.scale_min = {} exceeds scale_max = {}",
-                a.scale_min, a.scale_max
+            return Err(InvalidSetting::new(
+                "sample.augment.scale_min",
+                a.scale_min,
+                format!("exceeds scale_max = {}", a.scale_max),
             ));
         }
-        self.voxel
-            .validate()
-            .map_err(|e| format!("sample.voxel: {e}"))?;
-        if !(1..=8).contains(&self.unet_levels) {
-            return Err(format!(
-                "sample.unet_levels = {} must be 1..=8",
-                self.unet_levels
-            ));
-        }
-        Ok(())
+        self.voxel.validate().map_err(in_sample)?;
+        within("unet_levels", self.unet_levels, 1..=8)
     }
 
     /// Offsets of the temporal frames in units of Δt, in time order.
@@ -216,5 +216,13 @@ impl SampleConfig {
         } else {
             &[-1, 0, 1]
         }
+    }
+}
+
+/// A sub-table's error (`slic.…`, `voxel.…`) named from the top (`sample.slic.…`).
+fn in_sample(e: InvalidSetting) -> InvalidSetting {
+    InvalidSetting {
+        setting: format!("sample.{}", e.setting),
+        ..e
     }
 }

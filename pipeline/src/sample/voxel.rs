@@ -1,6 +1,7 @@
 //! Voxelization: points → unique integer cells, one representative point per cell, and
 //! the map from every point to its cell.
 
+use crate::invalid::InvalidSetting;
 use rustc_hash::FxHashMap as HashMap;
 use serde::{Deserialize, Serialize};
 
@@ -65,20 +66,30 @@ impl VoxelGrid {
         }
     }
 
-    /// Checks that the cell sizes are finite and positive.
-    pub fn validate(&self) -> Result<(), String> {
-        let sizes = match *self {
+    /// Checks that the cell sizes are finite and positive; the error names the size as
+    /// `voxel.<field>` (the caller adds its own prefix, e.g. `sample.`).
+    pub fn validate(&self) -> Result<(), InvalidSetting> {
+        let bad = |s: &f32| !(s.is_finite() && *s > 0.0);
+        let rule = "must be finite and positive";
+        match *self {
             VoxelGrid::Cylindrical {
                 rho_m,
                 phi_deg,
                 z_m,
-            } => [rho_m, phi_deg, z_m],
-            VoxelGrid::Cartesian { size_m } => size_m,
-        };
-        if sizes.iter().all(|s| s.is_finite() && *s > 0.0) {
-            Ok(())
-        } else {
-            Err(format!("voxel sizes must be finite and positive: {self:?}"))
+            } => {
+                for (name, size) in [("rho_m", rho_m), ("phi_deg", phi_deg), ("z_m", z_m)] {
+                    if bad(&size) {
+                        return Err(InvalidSetting::new(format!("voxel.{name}"), size, rule));
+                    }
+                }
+                Ok(())
+            }
+            VoxelGrid::Cartesian { size_m } if size_m.iter().any(bad) => Err(InvalidSetting::new(
+                "voxel.size_m",
+                format!("{size_m:?}"),
+                rule,
+            )),
+            VoxelGrid::Cartesian { .. } => Ok(()),
         }
     }
 }

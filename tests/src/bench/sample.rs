@@ -7,7 +7,7 @@
 use rayon::prelude::*;
 use std::time::Instant;
 use superflow_pipeline::sample::SampleBuilder;
-use superflow_pipeline::sample::builder::StageTimes;
+use superflow_pipeline::sample::StageTimes;
 
 /// Builds `n` samples (epoch-major over the plan) on `threads` threads; returns
 /// samples/s and the summed stage times.

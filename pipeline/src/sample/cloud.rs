@@ -1,0 +1,155 @@
+//! From loaded sweeps to the clouds of a sample: the dense cloud (the keyframe's points,
+//! then earlier sweeps in its LiDAR frame) and, for every cloud, pairing with the frame's
+//! images, augmentation, voxelization and the UNet's sparse-convolution maps.
+
+use super::augment::Augmentation;
+use super::error::SampleError;
+use super::image_ops;
+use super::load::{LoadedSweep, SampleContext, elapsed};
+use super::project::{CameraView, pair_points};
+use super::rng::{Purpose, SampleRng};
+use super::sparse::build_levels;
+use super::types::{Cloud, Pair, SampleImage, StageTimes};
+use super::voxel::voxelize;
+use std::time::Instant;
+use superflow_schemas::Stamp;
+use superflow_schemas::sensor::PointCloud;
+
+/// The dense cloud before it is finished.
+pub(super) struct DenseCloud {
+    /// The keyframe's points, then each earlier sweep's, in the keyframe's LiDAR frame.
+    pub cloud: PointCloud,
+    /// Source sweep per point: 0 = the keyframe, k = the k-th earlier sweep.
+    pub source_sweep: Vec<u8>,
+    /// Stamps of the sweeps in it, keyframe first.
+    pub stamps: Vec<Stamp>,
+    /// Earlier sweeps that could not be loaded.
+    pub missing: u32,
+    /// Non-finite points dropped from the earlier sweeps.
+    pub dropped_non_finite: u64,
+    /// Time spent on the earlier sweeps.
+    pub times: StageTimes,
+}
+
+impl DenseCloud {
+    /// The keyframe's sweep `key` followed by the `earlier` ones that loaded (already in
+    /// its LiDAR frame); `missing` earlier sweeps were out of the drive, and every one
+    /// that failed to load is counted with them (`keyframe` names it in the log).
+    pub(super) fn assemble(
+        key: &LoadedSweep,
+        earlier: Vec<Result<LoadedSweep, SampleError>>,
+        missing: u32,
+        keyframe: usize,
+    ) -> Self {
+        let mut dense = DenseCloud {
+            cloud: key.cloud.clone(),
+            source_sweep: vec![0u8; key.cloud.len()],
+            stamps: vec![key.cloud.stamp],
+            missing,
+            dropped_non_finite: 0,
+            times: StageTimes::default(),
+        };
+        for (j, part) in earlier.into_iter().enumerate() {
+            match part {
+                Ok(sweep) => {
+                    dense.times.add(&sweep.times);
+                    dense.dropped_non_finite += sweep.dropped;
+                    dense.stamps.push(sweep.cloud.stamp);
+                    let source = std::iter::repeat_n((j + 1) as u8, sweep.cloud.len());
+                    dense.source_sweep.extend(source);
+                    dense.cloud.xyz.extend_from_slice(&sweep.cloud.xyz);
+                    dense
+                        .cloud
+                        .intensity
+                        .extend_from_slice(&sweep.cloud.intensity);
+                }
+                Err(e) => {
+                    tracing::debug!("dense cloud of keyframe {keyframe}: {e}");
+                    dense.missing += 1;
+                }
+            }
+        }
+        dense
+    }
+}
+
+impl SampleContext<'_> {
+    /// Pairs `cloud` with `images` (the cloud must be in the LiDAR frame at the sweep
+    /// stamp the images' `camera_from_lidar` was computed for), then augments it with the
+    /// draw of cloud `number` (frames in order, then the dense cloud; all share draw 0
+    /// when the recipe says so), voxelizes it and builds the maps.
+    pub(super) fn finish_cloud(
+        &self,
+        number: u32,
+        cloud: &PointCloud,
+        source_sweep: Vec<u8>,
+        images: &[SampleImage],
+    ) -> (Cloud, StageTimes) {
+        let cfg = self.config;
+        let stream = if cfg.augment.shared { 0 } else { number };
+        let mut rng = SampleRng::new(
+            cfg.seed,
+            self.id.epoch,
+            self.id.index,
+            Purpose::Augment { cloud: stream },
+        );
+        let augmentation = Augmentation::draw(cfg, &mut rng);
+        let mut times = StageTimes::default();
+        let t = Instant::now();
+        let pairings = self.pair(cloud, images);
+        times.projection += elapsed(t);
+
+        let t = Instant::now();
+        let mut xyz = cloud.xyz.clone();
+        augmentation.apply(&mut xyz);
+        let voxels = voxelize(&xyz, &cfg.voxel);
+        let voxel_features = voxels
+            .representative
+            .iter()
+            .map(|&i| {
+                let [x, y, z] = xyz[i as usize];
+                [x, y, z, cloud.intensity[i as usize]]
+            })
+            .collect();
+        let levels = build_levels(&voxels.coords, cfg.unet_levels as usize);
+        times.voxels += elapsed(t);
+        let cloud = Cloud {
+            xyz,
+            intensity: cloud.intensity.clone(),
+            source_sweep,
+            pairings,
+            augmentation,
+            voxels,
+            voxel_features,
+            levels,
+        };
+        (cloud, times)
+    }
+
+    /// The points of `cloud` seen by each of `images`, camera slot by slot.
+    fn pair(&self, cloud: &PointCloud, images: &[SampleImage]) -> Vec<Pair> {
+        let cfg = self.config;
+        let out_size = (cfg.image_width, cfg.image_height);
+        let mut pairings = Vec::new();
+        for (slot, image) in images.iter().enumerate() {
+            let view = CameraView::new(&image.calibration, image.camera_from_lidar);
+            for p in pair_points(&cloud.xyz, &view) {
+                let (row, col) =
+                    image_ops::resized_pixel(p.u, p.v, image.native_size, out_size, image.flipped);
+                let superpixel =
+                    image.superpixels[row as usize * cfg.image_width as usize + col as usize];
+                pairings.push(Pair {
+                    point: p.point,
+                    camera: slot as u8,
+                    u: p.u,
+                    v: p.v,
+                    depth: p.depth,
+                    row,
+                    col,
+                    superpixel,
+                });
+            }
+        }
+        pairings
+    }
+}

@@ -1,0 +1,236 @@
+//! One camera image of a sample's frame: the image nearest the sweep, checked against
+//! its calibration and decoded, resized (bilinear) and maybe flipped, with its
+//! superpixels — the recording's class map (resized nearest, flipped alike) or SLIC on
+//! the resized image.
+
+use super::error::SampleError;
+use super::image_ops;
+use super::load::{SampleContext, elapsed, with_cache};
+use super::plan::camera_frame_for;
+use super::project::camera_from_lidar;
+use super::rng::{Purpose, SampleRng};
+use super::slic::slic;
+use super::types::{SampleImage, StageTimes};
+use crate::decode::image::Target;
+use crate::drive::dataset::{CameraStream, FrameRef, nearest};
+use nalgebra::Isometry3;
+use std::time::Instant;
+use superflow_schemas::Stamp;
+use superflow_schemas::sensor::{CameraCalibration, Image, PixelFormat};
+
+/// Class maps are matched to images by stamp within this tolerance.
+pub const CLASS_MAP_TOLERANCE_NANOS: i64 = 1_000_000;
+
+/// A camera image decoded and checked against its calibration, before resizing.
+struct RawImage {
+    /// Where the image is in the drive.
+    frame: FrameRef,
+    /// The calibration in force at its stamp.
+    calibration: CameraCalibration,
+    /// The decoded RGB8 image.
+    image: Image,
+    /// LiDAR (at the sweep stamp) → camera (at the image stamp).
+    camera_from_lidar: Isometry3<f64>,
+}
+
+impl SampleContext<'_> {
+    /// The image of `camera` for the sweep at `lidar_stamp`, resized and maybe flipped
+    /// (the draw of frame `frame_pos`, camera slot `slot`), with its superpixels; also
+    /// the number of superpixel ids it uses and the time spent.
+    pub(super) fn load_image(
+        &self,
+        camera: &CameraStream,
+        lidar_stamp: Stamp,
+        frame_pos: u32,
+        slot: usize,
+    ) -> Result<(SampleImage, u32, StageTimes), SampleError> {
+        let cfg = self.config;
+        let mut times = StageTimes::default();
+        let raw = self.read_camera(camera, lidar_stamp, &mut times)?;
+        let t = Instant::now();
+        let (rgb, flipped) = self.resize_and_flip(&raw.image, frame_pos, slot);
+        times.images += elapsed(t);
+
+        let t_sp = Instant::now();
+        let mut class_decode = 0;
+        let (superpixels, count) = if self.class_superpixels {
+            let (map, decode) = self.class_map(camera, &raw, flipped)?;
+            class_decode = decode;
+            times.decode += decode;
+            (map, cfg.num_classes)
+        } else {
+            let seg = slic(
+                &rgb,
+                cfg.image_width as usize,
+                cfg.image_height as usize,
+                &cfg.slic,
+            );
+            (seg.labels, seg.count)
+        };
+        times.superpixels += elapsed(t_sp).saturating_sub(class_decode);
+        Ok((
+            SampleImage {
+                camera: camera.name.clone(),
+                topic: camera.image_topic.clone(),
+                stamp: raw.frame.stamp,
+                native_size: (raw.image.width, raw.image.height),
+                flipped,
+                rgb,
+                superpixels,
+                camera_from_lidar: raw.camera_from_lidar,
+                calibration: raw.calibration,
+            },
+            count,
+            times,
+        ))
+    }
+
+    /// An image of `camera` that is wrong, naming the drive's files, topic and stamp.
+    fn image_error(&self, camera: &CameraStream, stamp: Stamp, reason: String) -> SampleError {
+        SampleError::Image {
+            files: self.drive.file_list(),
+            topic: camera.image_topic.clone(),
+            stamp,
+            reason,
+        }
+    }
+
+    /// Finds, decodes and checks the image of `camera` for the sweep at `lidar_stamp`,
+    /// and looks up its `camera_from_lidar`. Adds the decoding time to `times`.
+    fn read_camera(
+        &self,
+        camera: &CameraStream,
+        lidar_stamp: Stamp,
+        times: &mut StageTimes,
+    ) -> Result<RawImage, SampleError> {
+        let drive = self.drive;
+        let frame = *camera_frame_for(camera, lidar_stamp).ok_or_else(|| {
+            let reason = format!(
+                "{}: no image within half a period of the sweep",
+                camera.name
+            );
+            self.image_error(camera, lidar_stamp, reason)
+        })?;
+        let calibration = camera
+            .calibration_at(frame.stamp)
+            .ok_or_else(|| {
+                let reason = format!("{}: no calibration", camera.name);
+                self.image_error(camera, frame.stamp, reason)
+            })?
+            .clone();
+        let t = Instant::now();
+        let image = with_cache(|cache| drive.read_image(camera, &frame, Target::Rgb, cache))?;
+        times.decode += elapsed(t);
+        if (image.width, image.height) != (calibration.width, calibration.height)
+            || image.format != PixelFormat::Rgb8
+        {
+            let reason = format!(
+                "{}: image is {}x{} but its calibration is for {}x{}",
+                camera.name, image.width, image.height, calibration.width, calibration.height
+            );
+            return Err(self.image_error(camera, frame.stamp, reason));
+        }
+        let map = drive.map_frame.as_deref().unwrap_or_default();
+        let lidar_frame = drive
+            .lidar
+            .as_ref()
+            .map(|l| l.frame_id.as_str())
+            .unwrap_or_default();
+        let camera_from_lidar = camera_from_lidar(
+            &drive.tf,
+            map,
+            lidar_frame,
+            lidar_stamp,
+            &camera.frame_id,
+            frame.stamp,
+        )
+        .map_err(|e| self.transform_error(format!("{} from LiDAR", camera.name), frame.stamp, e))?;
+        Ok(RawImage {
+            frame,
+            calibration,
+            image,
+            camera_from_lidar,
+        })
+    }
+
+    /// `image` resized to the recipe's size and flipped when the draw of frame
+    /// `frame_pos`, slot `slot` says so; also whether it was.
+    fn resize_and_flip(&self, image: &Image, frame_pos: u32, slot: usize) -> (Vec<u8>, bool) {
+        let cfg = self.config;
+        let (out_w, out_h) = (cfg.image_width as usize, cfg.image_height as usize);
+        let (w, h) = (image.width as usize, image.height as usize);
+        let mut rgb = image_ops::resize_bilinear(&image.data, w, h, 3, out_w, out_h);
+        let flipped = SampleRng::new(
+            cfg.seed,
+            self.id.epoch,
+            self.id.index,
+            Purpose::ImageFlip {
+                frame: frame_pos,
+                slot: slot as u32,
+            },
+        )
+        .bernoulli(cfg.image_flip_probability);
+        if flipped {
+            image_ops::flip_horizontal(&mut rgb, out_w, 3);
+        }
+        (rgb, flipped)
+    }
+
+    /// The class map of `raw` (within [`CLASS_MAP_TOLERANCE_NANOS`] of it) as
+    /// superpixels: checked, resized (nearest) and flipped like the image. Also the
+    /// time spent decoding it.
+    fn class_map(
+        &self,
+        camera: &CameraStream,
+        raw: &RawImage,
+        flipped: bool,
+    ) -> Result<(Vec<u32>, u64), SampleError> {
+        let cfg = self.config;
+        let (image, stamp) = (&raw.image, raw.frame.stamp);
+        let topic = camera.superpixel_topic.clone().unwrap_or_default();
+        let sp_error = |reason: String| SampleError::Superpixels {
+            files: self.drive.file_list(),
+            topic: topic.clone(),
+            stamp,
+            reason,
+        };
+        let class_frame = nearest(&camera.superpixels, stamp)
+            .filter(|f| f.stamp.nanos_since(stamp).abs() <= CLASS_MAP_TOLERANCE_NANOS)
+            .ok_or_else(|| {
+                sp_error(format!(
+                    "no class map within 1 ms of image {}",
+                    camera.image_topic
+                ))
+            })?;
+        let t = Instant::now();
+        let classes = with_cache(|cache| {
+            self.drive
+                .read_image(camera, class_frame, Target::Mono, cache)
+        })?;
+        let decode = elapsed(t);
+        if (classes.width, classes.height) != (image.width, image.height) {
+            return Err(sp_error(format!(
+                "class map is {}x{}, its image {}x{}",
+                classes.width, classes.height, image.width, image.height
+            )));
+        }
+        if let Some(bad) = classes
+            .data
+            .iter()
+            .find(|&&c| u32::from(c) >= cfg.num_classes)
+        {
+            return Err(sp_error(format!(
+                "class id {bad} is outside the configured {} classes",
+                cfg.num_classes
+            )));
+        }
+        // Resize the u8 map, then widen only the resized pixels.
+        let (out_w, out_h) = (cfg.image_width as usize, cfg.image_height as usize);
+        let (w, h) = (image.width as usize, image.height as usize);
+        let mut small = image_ops::resize_nearest(&classes.data, w, h, out_w, out_h);
+        if flipped {
+            image_ops::flip_horizontal(&mut small, out_w, 1);
+        }
+        Ok((small.into_iter().map(u32::from).collect(), decode))
+    }
+}
