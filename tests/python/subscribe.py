@@ -12,8 +12,8 @@ the Rust reader), plus whether every array lies inside the shared-memory payload
 
 The arrays are keyed by the names in the header's section table: the sections of
 schemas/BATCH_FORMAT.md ("SuperFlow sections"), e.g. `torch.from_numpy(arrays["points"])`
-for the N×4 points. A name written here as `arrays["..."]` must be in that table
-(`cargo test -p superflow-schemas --test batch_sections` checks).
+for the N×4 points. Every literal key this file reads the arrays with must be in that
+table (`cargo test -p superflow-schemas --test batch_sections` checks).
 """
 
 import argparse

@@ -378,3 +378,95 @@ fn check_map(
     }
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)] // tests fail loudly on purpose
+
+    use super::*;
+    use std::path::Path;
+    use superflow_pipeline::batch::{BatchPlan, BatchShape};
+    use superflow_pipeline::drive::{Dataset, IngestConfig};
+    use superflow_pipeline::sample::{SampleBuilder, SampleConfig};
+    use superflow_schemas::batch::{BatchHeader, BatchMeta};
+
+    /// Two samples of the ROS 2 street drive (default recipe) as one batch, epoch 3 step 7.
+    fn street_batch() -> (BatchHeader, Vec<u64>) {
+        let drive =
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("../recordings/drives/street_ros2.mcap");
+        let dataset =
+            Dataset::open(std::slice::from_ref(&drive), &IngestConfig::default()).unwrap();
+        let config = SampleConfig::default();
+        let builder = SampleBuilder::new(&dataset, config.clone()).unwrap();
+        let samples: Vec<_> = (0..2).map(|i| builder.build(0, i).unwrap()).collect();
+        let plan = BatchPlan::new(&samples, BatchShape::of(&config)).unwrap();
+        let mut storage = vec![0u64; plan.layout().payload_len().div_ceil(8)];
+        plan.write(&samples, bytemuck::cast_slice_mut(&mut storage))
+            .unwrap();
+        let meta = BatchMeta {
+            run: "inputs".into(),
+            epoch: 3,
+            step: 7,
+            sample_count: 2,
+            ..Default::default()
+        };
+        (plan.layout().header(&meta).unwrap(), storage)
+    }
+
+    #[test]
+    fn a_pipeline_batch_becomes_step_inputs_and_a_bad_map_a_typed_error() {
+        let (header, mut storage) = street_batch();
+        let device = Device::flex();
+        {
+            let view = BatchView::new(&header, bytemuck::cast_slice(&storage)).unwrap();
+            let inputs = StepInputs::from_view(&view, &device, &device, 4).unwrap();
+            let len = |s: Section| view.section::<u32>(s).unwrap().data.len();
+            let voxels = view.section::<f32>(Section::VoxelFeatures).unwrap().shape()[0];
+            assert_eq!(
+                inputs.counts,
+                [
+                    len(Section::PointToVoxel),
+                    len(Section::PairingPoint),
+                    voxels
+                ]
+            );
+            assert_eq!(inputs.levels.len(), UNetConfig::LEVELS);
+            assert_eq!(inputs.sample_ids.len(), 2);
+            assert_eq!(inputs.images.dims(), [2 * 3 * 3, 224, 448, 3]);
+        }
+        // The first pair of `l2_nbr` pointing past every row.
+        let nbr = header
+            .sections
+            .iter()
+            .find(|s| s.name.starts_with(b"l2_nbr\0"))
+            .unwrap();
+        let first = nbr.offset as usize / 4;
+        bytemuck::cast_slice_mut::<u64, u32>(&mut storage)[first] = u32::MAX;
+        let view = BatchView::new(&header, bytemuck::cast_slice(&storage)).unwrap();
+        let err = StepInputs::from_view(&view, &device, &device, 4).unwrap_err();
+        assert!(matches!(err, InputError::Map { .. }), "{err:?}");
+        assert!(
+            err.to_string()
+                .starts_with("batch 3/7: l2_nbr: pair (4294967295, "),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn map_errors_read_as_before() {
+        let pairs = [0u32, 0, 1, 1];
+        assert_eq!(
+            check_map(&pairs, &[0, 2], 2, 2, 2).unwrap_err().to_string(),
+            "2 starts for 2 offsets"
+        );
+        assert_eq!(
+            check_map(&pairs, &[0, 1], 1, 2, 2).unwrap_err().to_string(),
+            "starts do not partition the pairs"
+        );
+        assert_eq!(
+            check_map(&pairs, &[0, 2], 1, 2, 1).unwrap_err().to_string(),
+            "pair (1, 1) out of range"
+        );
+        assert!(check_map(&pairs, &[0, 1, 2], 2, 2, 2).is_ok());
+    }
+}
