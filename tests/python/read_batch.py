@@ -24,7 +24,9 @@ As a module, ``read_batch(header_bytes, payload)`` takes any two buffer-protocol
 (an iceoryx2 sample's user header and ``sample.payload().as_memory_view()``, or slices
 of a file) and returns ``(header, arrays)``: the header as a numpy record and a dict of
 numpy views into ``payload`` (no copy; read-only when the payload is), keyed by section
-name. They stay valid only while the payload buffer does.
+name as the header's table spells it (a SuperFlow batch's sections are listed in
+BATCH_FORMAT.md, "SuperFlow sections"). They stay valid only while the payload buffer
+does.
 """
 
 from __future__ import annotations

@@ -9,6 +9,11 @@ dtype, shape and a checksum of its bytes (what the end-to-end test compares with
 the Rust reader), plus whether every array lies inside the shared-memory payload.
 `--prefix` is the iceoryx2 isolation prefix the pipeline runs with
 (`SUPERFLOW_IOX_PREFIX`).
+
+The arrays are keyed by the names in the header's section table: the sections of
+schemas/BATCH_FORMAT.md ("SuperFlow sections"), e.g. `torch.from_numpy(arrays["points"])`
+for the N×4 points. Every literal key this file reads the arrays with must be in that
+table (`cargo test -p superflow-schemas --test batch_sections` checks).
 """
 
 import argparse

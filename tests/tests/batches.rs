@@ -1,13 +1,14 @@
 //! Samples assembled into one batch (the wire format of `schemas/BATCH_FORMAT.md`) read
 //! back through the batch reader: every section holds what the samples hold, with
-//! global rows that point at the right points, pixels and voxels.
+//! global rows that point at the right points, pixels and voxels, and every section is
+//! the one the section table (`superflow_schemas::batch::sections`) declares.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
 
 use superflow_pipeline::batch::{BatchPlan, BatchShape};
 use superflow_pipeline::sample::{SampleBuilder, SampleConfig};
 use superflow_recordings::Dialect;
-use superflow_schemas::batch::{BatchMeta, BatchView};
+use superflow_schemas::batch::{BatchMeta, BatchView, Section};
 use superflow_tests::{sample_dataset, sample_drive};
 
 #[test]
@@ -158,6 +159,17 @@ fn a_batch_holds_its_samples_with_global_rows() {
                 }
             }
         }
+    }
+    // Every section is one of the table's, in the table's order, with its dtype and rank.
+    let names: Vec<&str> = view.section_names().collect();
+    let table: Vec<String> = Section::in_order(5)
+        .map(|s| s.name().into_owned())
+        .collect();
+    assert_eq!(names, table);
+    for section in Section::in_order(5) {
+        let (dtype, shape) = view.describe(&section.name()).unwrap();
+        assert_eq!(dtype, section.spec().dtype, "{}", section.name());
+        section.check_shape(shape).unwrap();
     }
     eprintln!(
         "batch of {b} samples: {} sections, {:.1} MB",

@@ -1,11 +1,12 @@
 //! A received batch → the tensors of one training step, on the chosen device: one
-//! transfer per section (plus the host-side index plan of the losses).
+//! transfer per section (plus the host-side index plan of the losses). Sections are read
+//! by [`Section`], the table of `superflow_schemas::batch::sections` (`BATCH_FORMAT.md`).
 
 use crate::loss::{LossInputs, LossPlan, PlanError};
 use crate::model::PixelSampler;
 use crate::sparse::{LevelMaps, UNetConfig, index_tensor};
 use burn::tensor::{Device, Int, Tensor, TensorData};
-use superflow_schemas::batch::{BatchError, BatchView};
+use superflow_schemas::batch::{BatchError, BatchView, Section};
 
 /// ViT patch size: images must be multiples of it.
 pub const PATCH: usize = 14;
@@ -28,6 +29,42 @@ pub enum InputError {
         step: u64,
         /// What is wrong.
         reason: String,
+    },
+    /// A kernel map (`l{l}_nbr`, `l{l}_down`) that does not fit its rows.
+    #[error("batch {epoch}/{step}: {section}: {source}")]
+    Map {
+        /// Epoch of the batch.
+        epoch: u64,
+        /// Step of the batch.
+        step: u64,
+        /// The map's section.
+        section: String,
+        /// What is wrong.
+        source: MapError,
+    },
+}
+
+/// What is wrong with a kernel map.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum MapError {
+    /// The starts are not one per offset plus one.
+    #[error("{starts} starts for {offsets} offsets")]
+    Starts {
+        /// Entries of the starts section.
+        starts: usize,
+        /// Kernel offsets of the map.
+        offsets: usize,
+    },
+    /// The starts decrease or do not end at the pair count.
+    #[error("starts do not partition the pairs")]
+    Partition,
+    /// A pair points past the rows of its level.
+    #[error("pair ({input}, {output}) out of range")]
+    OutOfRange {
+        /// Input row.
+        input: u32,
+        /// Output row.
+        output: u32,
     },
 }
 
@@ -61,127 +98,26 @@ impl StepInputs {
         vit_device: &Device,
         pixel_stride: usize,
     ) -> Result<Self, InputError> {
-        let meta = view.meta();
-        let invalid = |reason: String| InputError::Invalid {
-            epoch: meta.epoch,
-            step: meta.step,
-            reason,
+        let at = At {
+            epoch: view.meta().epoch,
+            step: view.meta().step,
         };
-        let images = view.get::<u8>("images")?;
-        let [n_images, h, w, _] = <[usize; 4]>::try_from(images.shape())
-            .map_err(|_| invalid("`images` is not I×H×W×3".into()))?;
-        if h % PATCH != 0 || w % PATCH != 0 {
-            return Err(invalid(format!(
-                "images are {h}×{w}, not multiples of the ViT patch {PATCH}"
-            )));
-        }
-        let camera_ids = view.get::<u32>("camera_ids")?;
-        let [batch, cameras] = <[usize; 2]>::try_from(camera_ids.shape())
-            .map_err(|_| invalid("`camera_ids` is not B×K".into()))?;
-        let offsets = view.get::<i32>("frame_offsets")?;
-        let frames = offsets.data.len();
-        let key_frame = offsets
-            .data
-            .iter()
-            .position(|&o| o == 0)
-            .ok_or_else(|| invalid("no frame at offset 0".into()))?;
-        if batch * frames * cameras != n_images {
-            return Err(invalid(format!(
-                "{n_images} images for {batch} samples × {frames} frames × {cameras} cameras"
-            )));
-        }
-
-        let num_superpixels = view.get::<u32>("num_superpixels")?;
-        let superpixels = view.get::<u16>("superpixels")?;
-        let pairing_point = view.get::<u32>("pairing_point")?;
-        let pairing_superpixel = view.get::<u32>("pairing_superpixel")?;
-        let pairing_clouds = view.get::<u32>("pairing_clouds")?;
-        let plan = LossPlan::new(
-            &LossInputs {
-                batch,
-                frames,
-                cameras,
-                key_frame,
-                height: h,
-                width: w,
-                num_superpixels: num_superpixels.data,
-                superpixels: superpixels.data,
-                pairing_point: pairing_point.data,
-                pairing_superpixel: pairing_superpixel.data,
-                pairing_clouds: pairing_clouds.data,
-            },
-            pixel_stride,
-            device,
-        )?;
+        let (geometry, images) = Geometry::read(view, at)?;
+        let (plan, pairing_point) = loss_plan(view, &geometry, pixel_stride, device)?;
+        let Geometry { n_images, h, w, .. } = geometry;
         let sampler = PixelSampler::new(&plan.pixels, [h, w], [h / PATCH, w / PATCH], device);
 
-        let voxel = view.get::<f32>("voxel_features")?;
+        let voxel = view.section::<f32>(Section::VoxelFeatures)?;
         let [voxels, channels] = <[usize; 2]>::try_from(voxel.shape())
-            .map_err(|_| invalid("`voxel_features` is not V×C".into()))?;
-        let point_to_voxel = view.get::<u32>("point_to_voxel")?;
-        let points = point_to_voxel.data.len();
-        let mut pairing_voxel = Vec::with_capacity(pairing_point.data.len());
-        for &p in pairing_point.data {
-            let v = *point_to_voxel
-                .data
-                .get(p as usize)
-                .ok_or_else(|| invalid(format!("pairing point {p} beyond {points} points")))?;
-            if v as usize >= voxels {
-                return Err(invalid(format!(
-                    "point {p} in voxel {v} beyond {voxels} voxels"
-                )));
-            }
-            pairing_voxel.push(i64::from(v));
-        }
+            .map_err(|_| at.invalid(format!("`{}` is not V×C", Section::VoxelFeatures.name())))?;
+        let point_to_voxel = view.section::<u32>(Section::PointToVoxel)?.data;
+        let pairing_voxel = pairing_voxels(pairing_point, point_to_voxel, voxels, at)?;
+        let levels = host_levels(view, at)?;
+        let maps = level_maps(&levels, voxels, at, device)?;
 
-        let mut levels = Vec::new();
-        while view.describe(&format!("l{}_coords", levels.len())).is_ok() {
-            let l = levels.len();
-            let rows = view.get::<i32>(&format!("l{l}_coords"))?.shape()[0];
-            let nbr = view.get::<u32>(&format!("l{l}_nbr"))?;
-            let starts = view.get::<u32>(&format!("l{l}_nbr_starts"))?;
-            check_map(nbr.data, starts.data, 27, rows, rows)
-                .map_err(|r| invalid(format!("l{l}_nbr: {r}")))?;
-            let down = match (
-                view.get::<u32>(&format!("l{l}_down")),
-                view.get::<u32>(&format!("l{l}_down_starts")),
-            ) {
-                (Ok(d), Ok(s)) => Some((d.data, s.data)),
-                _ => None,
-            };
-            levels.push((rows, nbr.data, starts.data, down));
-        }
-        if levels.len() < UNetConfig::LEVELS {
-            return Err(invalid(format!(
-                "kernel maps of {} levels, the UNet needs {}",
-                levels.len(),
-                UNetConfig::LEVELS
-            )));
-        }
-        if levels[0].0 != voxels {
-            return Err(invalid(format!(
-                "l0 has {} voxels, voxel_features {voxels}",
-                levels[0].0
-            )));
-        }
-        let mut maps = Vec::with_capacity(levels.len());
-        for (l, &(rows, nbr, starts, down)) in levels.iter().enumerate() {
-            let down = if l + 1 < UNetConfig::LEVELS {
-                let (pairs, down_starts) =
-                    down.ok_or_else(|| invalid(format!("level {l} has no down map")))?;
-                let next_rows = levels[l + 1].0;
-                check_map(pairs, down_starts, 8, rows, next_rows)
-                    .map_err(|r| invalid(format!("l{l}_down: {r}")))?;
-                Some((pairs, down_starts))
-            } else {
-                None
-            };
-            maps.push(LevelMaps::from_host(rows, nbr, starts, down, device));
-        }
-
-        let images_f32: Vec<f32> = images.data.iter().map(|&v| f32::from(v)).collect();
+        let images_f32: Vec<f32> = images.iter().map(|&v| f32::from(v)).collect();
         let sample_ids = view
-            .get::<u64>("sample_ids")?
+            .section::<u64>(Section::SampleIds)?
             .data
             .chunks_exact(5)
             .map(|c| [c[0], c[1], c[2], c[3], c[4]])
@@ -197,9 +133,221 @@ impl StepInputs {
             plan,
             sampler,
             sample_ids,
-            counts: [points, pairing_point.data.len(), voxels],
+            counts: [point_to_voxel.len(), pairing_point.len(), voxels],
         })
     }
+}
+
+/// Where a batch sits in the stream, for its errors.
+#[derive(Debug, Clone, Copy)]
+struct At {
+    epoch: u64,
+    step: u64,
+}
+
+impl At {
+    fn invalid(self, reason: String) -> InputError {
+        InputError::Invalid {
+            epoch: self.epoch,
+            step: self.step,
+            reason,
+        }
+    }
+
+    fn map(self, section: Section, source: MapError) -> InputError {
+        InputError::Map {
+            epoch: self.epoch,
+            step: self.step,
+            section: section.name().into_owned(),
+            source,
+        }
+    }
+}
+
+/// How the images of a batch are numbered: `B` samples × `F` frames × `K` cameras of
+/// `H × W` pixels, and which frame is the keyframe.
+#[derive(Debug, Clone, Copy)]
+struct Geometry {
+    n_images: usize,
+    h: usize,
+    w: usize,
+    batch: usize,
+    frames: usize,
+    cameras: usize,
+    key_frame: usize,
+}
+
+impl Geometry {
+    /// The geometry of `view`'s images, checked against each other, and the images.
+    fn read<'a>(view: &BatchView<'a>, at: At) -> Result<(Self, &'a [u8]), InputError> {
+        let images = view.section::<u8>(Section::Images)?;
+        let [n_images, h, w, _] = <[usize; 4]>::try_from(images.shape())
+            .map_err(|_| at.invalid(format!("`{}` is not I×H×W×3", Section::Images.name())))?;
+        if h % PATCH != 0 || w % PATCH != 0 {
+            return Err(at.invalid(format!(
+                "images are {h}×{w}, not multiples of the ViT patch {PATCH}"
+            )));
+        }
+        let camera_ids = view.section::<u32>(Section::CameraIds)?;
+        let [batch, cameras] = <[usize; 2]>::try_from(camera_ids.shape())
+            .map_err(|_| at.invalid(format!("`{}` is not B×K", Section::CameraIds.name())))?;
+        let offsets = view.section::<i32>(Section::FrameOffsets)?;
+        let frames = offsets.data.len();
+        let key_frame = offsets
+            .data
+            .iter()
+            .position(|&o| o == 0)
+            .ok_or_else(|| at.invalid("no frame at offset 0".into()))?;
+        if batch * frames * cameras != n_images {
+            return Err(at.invalid(format!(
+                "{n_images} images for {batch} samples × {frames} frames × {cameras} cameras"
+            )));
+        }
+        let geometry = Self {
+            n_images,
+            h,
+            w,
+            batch,
+            frames,
+            cameras,
+            key_frame,
+        };
+        Ok((geometry, images.data))
+    }
+}
+
+/// The losses' plan from the superpixel and pairing sections, and `pairing_point`.
+fn loss_plan<'a>(
+    view: &BatchView<'a>,
+    g: &Geometry,
+    pixel_stride: usize,
+    device: &Device,
+) -> Result<(LossPlan, &'a [u32]), InputError> {
+    let num_superpixels = view.section::<u32>(Section::NumSuperpixels)?;
+    let superpixels = view.section::<u16>(Section::Superpixels)?;
+    let pairing_point = view.section::<u32>(Section::PairingPoint)?;
+    let pairing_superpixel = view.section::<u32>(Section::PairingSuperpixel)?;
+    let pairing_clouds = view.section::<u32>(Section::PairingClouds)?;
+    let plan = LossPlan::new(
+        &LossInputs {
+            batch: g.batch,
+            frames: g.frames,
+            cameras: g.cameras,
+            key_frame: g.key_frame,
+            height: g.h,
+            width: g.w,
+            num_superpixels: num_superpixels.data,
+            superpixels: superpixels.data,
+            pairing_point: pairing_point.data,
+            pairing_superpixel: pairing_superpixel.data,
+            pairing_clouds: pairing_clouds.data,
+        },
+        pixel_stride,
+        device,
+    )?;
+    Ok((plan, pairing_point.data))
+}
+
+/// The level-0 voxel row of every pairing's point.
+fn pairing_voxels(
+    pairing_point: &[u32],
+    point_to_voxel: &[u32],
+    voxels: usize,
+    at: At,
+) -> Result<Vec<i64>, InputError> {
+    let points = point_to_voxel.len();
+    let mut pairing_voxel = Vec::with_capacity(pairing_point.len());
+    for &p in pairing_point {
+        let v = *point_to_voxel
+            .get(p as usize)
+            .ok_or_else(|| at.invalid(format!("pairing point {p} beyond {points} points")))?;
+        if v as usize >= voxels {
+            return Err(at.invalid(format!("point {p} in voxel {v} beyond {voxels} voxels")));
+        }
+        pairing_voxel.push(i64::from(v));
+    }
+    Ok(pairing_voxel)
+}
+
+/// The kernel maps of one level as the batch holds them.
+#[derive(Debug, Clone, Copy)]
+struct HostLevel<'a> {
+    rows: usize,
+    nbr: &'a [u32],
+    starts: &'a [u32],
+    down: Option<(&'a [u32], &'a [u32])>,
+}
+
+/// Every level the batch holds (`l{l}_coords` present), its neighbour map checked.
+fn host_levels<'a>(view: &BatchView<'a>, at: At) -> Result<Vec<HostLevel<'a>>, InputError> {
+    let mut levels = Vec::new();
+    while view.has(Section::LevelCoords(levels.len())) {
+        let l = levels.len();
+        let rows = view.section::<i32>(Section::LevelCoords(l))?.shape()[0];
+        let nbr = view.section::<u32>(Section::LevelNbr(l))?;
+        let starts = view.section::<u32>(Section::LevelNbrStarts(l))?;
+        check_map(nbr.data, starts.data, 27, rows, rows)
+            .map_err(|e| at.map(Section::LevelNbr(l), e))?;
+        let down = match (
+            view.section::<u32>(Section::LevelDown(l)),
+            view.section::<u32>(Section::LevelDownStarts(l)),
+        ) {
+            (Ok(d), Ok(s)) => Some((d.data, s.data)),
+            _ => None,
+        };
+        levels.push(HostLevel {
+            rows,
+            nbr: nbr.data,
+            starts: starts.data,
+            down,
+        });
+    }
+    if levels.len() < UNetConfig::LEVELS {
+        return Err(at.invalid(format!(
+            "kernel maps of {} levels, the UNet needs {}",
+            levels.len(),
+            UNetConfig::LEVELS
+        )));
+    }
+    Ok(levels)
+}
+
+/// The device maps of `levels`, after checking level 0 against the `voxels` of
+/// `voxel_features` and each down map against the rows of the next level.
+fn level_maps(
+    levels: &[HostLevel<'_>],
+    voxels: usize,
+    at: At,
+    device: &Device,
+) -> Result<Vec<LevelMaps>, InputError> {
+    if levels[0].rows != voxels {
+        return Err(at.invalid(format!(
+            "l0 has {} voxels, {} {voxels}",
+            levels[0].rows,
+            Section::VoxelFeatures.name()
+        )));
+    }
+    let mut maps = Vec::with_capacity(levels.len());
+    for (l, level) in levels.iter().enumerate() {
+        let down = if l + 1 < UNetConfig::LEVELS {
+            let (pairs, down_starts) = level
+                .down
+                .ok_or_else(|| at.invalid(format!("level {l} has no down map")))?;
+            check_map(pairs, down_starts, 8, level.rows, levels[l + 1].rows)
+                .map_err(|e| at.map(Section::LevelDown(l), e))?;
+            Some((pairs, down_starts))
+        } else {
+            None
+        };
+        maps.push(LevelMaps::from_host(
+            level.rows,
+            level.nbr,
+            level.starts,
+            down,
+            device,
+        ));
+    }
+    Ok(maps)
 }
 
 /// Checks a kernel map: `starts` has `offsets + 1` non-decreasing entries ending at the
@@ -210,17 +358,115 @@ fn check_map(
     offsets: usize,
     in_rows: usize,
     out_rows: usize,
-) -> Result<(), String> {
+) -> Result<(), MapError> {
     if starts.len() != offsets + 1 {
-        return Err(format!("{} starts for {offsets} offsets", starts.len()));
+        return Err(MapError::Starts {
+            starts: starts.len(),
+            offsets,
+        });
     }
     if starts.windows(2).any(|w| w[0] > w[1]) || starts[offsets] as usize * 2 != pairs.len() {
-        return Err("starts do not partition the pairs".into());
+        return Err(MapError::Partition);
     }
     for p in pairs.chunks_exact(2) {
         if p[0] as usize >= in_rows || p[1] as usize >= out_rows {
-            return Err(format!("pair ({}, {}) out of range", p[0], p[1]));
+            return Err(MapError::OutOfRange {
+                input: p[0],
+                output: p[1],
+            });
         }
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)] // tests fail loudly on purpose
+
+    use super::*;
+    use std::path::Path;
+    use superflow_pipeline::batch::{BatchPlan, BatchShape};
+    use superflow_pipeline::drive::{Dataset, IngestConfig};
+    use superflow_pipeline::sample::{SampleBuilder, SampleConfig};
+    use superflow_schemas::batch::{BatchHeader, BatchMeta};
+
+    /// Two samples of the ROS 2 street drive (default recipe) as one batch, epoch 3 step 7.
+    fn street_batch() -> (BatchHeader, Vec<u64>) {
+        let drive =
+            Path::new(env!("CARGO_MANIFEST_DIR")).join("../recordings/drives/street_ros2.mcap");
+        let dataset =
+            Dataset::open(std::slice::from_ref(&drive), &IngestConfig::default()).unwrap();
+        let config = SampleConfig::default();
+        let builder = SampleBuilder::new(&dataset, config.clone()).unwrap();
+        let samples: Vec<_> = (0..2).map(|i| builder.build(0, i).unwrap()).collect();
+        let plan = BatchPlan::new(&samples, BatchShape::of(&config)).unwrap();
+        let mut storage = vec![0u64; plan.layout().payload_len().div_ceil(8)];
+        plan.write(&samples, bytemuck::cast_slice_mut(&mut storage))
+            .unwrap();
+        let meta = BatchMeta {
+            run: "inputs".into(),
+            epoch: 3,
+            step: 7,
+            sample_count: 2,
+            ..Default::default()
+        };
+        (plan.layout().header(&meta).unwrap(), storage)
+    }
+
+    #[test]
+    fn a_pipeline_batch_becomes_step_inputs_and_a_bad_map_a_typed_error() {
+        let (header, mut storage) = street_batch();
+        let device = Device::flex();
+        {
+            let view = BatchView::new(&header, bytemuck::cast_slice(&storage)).unwrap();
+            let inputs = StepInputs::from_view(&view, &device, &device, 4).unwrap();
+            let len = |s: Section| view.section::<u32>(s).unwrap().data.len();
+            let voxels = view.section::<f32>(Section::VoxelFeatures).unwrap().shape()[0];
+            assert_eq!(
+                inputs.counts,
+                [
+                    len(Section::PointToVoxel),
+                    len(Section::PairingPoint),
+                    voxels
+                ]
+            );
+            assert_eq!(inputs.levels.len(), UNetConfig::LEVELS);
+            assert_eq!(inputs.sample_ids.len(), 2);
+            assert_eq!(inputs.images.dims(), [2 * 3 * 3, 224, 448, 3]);
+        }
+        // The first pair of `l2_nbr` pointing past every row.
+        let nbr = header
+            .sections
+            .iter()
+            .find(|s| s.name.starts_with(b"l2_nbr\0"))
+            .unwrap();
+        let first = nbr.offset as usize / 4;
+        bytemuck::cast_slice_mut::<u64, u32>(&mut storage)[first] = u32::MAX;
+        let view = BatchView::new(&header, bytemuck::cast_slice(&storage)).unwrap();
+        let err = StepInputs::from_view(&view, &device, &device, 4).unwrap_err();
+        assert!(matches!(err, InputError::Map { .. }), "{err:?}");
+        assert!(
+            err.to_string()
+                .starts_with("batch 3/7: l2_nbr: pair (4294967295, "),
+            "{err}"
+        );
+    }
+
+    #[test]
+    fn map_errors_read_as_before() {
+        let pairs = [0u32, 0, 1, 1];
+        assert_eq!(
+            check_map(&pairs, &[0, 2], 2, 2, 2).unwrap_err().to_string(),
+            "2 starts for 2 offsets"
+        );
+        assert_eq!(
+            check_map(&pairs, &[0, 1], 1, 2, 2).unwrap_err().to_string(),
+            "starts do not partition the pairs"
+        );
+        assert_eq!(
+            check_map(&pairs, &[0, 2], 1, 2, 1).unwrap_err().to_string(),
+            "pair (1, 1) out of range"
+        );
+        assert!(check_map(&pairs, &[0, 1, 2], 2, 2, 2).is_ok());
+    }
 }

@@ -72,6 +72,20 @@ impl DType {
         }
     }
 
+    /// The Rust name of the element type (`u8`, `f32`, ...).
+    pub const fn name(self) -> &'static str {
+        match self {
+            DType::U8 => "u8",
+            DType::U16 => "u16",
+            DType::I32 => "i32",
+            DType::U32 => "u32",
+            DType::I64 => "i64",
+            DType::U64 => "u64",
+            DType::F32 => "f32",
+            DType::F64 => "f64",
+        }
+    }
+
     /// The numpy dtype string (little-endian).
     pub const fn numpy(self) -> &'static str {
         match self {

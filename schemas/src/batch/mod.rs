@@ -6,9 +6,15 @@
 //! bytes and fills every section in place through [`BatchWriter`]; a consumer wraps the
 //! received header and payload in a [`BatchView`], which validates everything before
 //! handing out typed slices.
+//!
+//! Which sections a SuperFlow batch holds is the table of [`sections`]: the pipeline
+//! plans and fills a batch by [`Section`] ([`BatchLayout::add_section`],
+//! [`BatchWriter::take_section`]) and the trainer reads by [`Section`]
+//! ([`BatchView::section`]), each access checked against the table's dtype.
 
 mod format;
 mod read;
+pub mod sections;
 mod write;
 
 pub use format::{
@@ -16,6 +22,7 @@ pub use format::{
     MAX_SECTIONS, RUN_NAME_LEN, SECTION_ALIGN, SECTION_NAME_LEN, SectionDesc, validate_run_name,
 };
 pub use read::{BatchView, TensorView};
+pub use sections::{Dims, LevelDims, Section, SectionSpec};
 pub use write::{BatchLayout, BatchWriter, SectionId};
 
 /// Why a batch could not be laid out, written or read.
@@ -132,6 +139,14 @@ pub enum BatchError {
     AlreadyTaken {
         /// Section name.
         name: String,
+    },
+    /// A section used otherwise than the section table declares (dtype, rank, size).
+    #[error("section `{name}`: {reason}")]
+    NotAsDeclared {
+        /// Section name.
+        name: String,
+        /// What differs.
+        reason: String,
     },
     /// The run name does not fit or is not printable ASCII.
     #[error("run name {name:?}: {reason}")]

@@ -3,8 +3,9 @@
 use super::BatchError;
 use super::format::{
     BATCH_FORMAT_VERSION, BATCH_MAGIC, BatchHeader, BatchMeta, DType, Element, MAX_DIMS,
-    MAX_SECTIONS, SECTION_ALIGN, nul_padded_str, validate_run_name,
+    MAX_SECTIONS, SECTION_ALIGN, SectionDesc, nul_padded_str, validate_run_name,
 };
+use super::sections::Section;
 
 /// A typed view of one section: its elements and shape, borrowed from the payload.
 #[derive(Debug, Clone, Copy)]
@@ -24,8 +25,9 @@ impl<T> TensorView<'_, T> {
     }
 }
 
+/// One validated entry of the section table.
 #[derive(Debug, Clone)]
-struct Section<'a> {
+struct Entry<'a> {
     name: &'a str,
     dtype: DType,
     dims: [usize; MAX_DIMS],
@@ -39,52 +41,14 @@ struct Section<'a> {
 #[derive(Debug, Clone)]
 pub struct BatchView<'a> {
     meta: BatchMeta,
-    sections: Vec<Section<'a>>,
+    sections: Vec<Entry<'a>>,
 }
 
 impl<'a> BatchView<'a> {
     /// Validates `header` against `payload` (the received slice, possibly longer than
     /// the header's `payload_len`).
     pub fn new(header: &'a BatchHeader, payload: &'a [u8]) -> Result<Self, BatchError> {
-        if header.magic != BATCH_MAGIC {
-            return Err(BatchError::BadMagic {
-                found: header.magic,
-            });
-        }
-        if header.version != BATCH_FORMAT_VERSION {
-            return Err(BatchError::Version {
-                found: header.version,
-            });
-        }
-        if header.header_size as usize != BatchHeader::SIZE {
-            return Err(BatchError::HeaderSize {
-                found: header.header_size,
-                expected: BatchHeader::SIZE as u32,
-            });
-        }
-        let count = header.section_count as usize;
-        if count > MAX_SECTIONS {
-            return Err(BatchError::TooManySections { count });
-        }
-        if header.flags != 0 {
-            return Err(BatchError::Flags {
-                found: header.flags,
-            });
-        }
-        let run = nul_padded_str(&header.run).ok_or_else(|| BatchError::BadRunName {
-            name: String::from_utf8_lossy(&header.run).into_owned(),
-            reason: "not NUL-padded ASCII",
-        })?;
-        validate_run_name(run)?;
-        if let Some(index) = header.sections[count..]
-            .iter()
-            .position(|s| bytemuck::bytes_of(s).iter().any(|b| *b != 0))
-        {
-            return Err(BatchError::BadSection {
-                name: format!("#{}", count + index),
-                reason: "an unused table entry is not zero".into(),
-            });
-        }
+        let count = check_header(header)?;
         let payload_len = usize::try_from(header.payload_len)
             .ok()
             .filter(|len| *len <= payload.len())
@@ -93,104 +57,12 @@ impl<'a> BatchView<'a> {
                 actual: payload.len(),
             })?;
         let payload = &payload[..payload_len];
-
-        let mut sections: Vec<Section<'a>> = Vec::with_capacity(count);
+        let mut sections: Vec<Entry<'a>> = Vec::with_capacity(count);
         for (index, desc) in header.sections[..count].iter().enumerate() {
-            let name = nul_padded_str(&desc.name).ok_or_else(|| BatchError::BadName {
-                index,
-                name: String::from_utf8_lossy(&desc.name).into_owned(),
-                reason: "not NUL-padded UTF-8",
-            })?;
-            let bad_name = |reason| BatchError::BadName {
-                index,
-                name: name.to_string(),
-                reason,
-            };
-            if name.is_empty() {
-                return Err(bad_name("empty"));
-            }
-            if desc.name[desc.name.len() - 1] != 0 {
-                return Err(bad_name("not NUL-terminated"));
-            }
-            if sections.iter().any(|s| s.name == name) {
-                return Err(bad_name("used twice"));
-            }
-            let bad = |reason: String| BatchError::BadSection {
-                name: name.to_string(),
-                reason,
-            };
-            let dtype = DType::from_code(desc.dtype).ok_or_else(|| BatchError::UnknownDType {
-                name: name.to_string(),
-                code: desc.dtype,
-            })?;
-            let ndim = desc.ndim as usize;
-            if !(1..=MAX_DIMS).contains(&ndim) {
-                return Err(bad(format!("ndim {ndim} is not in 1..={MAX_DIMS}")));
-            }
-            if desc.shape[ndim..].iter().any(|d| *d != 0) {
-                return Err(bad("unused shape entries are not zero".into()));
-            }
-            let mut dims = [0usize; MAX_DIMS];
-            for (slot, d) in dims.iter_mut().zip(&desc.shape[..ndim]) {
-                *slot = usize::try_from(*d).map_err(|_| bad(format!("dimension {d} too large")))?;
-            }
-            let expected = dims[..ndim]
-                .iter()
-                .try_fold(dtype.size(), |acc, d| acc.checked_mul(*d))
-                .ok_or_else(|| bad(format!("shape {:?} overflows", &dims[..ndim])))?;
-            if desc.len_bytes != expected as u64 {
-                return Err(bad(format!(
-                    "{} bytes for shape {:?} of {dtype:?} ({expected} expected)",
-                    desc.len_bytes,
-                    &dims[..ndim]
-                )));
-            }
-            if !desc.offset.is_multiple_of(SECTION_ALIGN as u64) {
-                return Err(bad(format!(
-                    "offset {} is not a multiple of {SECTION_ALIGN}",
-                    desc.offset
-                )));
-            }
-            let start = usize::try_from(desc.offset).unwrap_or(usize::MAX);
-            let end = start
-                .checked_add(expected)
-                .filter(|end| *end <= payload_len)
-                .ok_or_else(|| {
-                    bad(format!(
-                        "bytes {}..{}+{expected} lie outside the payload of {payload_len} bytes",
-                        desc.offset, desc.offset
-                    ))
-                })?;
-            let bytes = &payload[start..end];
-            if !(bytes.as_ptr() as usize).is_multiple_of(dtype.size()) {
-                let address = bytes.as_ptr() as usize;
-                return Err(BatchError::Misaligned {
-                    found: 1 << address.trailing_zeros().min(12),
-                    needed: dtype.size(),
-                });
-            }
-            sections.push(Section {
-                name,
-                dtype,
-                dims,
-                ndim,
-                bytes,
-            });
+            let name = entry_name(index, desc, &sections)?;
+            sections.push(entry(name, desc, payload)?);
         }
-
-        let mut by_offset: Vec<&Section<'a>> =
-            sections.iter().filter(|s| !s.bytes.is_empty()).collect();
-        by_offset.sort_by_key(|s| s.bytes.as_ptr() as usize);
-        for pair in by_offset.windows(2) {
-            let first_end = pair[0].bytes.as_ptr() as usize + pair[0].bytes.len();
-            if (pair[1].bytes.as_ptr() as usize) < first_end {
-                return Err(BatchError::Overlap {
-                    first: pair[0].name.to_string(),
-                    second: pair[1].name.to_string(),
-                });
-            }
-        }
-
+        check_overlaps(&sections)?;
         Ok(Self {
             meta: header.meta(),
             sections,
@@ -240,7 +112,18 @@ impl<'a> BatchView<'a> {
         })
     }
 
-    fn find(&self, name: &str) -> Result<&Section<'a>, BatchError> {
+    /// A typed view of a section of the section table, which must declare it as `T`.
+    pub fn section<T: Element>(&self, section: Section) -> Result<TensorView<'a, T>, BatchError> {
+        section.check::<T>()?;
+        self.get(&section.name())
+    }
+
+    /// Whether the batch holds `section`.
+    pub fn has(&self, section: Section) -> bool {
+        self.find(&section.name()).is_ok()
+    }
+
+    fn find(&self, name: &str) -> Result<&Entry<'a>, BatchError> {
         self.sections
             .iter()
             .find(|s| s.name == name)
@@ -248,4 +131,165 @@ impl<'a> BatchView<'a> {
                 name: name.to_string(),
             })
     }
+}
+
+/// Rule 1 and the header fields: magic, version, header size, section count, flags, run
+/// name and zero unused table entries. Returns the section count.
+fn check_header(header: &BatchHeader) -> Result<usize, BatchError> {
+    if header.magic != BATCH_MAGIC {
+        return Err(BatchError::BadMagic {
+            found: header.magic,
+        });
+    }
+    if header.version != BATCH_FORMAT_VERSION {
+        return Err(BatchError::Version {
+            found: header.version,
+        });
+    }
+    if header.header_size as usize != BatchHeader::SIZE {
+        return Err(BatchError::HeaderSize {
+            found: header.header_size,
+            expected: BatchHeader::SIZE as u32,
+        });
+    }
+    let count = header.section_count as usize;
+    if count > MAX_SECTIONS {
+        return Err(BatchError::TooManySections { count });
+    }
+    if header.flags != 0 {
+        return Err(BatchError::Flags {
+            found: header.flags,
+        });
+    }
+    let run = nul_padded_str(&header.run).ok_or_else(|| BatchError::BadRunName {
+        name: String::from_utf8_lossy(&header.run).into_owned(),
+        reason: "not NUL-padded ASCII",
+    })?;
+    validate_run_name(run)?;
+    if let Some(index) = header.sections[count..]
+        .iter()
+        .position(|s| bytemuck::bytes_of(s).iter().any(|b| *b != 0))
+    {
+        return Err(BatchError::BadSection {
+            name: format!("#{}", count + index),
+            reason: "an unused table entry is not zero".into(),
+        });
+    }
+    Ok(count)
+}
+
+/// Rule 2 for the name of entry `index`: NUL-padded UTF-8, non-empty, NUL-terminated and
+/// not among the entries before it.
+fn entry_name<'a>(
+    index: usize,
+    desc: &'a SectionDesc,
+    before: &[Entry<'a>],
+) -> Result<&'a str, BatchError> {
+    let name = nul_padded_str(&desc.name).ok_or_else(|| BatchError::BadName {
+        index,
+        name: String::from_utf8_lossy(&desc.name).into_owned(),
+        reason: "not NUL-padded UTF-8",
+    })?;
+    let bad_name = |reason| BatchError::BadName {
+        index,
+        name: name.to_string(),
+        reason,
+    };
+    if name.is_empty() {
+        return Err(bad_name("empty"));
+    }
+    if desc.name[desc.name.len() - 1] != 0 {
+        return Err(bad_name("not NUL-terminated"));
+    }
+    if before.iter().any(|s| s.name == name) {
+        return Err(bad_name("used twice"));
+    }
+    Ok(name)
+}
+
+/// Rules 2 and 3 for one entry: dtype, shape against length, offset, bounds within
+/// `payload` (cut to `payload_len`) and alignment in memory.
+fn entry<'a>(
+    name: &'a str,
+    desc: &SectionDesc,
+    payload: &'a [u8],
+) -> Result<Entry<'a>, BatchError> {
+    let bad = |reason: String| BatchError::BadSection {
+        name: name.to_string(),
+        reason,
+    };
+    let dtype = DType::from_code(desc.dtype).ok_or_else(|| BatchError::UnknownDType {
+        name: name.to_string(),
+        code: desc.dtype,
+    })?;
+    let ndim = desc.ndim as usize;
+    if !(1..=MAX_DIMS).contains(&ndim) {
+        return Err(bad(format!("ndim {ndim} is not in 1..={MAX_DIMS}")));
+    }
+    if desc.shape[ndim..].iter().any(|d| *d != 0) {
+        return Err(bad("unused shape entries are not zero".into()));
+    }
+    let mut dims = [0usize; MAX_DIMS];
+    for (slot, d) in dims.iter_mut().zip(&desc.shape[..ndim]) {
+        *slot = usize::try_from(*d).map_err(|_| bad(format!("dimension {d} too large")))?;
+    }
+    let expected = dims[..ndim]
+        .iter()
+        .try_fold(dtype.size(), |acc, d| acc.checked_mul(*d))
+        .ok_or_else(|| bad(format!("shape {:?} overflows", &dims[..ndim])))?;
+    if desc.len_bytes != expected as u64 {
+        return Err(bad(format!(
+            "{} bytes for shape {:?} of {dtype:?} ({expected} expected)",
+            desc.len_bytes,
+            &dims[..ndim]
+        )));
+    }
+    if !desc.offset.is_multiple_of(SECTION_ALIGN as u64) {
+        return Err(bad(format!(
+            "offset {} is not a multiple of {SECTION_ALIGN}",
+            desc.offset
+        )));
+    }
+    let payload_len = payload.len();
+    let start = usize::try_from(desc.offset).unwrap_or(usize::MAX);
+    let end = start
+        .checked_add(expected)
+        .filter(|end| *end <= payload_len)
+        .ok_or_else(|| {
+            bad(format!(
+                "bytes {}..{}+{expected} lie outside the payload of {payload_len} bytes",
+                desc.offset, desc.offset
+            ))
+        })?;
+    let bytes = &payload[start..end];
+    if !(bytes.as_ptr() as usize).is_multiple_of(dtype.size()) {
+        let address = bytes.as_ptr() as usize;
+        return Err(BatchError::Misaligned {
+            found: 1 << address.trailing_zeros().min(12),
+            needed: dtype.size(),
+        });
+    }
+    Ok(Entry {
+        name,
+        dtype,
+        dims,
+        ndim,
+        bytes,
+    })
+}
+
+/// Rule 3: non-empty sections do not share bytes.
+fn check_overlaps(sections: &[Entry<'_>]) -> Result<(), BatchError> {
+    let mut by_offset: Vec<&Entry<'_>> = sections.iter().filter(|s| !s.bytes.is_empty()).collect();
+    by_offset.sort_by_key(|s| s.bytes.as_ptr() as usize);
+    for pair in by_offset.windows(2) {
+        let first_end = pair[0].bytes.as_ptr() as usize + pair[0].bytes.len();
+        if (pair[1].bytes.as_ptr() as usize) < first_end {
+            return Err(BatchError::Overlap {
+                first: pair[0].name.to_string(),
+                second: pair[1].name.to_string(),
+            });
+        }
+    }
+    Ok(())
 }

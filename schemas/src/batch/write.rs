@@ -5,6 +5,7 @@ use super::format::{
     BATCH_FORMAT_VERSION, BATCH_MAGIC, BatchHeader, BatchMeta, DType, Element, MAX_DIMS,
     MAX_SECTIONS, SECTION_ALIGN, SectionDesc, nul_padded_str, validate_run_name, write_nul_padded,
 };
+use super::sections::Section;
 use bytemuck::Zeroable;
 
 /// Handle of a section planned in a [`BatchLayout`].
@@ -111,6 +112,22 @@ impl BatchLayout {
         self.names.push(name.to_string());
         self.payload_len = end;
         Ok(SectionId(index))
+    }
+
+    /// Plans a section of the section table, with the table's dtype; `shape` must have
+    /// the table's rank and fixed sizes.
+    pub fn add_section(
+        &mut self,
+        section: Section,
+        shape: &[usize],
+    ) -> Result<SectionId, BatchError> {
+        section.check_shape(shape)?;
+        self.add_dtype(&section.name(), section.spec().dtype, shape)
+    }
+
+    /// The planned section of that name, if any.
+    pub fn find(&self, name: &str) -> Option<SectionId> {
+        self.names.iter().position(|n| n == name).map(SectionId)
     }
 
     /// Bytes of payload the batch needs (the size to loan).
@@ -251,6 +268,33 @@ impl<'a> BatchWriter<'a> {
         bytemuck::try_cast_slice_mut(bytes).map_err(|e| BatchError::BadSection {
             name: name(),
             reason: e.to_string(),
+        })
+    }
+
+    /// [`BatchWriter::take`] of a section of the table, which must declare it as `T`.
+    pub fn take_section<T: Element>(
+        &mut self,
+        section: Section,
+    ) -> Result<&'a mut [T], BatchError> {
+        let id = self.id_of::<T>(section)?;
+        self.take(id)
+    }
+
+    /// [`BatchWriter::write`] of a section of the table, which must declare it as `T`.
+    pub fn write_section<T: Element>(
+        &mut self,
+        section: Section,
+        data: &[T],
+    ) -> Result<(), BatchError> {
+        let id = self.id_of::<T>(section)?;
+        self.write(id, data)
+    }
+
+    fn id_of<T: Element>(&self, section: Section) -> Result<SectionId, BatchError> {
+        section.check::<T>()?;
+        let name = section.name();
+        self.layout.find(&name).ok_or_else(|| BatchError::Missing {
+            name: name.into_owned(),
         })
     }
 
