@@ -9,8 +9,8 @@
 //! element type of every write.
 
 use crate::sample::SampleConfig;
-use crate::sample::builder::{Cloud, Sample};
 use crate::sample::sparse::KernelMap;
+use crate::sample::{Cloud, Sample};
 use superflow_schemas::batch::{
     BatchError, BatchLayout, BatchMeta, BatchWriter, Dims, LevelDims, Section,
 };

@@ -52,7 +52,7 @@ use std::time::Instant;
 use superflow_pipeline::config::PipelineConfig;
 use superflow_pipeline::drive::Dataset;
 use superflow_pipeline::sample::SampleBuilder;
-use superflow_schemas::batch::BatchHeader;
+use superflow_schemas::batch::{BatchHeader, Section};
 use train::{BATCH_SIZE, BatchFile, DRIVE, Preset};
 
 #[derive(Debug)]
@@ -189,12 +189,12 @@ fn main() -> anyhow::Result<()> {
     let batch = BatchFile::read(&batch_path)?;
     let (samples, points, pairings, voxels, images) = {
         let view = batch.view()?;
-        let images = view.get::<u8>("images")?.shape().to_vec();
+        let images = view.section::<u8>(Section::Images)?.shape().to_vec();
         (
             view.meta().sample_count,
-            view.get::<u32>("point_to_voxel")?.data.len(),
-            view.get::<u32>("pairing_point")?.data.len(),
-            view.get::<f32>("voxel_features")?.shape()[0],
+            view.section::<u32>(Section::PointToVoxel)?.data.len(),
+            view.section::<u32>(Section::PairingPoint)?.data.len(),
+            view.section::<f32>(Section::VoxelFeatures)?.shape()[0],
             images,
         )
     };

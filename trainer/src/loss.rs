@@ -27,6 +27,7 @@ use crate::sparse::index_tensor;
 use burn::tensor::activation::log_softmax;
 use burn::tensor::{Device, IndexingUpdateOp, Int, Tensor, TensorData};
 use serde::{Deserialize, Serialize};
+use superflow_schemas::batch::Section;
 
 /// Which form of the dense-to-sparse term.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -109,9 +110,9 @@ pub struct PlanError {
     pub reason: String,
 }
 
-fn bad(section: &'static str, reason: impl Into<String>) -> PlanError {
+fn bad(section: Section, reason: impl Into<String>) -> PlanError {
     PlanError {
-        section,
+        section: section.spec().name,
         reason: reason.into(),
     }
 }
@@ -212,16 +213,16 @@ impl LossPlan {
 fn check_lengths(x: &LossInputs<'_>) -> Result<(), PlanError> {
     let (b_n, f_n, k_n) = (x.batch, x.frames, x.cameras);
     if x.num_superpixels.len() != b_n * f_n {
-        return Err(bad("num_superpixels", "expected B×F entries"));
+        return Err(bad(Section::NumSuperpixels, "expected B×F entries"));
     }
     if x.superpixels.len() != b_n * f_n * k_n * x.height * x.width {
-        return Err(bad("superpixels", "expected B·F·K×H×W entries"));
+        return Err(bad(Section::Superpixels, "expected B·F·K×H×W entries"));
     }
     if x.pairing_clouds.len() != b_n * (f_n + 1) + 1 {
-        return Err(bad("pairing_clouds", "expected B·C+1 entries"));
+        return Err(bad(Section::PairingClouds, "expected B·C+1 entries"));
     }
     if x.key_frame >= f_n {
-        return Err(bad("frame_offsets", "no key frame"));
+        return Err(bad(Section::FrameOffsets, "no key frame"));
     }
     Ok(())
 }
@@ -301,7 +302,7 @@ impl<'x, 'a> Slots<'x, 'a> {
         if x.pairing_superpixel.len() != pairings
             || x.pairing_clouds[x.batch * c_n] as usize != pairings
         {
-            return Err(bad("pairing_clouds", "does not cover the pairings"));
+            return Err(bad(Section::PairingClouds, "does not cover the pairings"));
         }
         let mut count = vec![0u32; self.point_slots];
         let mut slot_of = Vec::with_capacity(pairings);
@@ -313,14 +314,14 @@ impl<'x, 'a> Slots<'x, 'a> {
                     x.pairing_clouds[cloud + 1] as usize,
                 );
                 if s > e || e > pairings {
-                    return Err(bad("pairing_clouds", "offsets not increasing"));
+                    return Err(bad(Section::PairingClouds, "offsets not increasing"));
                 }
                 let limit = self.n(b, self.frame_of(c));
                 for &id in &x.pairing_superpixel[s..e] {
                     let id = id as usize;
                     if id >= limit {
                         return Err(bad(
-                            "pairing_superpixel",
+                            Section::PairingSuperpixel,
                             format!(
                                 "id {id} of cloud {cloud} is not below its frame's {limit} superpixels"
                             ),
@@ -356,7 +357,7 @@ impl<'x, 'a> Slots<'x, 'a> {
                             let id = map[r * w + col] as usize;
                             if id >= limit {
                                 return Err(bad(
-                                    "superpixels",
+                                    Section::Superpixels,
                                     format!(
                                         "id {id} in image {image} is not below its frame's {limit} superpixels"
                                     ),

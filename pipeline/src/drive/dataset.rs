@@ -6,12 +6,12 @@
 //! one sensor message.
 
 use super::discover::{IngestConfig, Role};
-use crate::decode::{Dialect, SchemaKind, schema_kind};
 use super::streams::EGO_FRAMES;
 use super::tf::TransformTree;
 use crate::decode::image::{self, ImageError, Target};
 use crate::decode::points::{DecodedCloud, PointsError};
 use crate::decode::{DecodeError, foxglove, ros2};
+use crate::decode::{Dialect, SchemaKind, schema_kind};
 use crate::source::{ChunkCache, McapFile, MessageLoc, MessageRef, SourceError};
 use serde::{Deserialize, Serialize};
 use std::path::PathBuf;

@@ -2,8 +2,8 @@
 //! is skipped without being copied (prost skips unknown fields; CDR decoding stops after
 //! the header).
 
-use crate::decode::{Dialect, SchemaKind};
 use crate::decode::{DecodeError, foxglove, ros2};
+use crate::decode::{Dialect, SchemaKind};
 use serde::Deserialize;
 use superflow_schemas::Stamp;
 

@@ -5,12 +5,12 @@
 
 use super::dataset::{Drive, FrameRef, IngestError};
 use super::discover::IngestConfig;
-use crate::decode::{Dialect, SchemaKind, schema_kind};
 use super::heads::stamp_and_frame;
 use super::skips::{DamageKind, SkipReport};
 use super::streams::Streams;
 use super::tf::TransformTree;
 use crate::decode::{DecodeError, foxglove, ros2};
+use crate::decode::{Dialect, SchemaKind, schema_kind};
 use crate::source::{ChannelInfo, McapFile, MessageRef, SourceError};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};

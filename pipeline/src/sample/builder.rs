@@ -12,13 +12,9 @@ use super::load::{FrameInputs, SampleContext};
 use super::plan::{KeyframeRef, Plan};
 use super::recipe::{SampleConfig, SuperpixelSource};
 use super::rng::{Purpose, SampleRng};
-use super::types::{Frame, SampleId};
+use super::types::{Cloud, Frame, Sample, SampleId, StageTimes};
 use crate::drive::dataset::{Dataset, Drive};
 use rayon::prelude::*;
-
-// The sample types at their old path (`sample::builder::{Cloud, Sample, StageTimes}`),
-// still used by `batch.rs` and `publish.rs`; prefer `crate::sample::{Cloud, ..}`.
-pub use super::types::{Cloud, Sample, StageTimes};
 
 /// Builds samples of a dataset.
 #[derive(Debug)]

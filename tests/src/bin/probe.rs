@@ -5,6 +5,7 @@
 use clap::Parser;
 use std::io::Write as _;
 use std::time::Duration;
+use superflow_schemas::batch::Section;
 use superflow_trainer::subscribe::{Subscription, Target};
 
 #[derive(Debug, Parser)]
@@ -112,7 +113,7 @@ fn main() -> anyhow::Result<()> {
         };
         let view = batch.view()?;
         let meta = view.meta();
-        let ids = view.get::<u64>("sample_ids")?;
+        let ids = view.section::<u64>(Section::SampleIds)?;
         let samples: Vec<String> = ids
             .data
             .chunks_exact(5)
