@@ -151,11 +151,17 @@ fn device(backend: &str, index: usize) -> anyhow::Result<burn::tensor::Device> {
         )),
         #[cfg(feature = "cuda")]
         "cuda" => Ok(burn::tensor::Device::cuda(index)),
-        "wgpu" | "cuda" => {
-            anyhow::bail!("backend {backend} is not compiled in: build with `--features {backend}`")
-        }
+        #[cfg(not(feature = "wgpu"))]
+        "wgpu" => not_compiled_in(backend),
+        #[cfg(not(feature = "cuda"))]
+        "cuda" => not_compiled_in(backend),
         other => anyhow::bail!("unknown backend {other:?} (flex, wgpu, cuda)"),
     }
+}
+
+#[cfg(not(all(feature = "wgpu", feature = "cuda")))]
+fn not_compiled_in(backend: &str) -> anyhow::Result<burn::tensor::Device> {
+    anyhow::bail!("backend {backend} is not compiled in: build with `--features {backend}`")
 }
 
 /// Watches SIGTERM and SIGINT (on a thread of its own): the first sets the returned
