@@ -10,9 +10,9 @@
 //! message-level damage rewrites the file, message by message, with the writer settings
 //! of its dialect.
 
+use crate::error::{GenerateError, Result};
 use crate::out::McapOut;
 use crate::{Dialect, DriveOptions, generate_with};
-use anyhow::Context as _;
 use foxglove::messages::{PointCloud, Timestamp};
 use prost::Message as _;
 use std::collections::BTreeMap;
@@ -33,7 +33,7 @@ pub struct DamagedFile {
 pub const SINCE_BOOT_NANOS: i64 = 1_234_567_800_000;
 
 /// Every damaged recording, in name order of dialect then damage.
-pub fn damaged_recordings() -> anyhow::Result<Vec<DamagedFile>> {
+pub fn damaged_recordings() -> Result<Vec<DamagedFile>> {
     let mut out = Vec::new();
     for dialect in Dialect::ALL {
         let drive = generate_with(dialect, &DriveOptions::short())?;
@@ -102,12 +102,12 @@ pub fn damaged_recordings() -> anyhow::Result<Vec<DamagedFile>> {
 }
 
 /// Writes `recordings/damaged/`-style files into `dir`; returns what was written.
-pub fn write_damaged(dir: &std::path::Path) -> anyhow::Result<Vec<DamagedFile>> {
-    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+pub fn write_damaged(dir: &std::path::Path) -> Result<Vec<DamagedFile>> {
+    std::fs::create_dir_all(dir).map_err(|e| GenerateError::io("creating", dir, e))?;
     let files = damaged_recordings()?;
     for f in &files {
         let path = dir.join(&f.name);
-        std::fs::write(&path, &f.bytes).with_context(|| format!("writing {}", path.display()))?;
+        std::fs::write(&path, &f.bytes).map_err(|e| GenerateError::io("writing", &path, e))?;
     }
     Ok(files)
 }
@@ -153,7 +153,7 @@ fn nan_points_damage(dialect: Dialect) -> String {
     )
 }
 
-fn nan_points(parsed: &Parsed, dialect: Dialect) -> anyhow::Result<Vec<u8>> {
+fn nan_points(parsed: &Parsed, dialect: Dialect) -> Result<Vec<u8>> {
     let lidar = lidar_topic(dialect);
     let mut sweep = 0usize;
     let mut error = None;
@@ -175,7 +175,7 @@ fn nan_points(parsed: &Parsed, dialect: Dialect) -> anyhow::Result<Vec<u8>> {
         };
         let edited = match dialect {
             Dialect::Foxglove => PointCloud::decode(data.as_slice())
-                .map_err(anyhow::Error::from)
+                .map_err(GenerateError::from)
                 .map(|mut cloud| {
                     let mut points = cloud.data.to_vec();
                     damage(&mut points, cloud.point_stride as usize);
@@ -183,7 +183,7 @@ fn nan_points(parsed: &Parsed, dialect: Dialect) -> anyhow::Result<Vec<u8>> {
                     cloud.encode_to_vec()
                 }),
             Dialect::Ros2 => ros2::decode::<PointCloud2>(data)
-                .map_err(anyhow::Error::from)
+                .map_err(GenerateError::from)
                 .and_then(|mut cloud| {
                     damage(&mut cloud.data, cloud.point_step as usize);
                     cloud.is_dense = ![nan, inf, all].contains(&k);
@@ -197,18 +197,22 @@ fn nan_points(parsed: &Parsed, dialect: Dialect) -> anyhow::Result<Vec<u8>> {
         true
     })?;
     match error {
-        Some(e) => Err(e.context("poisoning a sweep")),
+        Some(e) => Err(GenerateError::Damaging {
+            doing: "poisoning a sweep",
+            topic: lidar.to_string(),
+            source: Box::new(e),
+        }),
         None => Ok(bytes),
     }
 }
 
-fn wrong_stamps(parsed: &Parsed, dialect: Dialect) -> anyhow::Result<(Vec<u8>, String)> {
+fn wrong_stamps(parsed: &Parsed, dialect: Dialect) -> Result<(Vec<u8>, String)> {
     let lidar = lidar_topic(dialect);
     let mut sweep = 0usize;
     let mut image = 0usize;
     let mut previous_image_stamp = None;
-    let mut error: Option<anyhow::Error> = None;
-    let mut edit = |topic: &str, data: &mut Vec<u8>| -> anyhow::Result<()> {
+    let mut error: Option<(String, GenerateError)> = None;
+    let mut edit = |topic: &str, data: &mut Vec<u8>| -> Result<()> {
         match dialect {
             Dialect::Foxglove if topic == lidar => {
                 let k = sweep;
@@ -232,7 +236,12 @@ fn wrong_stamps(parsed: &Parsed, dialect: Dialect) -> anyhow::Result<(Vec<u8>, S
                 let mut cloud: PointCloud2 = ros2::decode(data)?;
                 cloud.header.stamp = match k {
                     5 | 6 => Ros2Time::default(),
-                    13 => Ros2Time::from_nanos(SINCE_BOOT_NANOS).context("stamp")?,
+                    13 => Ros2Time::from_nanos(SINCE_BOOT_NANOS).ok_or(
+                        GenerateError::StampOutOfRange {
+                            format: "ROS 2",
+                            stamp: superflow_schemas::Stamp::from_nanos(SINCE_BOOT_NANOS),
+                        },
+                    )?,
                     _ => return Ok(()),
                 };
                 *data = ros2::encode(&cloud)?;
@@ -257,14 +266,18 @@ fn wrong_stamps(parsed: &Parsed, dialect: Dialect) -> anyhow::Result<(Vec<u8>, S
         dialect,
         |topic, _, data| {
             if let Err(e) = edit(topic, data) {
-                error.get_or_insert(e);
+                error.get_or_insert((topic.to_string(), e));
             }
             true
         },
         dialect == Dialect::Foxglove,
     );
-    if let Some(e) = error {
-        bytes = Err(e.context("restamping a message"));
+    if let Some((topic, e)) = error {
+        bytes = Err(GenerateError::Damaging {
+            doing: "restamping a message",
+            topic,
+            source: Box::new(e),
+        });
     }
     let what = match dialect {
         Dialect::Foxglove => {
@@ -309,7 +322,7 @@ struct Parsed {
 }
 
 impl Parsed {
-    fn read(bytes: &[u8]) -> anyhow::Result<Self> {
+    fn read(bytes: &[u8]) -> Result<Self> {
         use mcap::records::Record;
         let mut profile = String::new();
         let mut schemas: BTreeMap<u16, (String, String, Vec<u8>)> = BTreeMap::new();
@@ -328,7 +341,10 @@ impl Parsed {
                     schema: schemas
                         .get(&c.schema_id)
                         .cloned()
-                        .context("channel before its schema")?,
+                        .ok_or(GenerateError::Malformed {
+                            what: "channel before its schema",
+                            id: c.schema_id,
+                        })?,
                     message_encoding: c.message_encoding,
                     metadata: c.metadata,
                 }),
@@ -357,7 +373,7 @@ impl Parsed {
         &self,
         dialect: Dialect,
         keep: impl FnMut(&str, u64, &mut Vec<u8>) -> bool,
-    ) -> anyhow::Result<Vec<u8>> {
+    ) -> Result<Vec<u8>> {
         self.rewrite_ordered(dialect, keep, false)
     }
 
@@ -368,14 +384,17 @@ impl Parsed {
         dialect: Dialect,
         mut keep: impl FnMut(&str, u64, &mut Vec<u8>) -> bool,
         newest_first_blocks: bool,
-    ) -> anyhow::Result<Vec<u8>> {
+    ) -> Result<Vec<u8>> {
         let topics: BTreeMap<u16, &ChannelRecord> =
             self.channels.iter().map(|c| (c.id, c)).collect();
         let mut kept: Vec<MessageRecord> = Vec::new();
         for m in &self.messages {
             let topic = &topics
                 .get(&m.channel)
-                .context("message without channel")?
+                .ok_or(GenerateError::Malformed {
+                    what: "message without channel",
+                    id: m.channel,
+                })?
                 .topic;
             let mut m = m.clone();
             if keep(topic, m.log_time, &mut m.data) {

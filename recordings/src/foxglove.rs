@@ -3,11 +3,11 @@
 //! `/tf` with the ego pose at every sensor stamp and the extrinsics re-published at every
 //! keyframe, plus `/CAM_*/superpixels` class maps and an unrelated JSON `/odom` channel.
 
+use crate::error::{GenerateError, Result};
 use crate::out::McapOut;
 use crate::sim::CameraRig;
 use crate::truth::{CameraTruth, FramesTruth, PoseTruth, SweepTruth};
 use crate::{Dialect, GeneratedDrive, Simulation, WrittenDrive, encode_jpeg};
-use anyhow::Context as _;
 use foxglove::Encode;
 use foxglove::messages::{
     CameraCalibration, CompressedImage, FrameTransform, PackedElementField, PointCloud, Quaternion,
@@ -27,9 +27,15 @@ pub const LIDAR: &str = "LIDAR_TOP";
 /// Sweeps with index divisible by this are keyframes (2 Hz).
 const KEYFRAME_EVERY: usize = 10;
 
-fn timestamp(stamp: Stamp) -> anyhow::Result<Timestamp> {
+fn timestamp(stamp: Stamp) -> Result<Timestamp> {
     let (sec, nanosec) = stamp.to_sec_nanosec();
-    Timestamp::new_checked(u32::try_from(sec)?, nanosec).context("timestamp out of range")
+    u32::try_from(sec)
+        .ok()
+        .and_then(|sec| Timestamp::new_checked(sec, nanosec))
+        .ok_or(GenerateError::StampOutOfRange {
+            format: "Foxglove",
+            stamp,
+        })
 }
 
 fn frame_transform(
@@ -37,7 +43,7 @@ fn frame_transform(
     parent: &str,
     child: &str,
     parent_from_child: &Isometry3<f64>,
-) -> anyhow::Result<Vec<u8>> {
+) -> Result<Vec<u8>> {
     let t = parent_from_child.translation.vector;
     let q = parent_from_child.rotation.quaternion();
     Ok(FrameTransform {
@@ -69,8 +75,10 @@ struct Schema {
 
 impl Schema {
     /// The schema of the Foxglove message `T`.
-    fn of<T: Encode>() -> anyhow::Result<Self> {
-        let schema = T::get_schema().context("foxglove type without schema")?;
+    fn of<T: Encode>() -> Result<Self> {
+        let schema = T::get_schema().ok_or(GenerateError::MissingSchema {
+            type_name: std::any::type_name::<T>(),
+        })?;
         Ok(Self {
             name: schema.name,
             encoding: schema.encoding,
@@ -108,7 +116,7 @@ struct Channels {
 
 impl Channels {
     /// Declares every channel, in the order the converter does.
-    fn declare(out: &mut McapOut, sim: &Simulation) -> anyhow::Result<Self> {
+    fn declare(out: &mut McapOut, sim: &Simulation) -> Result<Self> {
         let point_cloud = Schema::of::<PointCloud>()?;
         let compressed_image = Schema::of::<CompressedImage>()?;
         let calibration = Schema::of::<CameraCalibration>()?;
@@ -156,7 +164,7 @@ impl Channels {
 }
 
 /// Writes the drive; returns the MCAP bytes and the ground truth.
-pub fn write(sim: &Simulation) -> anyhow::Result<GeneratedDrive> {
+pub fn write(sim: &Simulation) -> Result<GeneratedDrive> {
     let mut out = McapOut::default();
     out.set_chunk_size(sim.options.chunk_size);
     let channels = Channels::declare(&mut out, sim)?;
@@ -172,7 +180,7 @@ pub fn write(sim: &Simulation) -> anyhow::Result<GeneratedDrive> {
         .iter()
         .enumerate()
         .map(|(i, cam)| write_camera(&mut out, &channels, sim, (i, cam), &keyframe_stamps))
-        .collect::<anyhow::Result<Vec<_>>>()?;
+        .collect::<Result<Vec<_>>>()?;
     write_odometry(&mut out, channels.odom, sim);
 
     let description = format!(
@@ -219,7 +227,7 @@ fn write_lidar(
     out: &mut McapOut,
     channels: &Channels,
     sim: &Simulation,
-) -> anyhow::Result<(Vec<SweepTruth>, Vec<Stamp>)> {
+) -> Result<(Vec<SweepTruth>, Vec<Stamp>)> {
     let fields: Vec<PackedElementField> = ["x", "y", "z", "intensity", "ring"]
         .iter()
         .enumerate()
@@ -281,7 +289,7 @@ fn write_camera(
     sim: &Simulation,
     (i, cam): (usize, &CameraRig),
     keyframe_stamps: &[Stamp],
-) -> anyhow::Result<CameraTruth> {
+) -> Result<CameraTruth> {
     let camera = channels.cameras[i];
     let stamps = &sim.camera_stamps[i];
     let mut keyframe_log = BTreeMap::new();
@@ -291,7 +299,7 @@ fn write_camera(
         }
     }
     let calibration = &cam.calibration;
-    let k: Vec<f64> = calibration.k.transpose().iter().copied().collect(); // row-major
+    let k: [f64; 9] = std::array::from_fn(|i| calibration.k[(i / 3, i % 3)]); // row-major
     let mut p = Vec::with_capacity(12);
     for row in 0..3 {
         p.extend_from_slice(&k[row * 3..row * 3 + 3]);
@@ -313,7 +321,7 @@ fn write_camera(
             height: calibration.height,
             distortion_model: String::new(),
             d: Vec::new(),
-            k: k.clone(),
+            k: k.to_vec(),
             r: vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
             p: p.clone(),
         };
@@ -348,7 +356,7 @@ fn write_camera(
         frame_id: cam.name.to_string(),
         width: calibration.width,
         height: calibration.height,
-        k: k.try_into().map_err(|_| anyhow::anyhow!("K is 3x3"))?,
+        k,
         distortion_model: String::new(),
         d: Vec::new(),
         ego_from_camera: PoseTruth::from(&cam.ego_from_optical()),

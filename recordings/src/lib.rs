@@ -15,10 +15,11 @@
 //! ```no_run
 //! let drive = superflow_recordings::generate(superflow_recordings::Dialect::Ros2)?;
 //! std::fs::write("drive.mcap", &drive.mcap)?;
-//! # Ok::<(), anyhow::Error>(())
+//! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 
 pub mod damaged;
+pub mod error;
 pub mod foxglove;
 pub mod out;
 pub mod ros2;
@@ -26,7 +27,7 @@ pub mod scene;
 pub mod sim;
 pub mod truth;
 
-use anyhow::Context as _;
+pub use error::GenerateError;
 use nalgebra::{Isometry3, Point3};
 use rayon::prelude::*;
 use scene::Scene;
@@ -159,7 +160,7 @@ pub struct GeneratedDrive {
 
 impl GeneratedDrive {
     /// The ground truth as the pretty JSON written next to the drive.
-    pub fn truth_json(&self) -> anyhow::Result<Vec<u8>> {
+    pub fn truth_json(&self) -> error::Result<Vec<u8>> {
         let mut json = serde_json::to_vec_pretty(&self.truth)?;
         json.push(b'\n');
         Ok(json)
@@ -395,27 +396,33 @@ fn landmarks(sim: &Simulation) -> Vec<Landmark> {
 }
 
 /// Encodes an RGB8 image as a baseline JPEG (deterministic: scalar code path).
-pub fn encode_jpeg(image: &superflow_schemas::sensor::Image) -> anyhow::Result<Vec<u8>> {
+pub fn encode_jpeg(image: &superflow_schemas::sensor::Image) -> error::Result<Vec<u8>> {
     let mut out = Vec::new();
     let mut encoder = jpeg_encoder::Encoder::new(&mut out, JPEG_QUALITY);
     encoder.set_optimized_huffman_tables(true);
-    let (w, h) = (
-        u16::try_from(image.width).context("image too wide for JPEG")?,
-        u16::try_from(image.height).context("image too tall for JPEG")?,
-    );
+    let (Ok(w), Ok(h)) = (u16::try_from(image.width), u16::try_from(image.height)) else {
+        return Err(GenerateError::ImageTooLarge {
+            frame_id: image.frame_id.clone(),
+            width: image.width,
+            height: image.height,
+        });
+    };
     encoder
         .encode(&image.data, w, h, jpeg_encoder::ColorType::Rgb)
-        .with_context(|| format!("encoding JPEG for {}", image.frame_id))?;
+        .map_err(|source| GenerateError::Jpeg {
+            frame_id: image.frame_id.clone(),
+            source,
+        })?;
     Ok(out)
 }
 
 /// Simulates and writes the sample drive in `dialect`.
-pub fn generate(dialect: Dialect) -> anyhow::Result<GeneratedDrive> {
+pub fn generate(dialect: Dialect) -> error::Result<GeneratedDrive> {
     generate_with(dialect, &DriveOptions::default())
 }
 
 /// Simulates and writes a drive of `options` in `dialect`.
-pub fn generate_with(dialect: Dialect, options: &DriveOptions) -> anyhow::Result<GeneratedDrive> {
+pub fn generate_with(dialect: Dialect, options: &DriveOptions) -> error::Result<GeneratedDrive> {
     let simulation = simulate_with(dialect, options);
     match dialect {
         Dialect::Foxglove => foxglove::write(&simulation),

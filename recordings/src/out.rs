@@ -96,7 +96,7 @@ impl McapOut {
         mut self,
         profile: &str,
         compression: Option<mcap::Compression>,
-    ) -> anyhow::Result<(Vec<u8>, Vec<ChannelTruth>)> {
+    ) -> crate::error::Result<(Vec<u8>, Vec<ChannelTruth>)> {
         let options = mcap::WriteOptions::new()
             .profile(profile)
             .library(format!("superflow-recordings/{}", crate::GENERATOR_VERSION))

@@ -4,11 +4,11 @@
 //! plumb_bob distortion, `CameraInfo`, `map → odom → base_link` on `/tf` and the
 //! extrinsics (`base_link → cam_*_link → cam_*_optical_frame`) once on `/tf_static`.
 
+use crate::error::{GenerateError, Result};
 use crate::out::McapOut;
 use crate::sim::{CameraRig, Return, body_from_optical};
 use crate::truth::{CameraTruth, FramesTruth, PoseTruth, SweepTruth};
 use crate::{Dialect, GeneratedDrive, Simulation, WrittenDrive, encode_jpeg};
-use anyhow::Context as _;
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 use std::collections::BTreeMap;
 use superflow_schemas::Stamp;
@@ -43,9 +43,12 @@ pub fn map_from_odom(start: Stamp, at: Stamp) -> Isometry3<f64> {
     )
 }
 
-fn header(stamp: Stamp, frame_id: &str) -> anyhow::Result<Header> {
+fn header(stamp: Stamp, frame_id: &str) -> Result<Header> {
     Ok(Header {
-        stamp: Ros2Time::from_nanos(stamp.nanos()).context("stamp out of ROS 2 range")?,
+        stamp: Ros2Time::from_nanos(stamp.nanos()).ok_or(GenerateError::StampOutOfRange {
+            format: "ROS 2",
+            stamp,
+        })?,
         frame_id: frame_id.to_string(),
     })
 }
@@ -55,7 +58,7 @@ fn transform_stamped(
     parent: &str,
     child: &str,
     parent_from_child: &Isometry3<f64>,
-) -> anyhow::Result<TransformStamped> {
+) -> Result<TransformStamped> {
     let t = parent_from_child.translation.vector;
     let q = parent_from_child.rotation.quaternion();
     Ok(TransformStamped {
@@ -123,7 +126,7 @@ fn channel<T: Ros2Message>(out: &mut McapOut, topic: &str, role: &str) -> usize 
 }
 
 /// Writes the drive; returns the MCAP bytes and the ground truth.
-pub fn write(sim: &Simulation) -> anyhow::Result<GeneratedDrive> {
+pub fn write(sim: &Simulation) -> Result<GeneratedDrive> {
     let mut out = McapOut::default();
     out.set_chunk_size(sim.options.chunk_size);
     let tf_static = out.channel(
@@ -145,7 +148,7 @@ pub fn write(sim: &Simulation) -> anyhow::Result<GeneratedDrive> {
         .iter()
         .enumerate()
         .map(|(i, cam)| write_camera(&mut out, sim, i, cam))
-        .collect::<anyhow::Result<Vec<_>>>()?;
+        .collect::<Result<Vec<_>>>()?;
 
     out.metadata(
         "rosbag2",
@@ -177,11 +180,7 @@ pub fn write(sim: &Simulation) -> anyhow::Result<GeneratedDrive> {
 
 /// The static extrinsics, once, at the start (latched): `base_link → lidar_top` and,
 /// per camera, `base_link → cam_*_link → cam_*_optical_frame`.
-fn write_static_transforms(
-    out: &mut McapOut,
-    channel: usize,
-    sim: &Simulation,
-) -> anyhow::Result<()> {
+fn write_static_transforms(out: &mut McapOut, channel: usize, sim: &Simulation) -> Result<()> {
     let start = sim.timing.start;
     let mut statics = vec![transform_stamped(
         start,
@@ -219,7 +218,7 @@ fn write_static_transforms(
 
 /// Odometry (`odom → base_link`) at 50 Hz and localisation (`map → odom`) at 10 Hz on
 /// `/tf`, covering the drive with a margin.
-fn write_odometry(out: &mut McapOut, channel: usize, sim: &Simulation) -> anyhow::Result<()> {
+fn write_odometry(out: &mut McapOut, channel: usize, sim: &Simulation) -> Result<()> {
     let start = sim.timing.start;
     let end = start.add_nanos(sim.timing.duration_nanos);
     let mut n = -2i64;
@@ -262,7 +261,7 @@ fn write_lidar(
     out: &mut McapOut,
     channel: usize,
     sim: &Simulation,
-) -> anyhow::Result<(Vec<SweepTruth>, Vec<Stamp>)> {
+) -> Result<(Vec<SweepTruth>, Vec<Stamp>)> {
     let field = |name: &str, offset, datatype| PointField {
         name: name.into(),
         offset,
@@ -282,7 +281,10 @@ fn write_lidar(
     for (k, returns) in sim.sweeps.iter().enumerate() {
         let (begin, _) = sim.timing.sweep_span(k);
         let data = sweep_data(sim, begin, returns);
-        let width = u32::try_from(returns.len())?;
+        let width = u32::try_from(returns.len()).map_err(|_| GenerateError::TooManyPoints {
+            sweep: k,
+            points: returns.len(),
+        })?;
         let cloud = PointCloud2 {
             header: header(begin, LIDAR_FRAME)?,
             height: 1,
@@ -341,17 +343,17 @@ struct Intrinsics {
 }
 
 impl Intrinsics {
-    fn of(calibration: &CameraCalibration) -> anyhow::Result<Self> {
-        let k: Vec<f64> = calibration.k.transpose().iter().copied().collect(); // row-major
+    fn of(calibration: &CameraCalibration) -> Self {
+        let k: [f64; 9] = std::array::from_fn(|i| calibration.k[(i / 3, i % 3)]); // row-major
         let mut p = [0.0; 12];
         for row in 0..3 {
             p[row * 4..row * 4 + 3].copy_from_slice(&k[row * 3..row * 3 + 3]);
         }
-        Ok(Self {
-            k: k.try_into().map_err(|_| anyhow::anyhow!("K is 3x3"))?,
+        Self {
+            k,
             d: calibration.distortion.coeffs(),
             p,
-        })
+        }
     }
 }
 
@@ -362,7 +364,7 @@ fn write_camera(
     sim: &Simulation,
     i: usize,
     cam: &CameraRig,
-) -> anyhow::Result<CameraTruth> {
+) -> Result<CameraTruth> {
     let base = camera_base(cam.name);
     let optical = format!("{base}_optical_frame");
     let image_topic = format!("/{base}/image_raw/compressed");
@@ -372,7 +374,7 @@ fn write_camera(
     let info_channel = channel::<CameraInfo>(out, &info_topic, "calibration");
     let superpixel_channel = channel::<Image>(out, &superpixel_topic, "superpixels");
     let calibration = &cam.calibration;
-    let intrinsics = Intrinsics::of(calibration)?;
+    let intrinsics = Intrinsics::of(calibration);
     let stamps = &sim.camera_stamps[i];
     for (frame, stamp) in sim.frames[i].iter().zip(stamps) {
         let header = header(*stamp, &optical)?;

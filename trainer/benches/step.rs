@@ -97,14 +97,14 @@ fn torch(
     preset: &Preset,
     steps: usize,
     threads: usize,
-) -> Result<Torch, String> {
+) -> anyhow::Result<Torch> {
     let importable = Command::new(python)
         .args(["-c", "import torch"])
         .output()
         .map(|o| o.status.success())
         .unwrap_or(false);
     if !importable {
-        return Err("PyTorch not installed (pip install torch to compare)".into());
+        anyhow::bail!("PyTorch not installed (pip install torch to compare)");
     }
     let script = root().join("trainer/reference/bench_torch.py");
     eprintln!("{}: PyTorch ({python}, {threads} threads) ...", preset.name);
@@ -117,7 +117,7 @@ fn torch(
         .args(["--steps", &steps.to_string(), "--warmup", "1"])
         .args(["--threads", &threads.to_string(), "--json"])
         .output()
-        .map_err(|e| format!("PyTorch: running {python}: {e}"))?;
+        .map_err(|e| anyhow::anyhow!("PyTorch: running {python}: {e}"))?;
     let stderr = String::from_utf8_lossy(&out.stderr);
     for line in stderr
         .lines()
@@ -127,12 +127,12 @@ fn torch(
     }
     if !out.status.success() {
         let last = stderr.lines().last().unwrap_or("no output");
-        return Err(format!("PyTorch failed ({}): {last}", out.status));
+        anyhow::bail!("PyTorch failed ({}): {last}", out.status);
     }
     let stdout = String::from_utf8_lossy(&out.stdout);
     let line = stdout.lines().last().unwrap_or_default();
-    let j: serde_json::Value =
-        serde_json::from_str(line).map_err(|e| format!("PyTorch: bad JSON {line:?}: {e}"))?;
+    let j: serde_json::Value = serde_json::from_str(line)
+        .map_err(|e| anyhow::anyhow!("PyTorch: bad JSON {line:?}: {e}"))?;
     let f = |v: &serde_json::Value| v.as_f64().unwrap_or(f64::NAN);
     let u = |v: &serde_json::Value| v.as_u64().unwrap_or(0) as usize;
     let ph = &j["phases_ms"];
@@ -243,7 +243,7 @@ fn main() -> anyhow::Result<()> {
                 format!("{:.2}×", c.ms / t.ms),
                 format!("{:.2}×", (c.ms - c.phases.inputs) / t.ms),
             ),
-            Err(e) => (e.clone(), "—".into(), "—".into(), "—".into()),
+            Err(e) => (e.to_string(), "—".into(), "—".into(), "—".into()),
         };
         println!(
             "| {} | {} | {} | {} | {burn_sps:.3} | {:.2} | {py_ms} | {py_sps} | {ratio} | {ratio_compute} |",
