@@ -75,6 +75,31 @@ pub type BatchService = iceoryx2::service::port_factory::publish_subscribe::Port
     crate::batch::BatchHeader,
 >;
 
+/// iceoryx2 refusing an operation on a node or port (creating the node or a port, a
+/// loan, a send, a receive, a request), with what was being done. Both sides of the
+/// service report it.
+#[derive(Debug, thiserror::Error)]
+#[error("{what}: {source}")]
+pub struct IpcError {
+    /// What was being done, naming the service.
+    pub what: String,
+    /// iceoryx2's error.
+    pub source: Box<dyn std::error::Error + Send + Sync>,
+}
+
+impl IpcError {
+    /// `map_err(IpcError::doing("creating the publisher of superflow/run/batches"))`.
+    pub fn doing<E: std::error::Error + Send + Sync + 'static>(
+        what: impl Into<String>,
+    ) -> impl FnOnce(E) -> Self {
+        let what = what.into();
+        move |source| Self {
+            what,
+            source: Box::new(source),
+        }
+    }
+}
+
 /// A service that cannot be set up: a bad name or prefix, or iceoryx2 refusing to open
 /// or create it (e.g. another process opened it with incompatible settings).
 #[derive(Debug, thiserror::Error)]

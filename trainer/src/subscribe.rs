@@ -7,7 +7,9 @@ use iceoryx2::prelude::*;
 use iceoryx2::sample::Sample;
 use std::time::{Duration, Instant};
 use superflow_schemas::batch::{BatchError, BatchHeader, BatchView};
-use superflow_schemas::service::{self as names, ResumeReply, ResumeRequest, ServiceSetupError};
+use superflow_schemas::service::{
+    self as names, IpcError, ResumeReply, ResumeRequest, ServiceSetupError,
+};
 
 /// Which stream to read.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -22,13 +24,8 @@ pub enum Target {
 #[derive(Debug, thiserror::Error)]
 pub enum SubscribeError {
     /// iceoryx2 refused something (the node, a port, a receive, a request).
-    #[error("{what}: {source}")]
-    Ipc {
-        /// What was being done.
-        what: String,
-        /// iceoryx2's error.
-        source: Box<dyn std::error::Error + Send + Sync>,
-    },
+    #[error(transparent)]
+    Ipc(#[from] IpcError),
     /// A service could not be opened or created (name, or iceoryx2 refused).
     #[error(transparent)]
     Setup(#[from] ServiceSetupError),
@@ -50,11 +47,8 @@ impl SubscribeError {
     fn ipc<E: std::error::Error + Send + Sync + 'static>(
         what: impl Into<String>,
     ) -> impl FnOnce(E) -> Self {
-        let what = what.into();
-        move |source| Self::Ipc {
-            what,
-            source: Box::new(source),
-        }
+        let wrap = IpcError::doing(what);
+        move |source| Self::Ipc(wrap(source))
     }
 }
 

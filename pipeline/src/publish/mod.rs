@@ -38,7 +38,7 @@ pub use serve::serve;
 use crate::invalid::InvalidSetting;
 use std::sync::{Mutex, MutexGuard};
 use superflow_schemas::batch::BatchError;
-use superflow_schemas::service::ServiceSetupError;
+use superflow_schemas::service::{IpcError, ServiceSetupError};
 
 /// A failure of the service.
 #[derive(Debug, thiserror::Error)]
@@ -47,13 +47,8 @@ pub enum ServiceError {
     #[error(transparent)]
     Setup(#[from] ServiceSetupError),
     /// iceoryx2 refused something else (the node, a port, a loan, a send).
-    #[error("{what}: {source}")]
-    Ipc {
-        /// What was being done, naming the service.
-        what: String,
-        /// iceoryx2's error.
-        source: Box<dyn std::error::Error + Send + Sync>,
-    },
+    #[error(transparent)]
+    Ipc(#[from] IpcError),
     /// A `[service]` setting out of range.
     #[error(transparent)]
     Invalid(#[from] InvalidSetting),
@@ -87,11 +82,8 @@ impl ServiceError {
     fn ipc<E: std::error::Error + Send + Sync + 'static>(
         what: impl Into<String>,
     ) -> impl FnOnce(E) -> Self {
-        let what = what.into();
-        move |source| Self::Ipc {
-            what,
-            source: Box::new(source),
-        }
+        let wrap = IpcError::doing(what);
+        move |source| Self::Ipc(wrap(source))
     }
 }
 
