@@ -3,7 +3,8 @@
 //! The JSON form ([`InspectReport`], `"format": "superflow.inspect/1"`) is a contract:
 //! fields are only ever added, and a change of meaning bumps the format string.
 
-use crate::drive::dataset::{ChannelSummary, SkipReport};
+use crate::drive::SkipReport;
+use crate::drive::dataset::ChannelSummary;
 use crate::drive::{Dataset, Drive, Role};
 use serde::{Deserialize, Serialize};
 use std::fmt::Write as _;

@@ -18,9 +18,8 @@ use std::path::PathBuf;
 use superflow_schemas::Stamp;
 use superflow_schemas::sensor::{CameraCalibration, Image};
 
-pub use super::index::STAMP_LOG_TOLERANCE_NANOS;
-pub use super::inputs::{drive_groups, mcap_files};
-pub use super::skips::{SkipEntry, SkipReport};
+use super::inputs::drive_groups;
+use super::skips::SkipReport;
 
 /// A sensor message located in the dataset.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

@@ -15,8 +15,7 @@ pub mod skips;
 mod streams;
 pub mod tf;
 
-pub use dataset::{
-    CameraStream, Dataset, Drive, FrameRef, IngestError, LidarStream, ReadError, SkipReport,
-};
+pub use dataset::{CameraStream, Dataset, Drive, FrameRef, IngestError, LidarStream, ReadError};
 pub use discover::{IngestConfig, Role};
+pub use skips::SkipReport;
 pub use tf::{TfError, TransformTree};
