@@ -68,14 +68,7 @@ impl McapFile {
         let (_, _, messages) = cache.entries.back().ok_or_else(missing)?;
         let (channel_id, header, data) = messages.get(index).ok_or_else(missing)?;
         let channel = self.channels.get(channel_id).ok_or_else(missing)?;
-        Ok(MessageRef {
-            channel,
-            sequence: header.sequence,
-            log_time: header.log_time,
-            publish_time: header.publish_time,
-            data,
-            loc,
-        })
+        Ok(MessageRef::new(channel, header, data, loc))
     }
 
     /// The messages of a chunk, or the one message of a record outside chunks.

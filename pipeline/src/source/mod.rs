@@ -144,6 +144,25 @@ pub struct MessageRef<'a> {
     pub loc: MessageLoc,
 }
 
+impl<'a> MessageRef<'a> {
+    /// The message of `header` on `channel`, its bytes `data`, found at `loc`.
+    fn new(
+        channel: &'a ChannelInfo,
+        header: &mcap::records::MessageHeader,
+        data: &'a [u8],
+        loc: MessageLoc,
+    ) -> Self {
+        Self {
+            channel,
+            sequence: header.sequence,
+            log_time: header.log_time,
+            publish_time: header.publish_time,
+            data,
+            loc,
+        }
+    }
+}
+
 /// Where a chunk record is in its file.
 #[derive(Debug, Clone)]
 struct ChunkLoc {

@@ -304,13 +304,6 @@ impl McapFile {
             return;
         };
         *self.message_counts.entry(header.channel_id).or_default() += 1;
-        visit(MessageRef {
-            channel,
-            sequence: header.sequence,
-            log_time: header.log_time,
-            publish_time: header.publish_time,
-            data,
-            loc,
-        });
+        visit(MessageRef::new(channel, &header, data, loc));
     }
 }
