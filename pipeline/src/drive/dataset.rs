@@ -8,7 +8,7 @@
 use super::discover::{IngestConfig, Role};
 use super::streams::EGO_FRAMES;
 use super::tf::TransformTree;
-use crate::decode::image::{self, ImageError, Target};
+use crate::decode::image::{self, ImageError, Scale, ScaledImage, Target};
 use crate::decode::points::{DecodedCloud, PointsError};
 use crate::decode::{DecodeError, foxglove, ros2};
 use crate::decode::{Dialect, SchemaKind, schema_kind};
@@ -476,8 +476,22 @@ impl Drive {
         target: Target,
         cache: &mut ChunkCache,
     ) -> Result<Image, ReadError> {
+        self.read_image_scaled(camera, frame, target, Scale::Full, cache)
+            .map(|s| s.image)
+    }
+
+    /// [`Drive::read_image`] at a reduced [`Scale`] where the image allows it (a JPEG
+    /// colour image), with the stored image's size.
+    pub fn read_image_scaled(
+        &self,
+        camera: &CameraStream,
+        frame: &FrameRef,
+        target: Target,
+        scale: Scale,
+        cache: &mut ChunkCache,
+    ) -> Result<ScaledImage, ReadError> {
         let message = self.read_raw(frame, cache)?;
-        decode_image(&message, target).map_err(|source| ReadError::Image {
+        decode_image(&message, target, scale).map_err(|source| ReadError::Image {
             at: self.frame_at(frame, &message.channel.topic),
             camera: camera.name.clone(),
             source: Box::new(source),
@@ -500,24 +514,32 @@ impl Drive {
 }
 
 /// Decodes an image message of either dialect, compressed or raw.
-fn decode_image(message: &MessageRef<'_>, target: Target) -> Result<Image, ImageReadError> {
+fn decode_image(
+    message: &MessageRef<'_>,
+    target: Target,
+    scale: Scale,
+) -> Result<ScaledImage, ImageReadError> {
     let data = message.data;
+    let full = |image: Image| ScaledImage {
+        native: (image.width, image.height),
+        image,
+    };
     Ok(match schema_kind(message.channel) {
         Some((SchemaKind::CompressedImage, Dialect::Ros2)) => {
             let m = ros2::decode(data).map_err(DecodeError::from)?;
-            image::decode_ros2_compressed(&m, target)?
+            image::decode_ros2_compressed_scaled(&m, target, scale)?
         }
         Some((SchemaKind::RawImage, Dialect::Ros2)) => {
             let m = ros2::decode(data).map_err(DecodeError::from)?;
-            image::decode_ros2_raw(&m, target)?
+            full(image::decode_ros2_raw(&m, target)?)
         }
         Some((SchemaKind::CompressedImage, Dialect::FoxgloveProtobuf)) => {
             let m = foxglove::decode("foxglove.CompressedImage", data)?;
-            image::decode_foxglove_compressed(&m, target)?
+            image::decode_foxglove_compressed_scaled(&m, target, scale)?
         }
         Some((SchemaKind::RawImage, Dialect::FoxgloveProtobuf)) => {
             let m = foxglove::decode("foxglove.RawImage", data)?;
-            image::decode_foxglove_raw(&m, target)?
+            full(image::decode_foxglove_raw(&m, target)?)
         }
         _ => {
             let schema = message.channel.schema_name().to_string();

@@ -11,7 +11,7 @@ use super::project::camera_from_lidar;
 use super::rng::{Purpose, SampleRng};
 use super::slic::slic;
 use super::types::{SampleImage, StageTimes};
-use crate::decode::image::Target;
+use crate::decode::image::{Scale, ScaledImage, Target};
 use crate::drive::dataset::{CameraStream, FrameRef, nearest};
 use nalgebra::Isometry3;
 use std::time::Instant;
@@ -27,8 +27,10 @@ struct RawImage {
     frame: FrameRef,
     /// The calibration in force at its stamp.
     calibration: CameraCalibration,
-    /// The decoded RGB8 image.
+    /// The decoded RGB8 image (at a reduced scale when the recipe allows it).
     image: Image,
+    /// Size of the stored image, which the calibration describes.
+    native: (u32, u32),
     /// LiDAR (at the sweep stamp) → camera (at the image stamp).
     camera_from_lidar: Isometry3<f64>,
 }
@@ -73,7 +75,7 @@ impl SampleContext<'_> {
                 camera: camera.name.clone(),
                 topic: camera.image_topic.clone(),
                 stamp: raw.frame.stamp,
-                native_size: (raw.image.width, raw.image.height),
+                native_size: raw.native,
                 flipped,
                 rgb,
                 superpixels,
@@ -118,15 +120,24 @@ impl SampleContext<'_> {
                 self.image_error(camera, frame.stamp, reason)
             })?
             .clone();
+        let cfg = self.config;
+        let scale = if cfg.image_reduced_decode {
+            Scale::AtLeast {
+                width: cfg.image_width,
+                height: cfg.image_height,
+            }
+        } else {
+            Scale::Full
+        };
         let t = Instant::now();
-        let image = with_cache(|cache| drive.read_image(camera, &frame, Target::Rgb, cache))?;
+        let ScaledImage { image, native } = with_cache(|cache| {
+            drive.read_image_scaled(camera, &frame, Target::Rgb, scale, cache)
+        })?;
         times.decode += elapsed(t);
-        if (image.width, image.height) != (calibration.width, calibration.height)
-            || image.format != PixelFormat::Rgb8
-        {
+        if native != (calibration.width, calibration.height) || image.format != PixelFormat::Rgb8 {
             let reason = format!(
                 "{}: image is {}x{} but its calibration is for {}x{}",
-                camera.name, image.width, image.height, calibration.width, calibration.height
+                camera.name, native.0, native.1, calibration.width, calibration.height
             );
             return Err(self.image_error(camera, frame.stamp, reason));
         }
@@ -149,6 +160,7 @@ impl SampleContext<'_> {
             frame,
             calibration,
             image,
+            native,
             camera_from_lidar,
         })
     }
@@ -186,7 +198,7 @@ impl SampleContext<'_> {
         flipped: bool,
     ) -> Result<(Vec<u32>, u64), SampleError> {
         let cfg = self.config;
-        let (image, stamp) = (&raw.image, raw.frame.stamp);
+        let stamp = raw.frame.stamp;
         let topic = camera.superpixel_topic.clone().unwrap_or_default();
         let sp_error = |reason: String| SampleError::Superpixels {
             files: self.drive.file_list(),
@@ -208,10 +220,10 @@ impl SampleContext<'_> {
                 .read_image(camera, class_frame, Target::Mono, cache)
         })?;
         let decode = elapsed(t);
-        if (classes.width, classes.height) != (image.width, image.height) {
+        if (classes.width, classes.height) != raw.native {
             return Err(sp_error(format!(
                 "class map is {}x{}, its image {}x{}",
-                classes.width, classes.height, image.width, image.height
+                classes.width, classes.height, raw.native.0, raw.native.1
             )));
         }
         if let Some(bad) = classes
@@ -226,7 +238,7 @@ impl SampleContext<'_> {
         }
         // Resize the u8 map, then widen only the resized pixels.
         let (out_w, out_h) = (cfg.image_width as usize, cfg.image_height as usize);
-        let (w, h) = (image.width as usize, image.height as usize);
+        let (w, h) = (classes.width as usize, classes.height as usize);
         let mut small = image_ops::resize_nearest(&classes.data, w, h, out_w, out_h);
         if flipped {
             image_ops::flip_horizontal(&mut small, out_w, 1);

@@ -25,6 +25,7 @@
 
 pub mod augment;
 pub mod builder;
+mod cellkey;
 mod cloud;
 mod error;
 pub mod export;

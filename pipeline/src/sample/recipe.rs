@@ -90,6 +90,12 @@ pub struct SampleConfig {
     pub image_width: u32,
     /// Probability of flipping each image horizontally (0.5).
     pub image_flip_probability: f64,
+    /// Decode JPEG camera images at 1/2 or 1/4 scale in the DCT domain when that is
+    /// still at least the resized size (a 1600×900 image for 448×224 decodes at
+    /// 800×450, then resizes). Costs a fraction of a full decode; the pixels differ from
+    /// a full decode + resize by the DCT scaling's own averaging (see
+    /// `pipeline/docs/RECIPE.md`). Pairings are unchanged: they use the full size.
+    pub image_reduced_decode: bool,
     /// Superpixel source.
     pub superpixels: SuperpixelSource,
     /// Number of classes of a class-map channel; a larger id is an error (17, nuScenes
@@ -120,6 +126,7 @@ impl Default for SampleConfig {
             image_height: 224,
             image_width: 448,
             image_flip_probability: 0.5,
+            image_reduced_decode: true,
             superpixels: SuperpixelSource::Auto,
             num_classes: 17,
             slic: SlicParams::default(),

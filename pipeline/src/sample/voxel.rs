@@ -2,7 +2,7 @@
 //! the map from every point to its cell.
 
 use crate::invalid::InvalidSetting;
-use rustc_hash::FxHashMap as HashMap;
+use super::cellkey::sort_cells;
 use serde::{Deserialize, Serialize};
 
 /// How points are binned.
@@ -97,7 +97,8 @@ impl VoxelGrid {
 /// The voxels of one cloud.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Voxelized {
-    /// Unique cells, in order of first occurrence.
+    /// Unique cells, sorted lexicographically by `(x, y, z)` (neighbours in space are
+    /// near in memory, and the sparse-convolution maps are found by merging).
     pub coords: Vec<[i32; 3]>,
     /// For each cell, the index of its representative point (the first point in it).
     pub representative: Vec<u32>,
@@ -105,25 +106,26 @@ pub struct Voxelized {
     pub point_to_voxel: Vec<u32>,
 }
 
-/// Bins `xyz` (finite points) into `grid`. Deterministic: cells are numbered in the
-/// order their first point appears, and that point represents the cell.
+/// Bins `xyz` (finite points) into `grid`. Deterministic: cells are sorted, and the
+/// first point of each cell (lowest index) represents it.
 pub fn voxelize(xyz: &[[f32; 3]], grid: &VoxelGrid) -> Voxelized {
-    let mut index: HashMap<[i32; 3], u32> =
-        HashMap::with_capacity_and_hasher(xyz.len(), Default::default());
+    let cells: Vec<[i32; 3]> = xyz.iter().map(|p| grid.cell(*p)).collect();
+    // Equal cells end up next to each other, in point order.
+    let (order, keyed) = sort_cells(&cells);
+    let same = |s: usize, t: usize| match &keyed {
+        Some((_, keys)) => keys[s] == keys[t],
+        None => cells[order[s] as usize] == cells[order[t] as usize],
+    };
     let mut coords = Vec::new();
     let mut representative = Vec::new();
-    let point_to_voxel = xyz
-        .iter()
-        .enumerate()
-        .map(|(i, p)| {
-            let cell = grid.cell(*p);
-            *index.entry(cell).or_insert_with(|| {
-                coords.push(cell);
-                representative.push(i as u32);
-                (coords.len() - 1) as u32
-            })
-        })
-        .collect();
+    let mut point_to_voxel = vec![0u32; xyz.len()];
+    for (s, &point) in order.iter().enumerate() {
+        if s == 0 || !same(s - 1, s) {
+            coords.push(cells[point as usize]);
+            representative.push(point);
+        }
+        point_to_voxel[point as usize] = (coords.len() - 1) as u32;
+    }
     Voxelized {
         coords,
         representative,
@@ -167,9 +169,11 @@ mod tests {
             [-3.0, 2.0, 1.0],
         ];
         let v = voxelize(&points, &VoxelGrid::default());
-        assert_eq!(v.coords.len(), 3);
-        assert_eq!(v.representative, [0, 2, 4]);
-        assert_eq!(v.point_to_voxel, [0, 0, 1, 0, 2]);
+        // Cells in (rho, phi, z) order: [14, 45, 2] (points 0, 1, 3), [36, 146, 10]
+        // (point 4), [50, 0, 0] (point 2); each represented by its first point.
+        assert_eq!(v.coords, [[14, 45, 2], [36, 146, 10], [50, 0, 0]]);
+        assert_eq!(v.representative, [0, 4, 2]);
+        assert_eq!(v.point_to_voxel, [0, 0, 2, 0, 1]);
         for (i, p) in points.iter().enumerate() {
             assert_eq!(
                 v.coords[v.point_to_voxel[i] as usize],

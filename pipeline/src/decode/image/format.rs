@@ -4,11 +4,11 @@
 
 use std::fmt;
 
-use superflow_schemas::sensor::{Image, PixelFormat};
+use superflow_schemas::sensor::PixelFormat;
 
 use super::jpeg::decode_jpeg;
 use super::png::decode_png;
-use super::{Decoded, ImageError, Target, guarded};
+use super::{Decoded, ImageError, Scale, ScaledImage, Target, guarded};
 use crate::decode::context::Ctx;
 
 /// A compression codec the decoder supports.
@@ -100,6 +100,7 @@ struct Compressed<'a> {
     data: &'a [u8],
     format: &'a str,
     target: Target,
+    scale: Scale,
     ctx: Ctx<'a>,
 }
 
@@ -108,13 +109,15 @@ pub(super) fn decode_compressed(
     data: &[u8],
     format: &str,
     target: Target,
+    scale: Scale,
     ctx: Ctx<'_>,
-) -> Result<Image, ImageError> {
+) -> Result<ScaledImage, ImageError> {
     let hint = FormatHint::parse(format);
     let payload = Compressed {
         data,
         format,
         target,
+        scale,
         ctx,
     };
     if hint.depth {
@@ -144,17 +147,25 @@ pub(super) fn decode_compressed(
             px.swap(0, 2);
         }
     }
-    ctx.image(decoded)
+    let native = decoded.native;
+    Ok(ScaledImage {
+        image: ctx.image(decoded)?,
+        native,
+    })
 }
 
 impl Compressed<'_> {
     /// Decodes with `codec`, a panic inside it caught.
     fn codec(&self, codec: Codec) -> Result<Decoded, ImageError> {
         let Self {
-            data, target, ctx, ..
+            data,
+            target,
+            scale,
+            ctx,
+            ..
         } = *self;
         guarded(codec, ctx, || match codec {
-            Codec::Jpeg => decode_jpeg(data, target, ctx),
+            Codec::Jpeg => decode_jpeg(data, target, scale, ctx),
             Codec::Png => decode_png(data, target, ctx),
         })
     }

@@ -14,7 +14,7 @@
 //!
 //! | `format` | decoded as |
 //! |---|---|
-//! | `jpeg`, `jpg`, `image/jpeg` | JPEG (jpeg-decoder, libjpeg-exact): YCbCr and grey → RGB; a grey JPEG → `Mono8` for [`Target::Mono`]; CMYK is an error |
+//! | `jpeg`, `jpg`, `image/jpeg` | JPEG (libjpeg-turbo; bit-exact with Pillow and `djpeg`, also at a reduced [`Scale`]): YCbCr and grey → RGB; a grey JPEG → `Mono8` for [`Target::Mono`]; CMYK is an error |
 //! | `png`, `image/png` | PNG (`png` crate): grey 1/2/4/8/16-bit, grey+alpha, RGB, RGBA (8/16-bit), palette 1/2/4/8-bit; alpha and `tRNS` are dropped |
 //! | `<src>; jpeg compressed bgr8`, `<src>; png compressed bgr8` / `bgr16` / `bgra8` / `bgra16` (image_transport) | as JPEG/PNG, channel order as stored (see below) |
 //! | `<src>; jpeg compressed rgb8`, `<src>; png compressed rgb8` (any target starting with `rgb`) | as JPEG/PNG, then red and blue swapped (see below) |
@@ -117,14 +117,51 @@ pub enum Target {
     Mono,
 }
 
+/// How small a decoded colour image may be. A JPEG can decode at 1/2 or 1/4 of its size
+/// in the DCT domain, which costs a fraction of a full decode; a sample that resizes to
+/// 448×224 anyway asks for [`Scale::AtLeast`] that size. PNG, raw images and class maps
+/// ([`Target::Mono`]) always decode at full size.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub enum Scale {
+    /// Every pixel.
+    #[default]
+    Full,
+    /// The smallest of 1/4, 1/2 and full size that is at least `width × height`.
+    AtLeast {
+        /// Smallest acceptable width.
+        width: u32,
+        /// Smallest acceptable height.
+        height: u32,
+    },
+}
+
+/// A decoded image and the size of the image it was decoded from (different from the
+/// image's own size when a JPEG decoded at a reduced [`Scale`]).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ScaledImage {
+    /// The pixels.
+    pub image: Image,
+    /// Width and height of the stored image.
+    pub native: (u32, u32),
+}
+
 /// Decodes a ROS 2 `sensor_msgs/msg/CompressedImage` (JPEG or PNG, see the module
 /// documentation for the accepted `format` strings).
 pub fn decode_ros2_compressed(
     msg: &ros2::CompressedImage,
     target: Target,
 ) -> Result<Image, ImageError> {
+    decode_ros2_compressed_scaled(msg, target, Scale::Full).map(|s| s.image)
+}
+
+/// [`decode_ros2_compressed`] at a reduced [`Scale`] where the JPEG allows it.
+pub fn decode_ros2_compressed_scaled(
+    msg: &ros2::CompressedImage,
+    target: Target,
+    scale: Scale,
+) -> Result<ScaledImage, ImageError> {
     let ctx = Ctx::ros2(&msg.header);
-    decode_compressed(&msg.data, &msg.format, target, ctx)
+    decode_compressed(&msg.data, &msg.format, target, scale, ctx)
 }
 
 /// Decodes a ROS 2 `sensor_msgs/msg/Image` (8-bit RGB/BGR/RGBA/BGRA/mono encodings,
@@ -147,8 +184,17 @@ pub fn decode_foxglove_compressed(
     msg: &foxglove::CompressedImage,
     target: Target,
 ) -> Result<Image, ImageError> {
+    decode_foxglove_compressed_scaled(msg, target, Scale::Full).map(|s| s.image)
+}
+
+/// [`decode_foxglove_compressed`] at a reduced [`Scale`] where the JPEG allows it.
+pub fn decode_foxglove_compressed_scaled(
+    msg: &foxglove::CompressedImage,
+    target: Target,
+    scale: Scale,
+) -> Result<ScaledImage, ImageError> {
     let ctx = foxglove_ctx(msg)?;
-    decode_compressed(&msg.data, &msg.format, target, ctx)
+    decode_compressed(&msg.data, &msg.format, target, scale, ctx)
 }
 
 /// Decodes a `foxglove.RawImage` (the encodings of [`decode_ros2_raw`]).
@@ -251,6 +297,9 @@ struct Decoded {
     width: u32,
     /// Height in pixels.
     height: u32,
+    /// Size of the stored image (`(width, height)` unless a JPEG decoded at a reduced
+    /// scale).
+    native: (u32, u32),
     /// `Rgb8` or `Mono8`.
     format: PixelFormat,
     /// Tightly packed rows.

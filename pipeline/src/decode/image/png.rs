@@ -59,6 +59,7 @@ pub(super) fn decode_png(data: &[u8], target: Target, ctx: Ctx<'_>) -> Result<De
     Ok(Decoded {
         width: header.width,
         height: header.height,
+        native: (header.width, header.height),
         format,
         data: pixels,
     })

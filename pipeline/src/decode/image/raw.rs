@@ -130,6 +130,7 @@ pub(super) fn decode_raw(raw: &Raw<'_>, target: Target, ctx: Ctx<'_>) -> Result<
     ctx.image(Decoded {
         width: raw.width,
         height: raw.height,
+        native: (raw.width, raw.height),
         format,
         data: out,
     })

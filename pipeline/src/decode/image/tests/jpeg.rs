@@ -182,9 +182,98 @@ fn truncated_and_garbage_jpeg_are_errors() {
 fn absurd_jpeg_dimensions_are_rejected_before_allocating() {
     let mut bytes = jpeg(&gradient(8, 8), 8, 8, jpeg_encoder::ColorType::Rgb);
     let sof = bytes.windows(2).position(|w| w == [0xFF, 0xC0]).unwrap();
-    // SOF0: FF C0, length (2), precision (1), height (2), width (2).
+    // SOF0: FF C0, length (2), precision (1), height (2), width (2). 65 000 × 65 000
+    // RGB is 12.7 GB: over MAX_IMAGE_BYTES.
+    bytes[sof + 5..sof + 9].copy_from_slice(&[0xFD, 0xE8, 0xFD, 0xE8]);
+    let err = named(
+        decode_ros2_compressed(&ros2_compressed("jpeg", bytes.clone()), Target::Rgb).unwrap_err(),
+    );
+    assert!(matches!(err, ImageError::TooLarge { .. }), "{err}");
+    // Beyond JPEG's own 65 500-pixel limit, libjpeg-turbo refuses the header itself.
     bytes[sof + 5..sof + 9].copy_from_slice(&[0xFF, 0xFF, 0xFF, 0xFF]);
     let err =
         named(decode_ros2_compressed(&ros2_compressed("jpeg", bytes), Target::Rgb).unwrap_err());
-    assert!(matches!(err, ImageError::TooLarge { .. }), "{err}");
+    assert!(
+        matches!(&err, ImageError::Corrupt { reason, .. } if reason.contains("dimension")),
+        "{err}"
+    );
+}
+
+/// A 1600×900 street-like test card as a 4:2:0 quality-85 JPEG (what nuScenes cameras
+/// store): smooth gradients, hard edges and fine texture.
+fn camera_jpeg(w: usize, h: usize) -> Vec<u8> {
+    let rgb: Vec<u8> = (0..w * h)
+        .flat_map(|i| {
+            let (x, y) = (i % w, i / w);
+            let edge = if (x / 97 + y / 61) % 2 == 0 { 60 } else { 0 };
+            let texture = ((x * 7 + y * 13) % 23) as u8;
+            [
+                (x * 200 / w) as u8 + texture,
+                (y * 180 / h) as u8 + edge,
+                (((x ^ y) % 64) as u8 * 3).wrapping_add(edge),
+            ]
+        })
+        .collect();
+    let mut bytes = Vec::new();
+    let mut encoder = jpeg_encoder::Encoder::new(&mut bytes, 85);
+    encoder.set_sampling_factor(jpeg_encoder::SamplingFactor::F_2_2);
+    encoder
+        .encode(&rgb, w as u16, h as u16, jpeg_encoder::ColorType::Rgb)
+        .unwrap();
+    bytes
+}
+
+/// Mean and largest absolute difference of two equally long byte slices.
+fn mean_and_max_diff(a: &[u8], b: &[u8]) -> (f64, u8) {
+    assert_eq!(a.len(), b.len());
+    let sum: u64 = a.iter().zip(b).map(|(x, y)| u64::from(x.abs_diff(*y))).sum();
+    (sum as f64 / a.len() as f64, max_abs_diff(a, b))
+}
+
+#[test]
+fn reduced_scale_decodes_average_the_full_decode() {
+    use crate::sample::image_ops::resize_bilinear;
+    let (w, h) = (1600usize, 900usize);
+    let msg = ros2_compressed("jpeg", camera_jpeg(w, h));
+    let decode = |scale| decode_ros2_compressed_scaled(&msg, Target::Rgb, scale).unwrap();
+    let full = decode(Scale::Full);
+    assert_eq!((full.image.width, full.image.height, full.native), (1600, 900, (1600, 900)));
+    // 448×224 is reached by 1/2 (800×450), not by 1/4 (400×225).
+    let half = decode(Scale::AtLeast {
+        width: 448,
+        height: 224,
+    });
+    assert_eq!((half.image.width, half.image.height, half.native), (800, 450, (1600, 900)));
+    let quarter = decode(Scale::AtLeast {
+        width: 400,
+        height: 225,
+    });
+    assert_eq!((quarter.image.width, quarter.image.height), (400, 225));
+    // Nothing smaller than asked: an 800×450 request of an 800×450 image stays whole.
+    let small = ros2_compressed("jpeg", camera_jpeg(800, 450));
+    let same = decode_ros2_compressed_scaled(
+        &small,
+        Target::Rgb,
+        Scale::AtLeast {
+            width: 448,
+            height: 224,
+        },
+    )
+    .unwrap();
+    assert_eq!((same.image.width, same.image.height), (800, 450));
+
+    // The 1/2 decode is the full decode averaged 2×2, up to the IDCT's rounding.
+    let boxed = resize_bilinear(&full.image.data, w, h, 3, w / 2, h / 2);
+    let (mean, max) = mean_and_max_diff(&half.image.data, &boxed);
+    eprintln!("1/2 decode vs full decode averaged 2x2: mean {mean:.3}, max {max}");
+    assert!(mean < 3.0, "1/2 decode vs full decode averaged 2x2: mean {mean:.3}");
+    // What a sample sees: both resized to 448×224.
+    let from_full = resize_bilinear(&full.image.data, w, h, 3, 448, 224);
+    let from_half = resize_bilinear(&half.image.data, w / 2, h / 2, 3, 448, 224);
+    let (mean, max) = mean_and_max_diff(&from_half, &from_full);
+    eprintln!("448x224 from the 1/2 decode vs from the full decode: mean {mean:.3}, max {max}");
+    // The bilinear resize of the full decode skips pixels (no antialiasing), the DCT
+    // scaling averages them: they differ at fine texture and hard edges only (this test
+    // card is mostly both; a wrong decode, e.g. a chroma shift, is off by tens).
+    assert!(mean < 2.0, "resized from 1/2 vs from full: mean {mean:.3}");
 }
