@@ -116,6 +116,11 @@ impl SceneBox {
         }
     }
 
+    /// Whether the box moves during the drive.
+    pub fn is_moving(&self) -> bool {
+        self.motion.is_some_and(|m| m.speed_x != 0.0)
+    }
+
     /// The eight corners at `t_secs`, bottom ones first.
     pub fn corners_at(&self, t_secs: f64) -> [Point3<f64>; 8] {
         let c = self.center_at(t_secs);
@@ -158,6 +163,8 @@ pub struct Hit {
     pub color: [f64; 3],
     /// LiDAR reflectivity at the hit.
     pub reflectivity: f64,
+    /// Id of the box hit (its index in [`Scene::boxes`]); `None` for the ground.
+    pub object: Option<u32>,
 }
 
 /// The street scene.
@@ -386,6 +393,17 @@ impl Scene {
         }
     }
 
+    /// The box of object id `id` (as [`Hit::object`] gives it), if there is one.
+    pub fn object(&self, id: u32) -> Option<&SceneBox> {
+        self.boxes.get(usize::try_from(id).ok()?)
+    }
+
+    /// Whether object `id` is a box that moves during the drive (`false` for an id
+    /// without a box).
+    pub fn is_moving(&self, id: u32) -> bool {
+        self.object(id).is_some_and(SceneBox::is_moving)
+    }
+
     /// The first surface hit by the ray `origin + s·direction` (unit direction, s > 1 cm)
     /// at `t_secs` after the drive's start, if any within `max_range`.
     pub fn cast(
@@ -395,9 +413,53 @@ impl Scene {
         t_secs: f64,
         max_range: f64,
     ) -> Option<Hit> {
+        let ray = Ray {
+            origin,
+            direction,
+            t_secs,
+            max_range,
+        };
+        self.cast_boxes(self.boxes.iter().enumerate(), &ray)
+    }
+
+    /// [`Scene::cast`] testing only the boxes of `candidates` (indices into
+    /// [`Scene::boxes`], ascending): the same hit as `cast` whenever every box the ray can
+    /// hit before the ground is among them.
+    pub fn cast_among(
+        &self,
+        candidates: &[usize],
+        origin: &Point3<f64>,
+        direction: &Vector3<f64>,
+        t_secs: f64,
+        max_range: f64,
+    ) -> Option<Hit> {
+        let ray = Ray {
+            origin,
+            direction,
+            t_secs,
+            max_range,
+        };
+        let boxes = candidates
+            .iter()
+            .filter_map(|&i| self.boxes.get(i).map(|b| (i, b)));
+        self.cast_boxes(boxes, &ray)
+    }
+
+    /// The nearest hit among `boxes` and the ground.
+    fn cast_boxes<'a>(
+        &'a self,
+        boxes: impl Iterator<Item = (usize, &'a SceneBox)>,
+        ray: &Ray<'_>,
+    ) -> Option<Hit> {
+        let Ray {
+            origin,
+            direction,
+            t_secs,
+            max_range,
+        } = *ray;
         let mut best: Option<(f64, usize, Vector3<f64>)> = None;
         let mut nearest = max_range;
-        for (index, b) in self.boxes.iter().enumerate() {
+        for (index, b) in boxes {
             // Bounding-sphere rejection before the exact slab test.
             let to_center = b.center_at(t_secs) - origin;
             let along = to_center.dot(direction);
@@ -426,6 +488,7 @@ impl Scene {
                 class,
                 color,
                 reflectivity,
+                object: None,
             });
         }
         let (s, index, normal) = best?;
@@ -439,8 +502,18 @@ impl Scene {
             class: b.class,
             color,
             reflectivity,
+            object: u32::try_from(index).ok(),
         })
     }
+}
+
+/// A ray of [`Scene::cast`].
+#[derive(Debug, Clone, Copy)]
+struct Ray<'a> {
+    origin: &'a Point3<f64>,
+    direction: &'a Vector3<f64>,
+    t_secs: f64,
+    max_range: f64,
 }
 
 /// Slab test in the box's own frame; returns the entry distance and outward normal.
