@@ -58,5 +58,103 @@ pub fn jpegs(frames: &[CameraFrame]) -> Result<Vec<Vec<u8>>> {
 
 /// The PNG of every frame's class map, in order.
 pub fn class_map_pngs(frames: &[CameraFrame]) -> Result<Vec<Vec<u8>>> {
-    frames.par_iter().map(|f| encode_png_mono(&f.classes)).collect()
+    frames
+        .par_iter()
+        .map(|f| encode_png_mono(&f.classes))
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
+    use crate::options::{ClassMapStorage, DriveOptions};
+    use crate::{Dialect, generate_with};
+    use prost::Message as _;
+    use superflow_schemas::ros2;
+
+    /// A class map as read back: topic, log time, stamp, frame id and class ids.
+    type ClassMap = (String, u64, i64, String, Vec<u8>);
+
+    fn decode_png(data: &[u8]) -> Vec<u8> {
+        let mut decoder = png::Decoder::new(std::io::Cursor::new(data));
+        decoder.set_transformations(png::Transformations::IDENTITY);
+        let mut reader = decoder.read_info().unwrap();
+        let info = reader.info();
+        assert_eq!(info.color_type, png::ColorType::Grayscale);
+        assert_eq!(info.bit_depth, png::BitDepth::Eight);
+        let mut out = vec![0; reader.output_buffer_size().unwrap()];
+        let frame = reader.next_frame(&mut out).unwrap();
+        out.truncate(frame.buffer_size());
+        out
+    }
+
+    /// Every class map of `mcap`, decoded.
+    fn class_maps(mcap: &[u8], dialect: Dialect) -> Vec<ClassMap> {
+        let mut out = Vec::new();
+        for message in mcap::MessageStream::new(mcap).unwrap() {
+            let m = message.unwrap();
+            if !m.channel.topic.ends_with("/superpixels") {
+                continue;
+            }
+            let schema = m.channel.schema.as_ref().unwrap().name.clone();
+            let (stamp, frame_id, classes) = match (dialect, schema.as_str()) {
+                (Dialect::Foxglove, "foxglove.RawImage") => {
+                    let image = foxglove::messages::RawImage::decode(&m.data[..]).unwrap();
+                    let t = image.timestamp.unwrap();
+                    let stamp = i64::from(t.sec()) * 1_000_000_000 + i64::from(t.nsec());
+                    (stamp, image.frame_id, image.data.to_vec())
+                }
+                (Dialect::Foxglove, "foxglove.CompressedImage") => {
+                    let image = foxglove::messages::CompressedImage::decode(&m.data[..]).unwrap();
+                    assert_eq!(image.format, "png");
+                    let t = image.timestamp.unwrap();
+                    let stamp = i64::from(t.sec()) * 1_000_000_000 + i64::from(t.nsec());
+                    (stamp, image.frame_id, decode_png(&image.data))
+                }
+                (Dialect::Ros2, "sensor_msgs/msg/Image") => {
+                    let image: ros2::Image = ros2::decode(&m.data).unwrap();
+                    let h = image.header;
+                    (h.stamp.as_nanos(), h.frame_id, image.data)
+                }
+                (Dialect::Ros2, "sensor_msgs/msg/CompressedImage") => {
+                    let image: ros2::CompressedImage = ros2::decode(&m.data).unwrap();
+                    assert_eq!(image.format, "png");
+                    let h = image.header;
+                    (h.stamp.as_nanos(), h.frame_id, decode_png(&image.data))
+                }
+                other => panic!("class map of schema {other:?}"),
+            };
+            out.push((
+                m.channel.topic.to_string(),
+                m.log_time,
+                stamp,
+                frame_id,
+                classes,
+            ));
+        }
+        out
+    }
+
+    #[test]
+    fn the_png_sidecar_holds_the_class_maps_of_the_drive() {
+        for dialect in Dialect::ALL {
+            let in_drive = generate_with(dialect, &DriveOptions::short()).unwrap();
+            let options = DriveOptions {
+                class_maps: ClassMapStorage::PngSidecar,
+                ..DriveOptions::short()
+            };
+            let split = generate_with(dialect, &options).unwrap();
+            assert!(in_drive.sidecar.is_none());
+            let sidecar = split.sidecar.as_deref().expect("a sidecar");
+            assert!(class_maps(&split.mcap, dialect).is_empty(), "{dialect:?}");
+            let expected = class_maps(&in_drive.mcap, dialect);
+            assert_eq!(expected.len(), 2 * 18, "{dialect:?}");
+            assert!(class_maps(sidecar, dialect) == expected, "{dialect:?}");
+            let truth = split.truth.sidecar.expect("sidecar truth");
+            assert_eq!(Some(truth.file), options.sidecar_name(dialect));
+            assert!(truth.channels.iter().all(|c| c.role == "superpixels"));
+            assert_eq!(truth.channels.len(), 2);
+            assert!(!split.truth.channels.iter().any(|c| c.role == "superpixels"));
+        }
+    }
 }

@@ -2,10 +2,17 @@
 //!
 //! A drive is simulated once per dialect through a small procedural street
 //! ([`scene::Scene`]): the ego weaves along the road at 8 m/s, a spinning 16-beam LiDAR
-//! ([`sim::simulate_sweep`]) fires 360 columns per 20 Hz revolution, each column at its own
+//! ([`sim::simulate_sweep`]) fires 300 columns per 20 Hz revolution, each column at its own
 //! instant, and six surround cameras ([`sim::render_camera`]) ray-cast every pixel at ~12 Hz
 //! from the same scene, so a LiDAR point projects onto the object it hit. Each camera also
 //! gets a per-pixel class map, the "superpixels" a vision foundation model would give.
+//! Returns and pixels also carry the id of the scene box they hit (ground truth for
+//! checks, never written).
+//!
+//! [`DriveOptions`] changes the rig and the layout: beams, columns, image size, camera
+//! triggers ([`CameraTrigger`]), class maps in the drive or in a PNG sidecar
+//! ([`ClassMapStorage`]); [`DriveOptions::nuscenes`] is a nuScenes-sized drive for
+//! benchmarks.
 //!
 //! The drive is then written in one of two real-world dialects ([`Dialect`]) — the
 //! nuScenes-converter Foxglove protobuf layout or a ROS 2 rosbag2 layout — together with
@@ -28,13 +35,14 @@ pub mod render;
 pub mod ros2;
 pub mod scene;
 pub mod sim;
+pub mod srgb;
 pub mod trigger;
 pub mod truth;
 
 pub use encode::{encode_jpeg, encode_png_mono};
 pub use error::GenerateError;
-pub use options::{CameraTrigger, ClassMapStorage, DriveOptions};
 use nalgebra::{Isometry3, Point3};
+pub use options::{CameraTrigger, ClassMapStorage, DriveOptions};
 use rayon::prelude::*;
 use scene::Scene;
 use sim::{CameraFrame, DriveTiming, Return, Rig};
@@ -220,13 +228,15 @@ impl Simulation {
             cameras: written.cameras,
             ego_poses: self.pose_samples(&written.lidar_stamps),
             landmarks: self.landmarks.clone(),
-            sidecar: written.sidecar_channels.map(|channels| truth::SidecarTruth {
-                file: self
-                    .options
-                    .sidecar_name(written.dialect)
-                    .unwrap_or_default(),
-                channels,
-            }),
+            sidecar: written
+                .sidecar_channels
+                .map(|channels| truth::SidecarTruth {
+                    file: self
+                        .options
+                        .sidecar_name(written.dialect)
+                        .unwrap_or_default(),
+                    channels,
+                }),
         }
     }
 }

@@ -153,7 +153,10 @@ mod tests {
         let default = DriveOptions::default();
         for dialect in Dialect::ALL {
             assert_eq!(default.drive_name(dialect), dialect.drive_name());
-            assert_eq!(DriveOptions::short().drive_name(dialect), dialect.drive_name());
+            assert_eq!(
+                DriveOptions::short().drive_name(dialect),
+                dialect.drive_name()
+            );
             assert_eq!(default.sidecar_name(dialect), None);
         }
         let nuscenes = DriveOptions::nuscenes(800, 450);

@@ -7,8 +7,9 @@
 //! ground the whole tile sees, are tested. Every other box cannot be the first hit, so
 //! the image is the same as casting against every box.
 
-use crate::scene::{Scene, class};
+use crate::scene::{Scene, Snapshot, class};
 use crate::sim::{Rig, map_from_ego};
+use crate::srgb::to_srgb;
 use nalgebra::{Point2, Point3, UnitQuaternion, Vector3};
 use rayon::prelude::*;
 use superflow_schemas::Stamp;
@@ -68,19 +69,14 @@ pub struct CameraFrame {
 
 const SUN: [f64; 3] = [0.35, -0.45, 0.82];
 
-fn to_srgb(linear: f64) -> u8 {
-    (linear.clamp(0.0, 1.0).powf(1.0 / 2.2) * 255.0).round() as u8
-}
-
 /// One frame's viewpoint: where the camera is, where the boxes are.
 #[derive(Debug)]
 struct View {
     origin: Point3<f64>,
     rotation: UnitQuaternion<f64>,
-    t_secs: f64,
     sun: Vector3<f64>,
-    /// Bounding sphere (centre, radius) of every box at `t_secs`.
-    spheres: Vec<(Point3<f64>, f64)>,
+    /// Every box at the frame's stamp.
+    snapshot: Snapshot,
 }
 
 impl View {
@@ -89,7 +85,7 @@ impl View {
         out.clear();
         let sum: Vector3<f64> = directions.iter().sum();
         let Some(axis) = sum.try_normalize(1e-9) else {
-            out.extend(0..self.spheres.len());
+            out.extend(0..self.snapshot.poses.len());
             return;
         };
         let cos_spread = directions
@@ -109,13 +105,14 @@ impl View {
             CAMERA_MAX_RANGE
         };
         let limit = limit * (1.0 + 1e-9) + 1e-6;
-        for (index, (center, radius)) in self.spheres.iter().enumerate() {
+        for (index, pose) in self.snapshot.poses.iter().enumerate() {
+            let (center, radius) = (pose.center, pose.radius);
             let v = center - self.origin;
             let distance = v.norm();
             if distance - radius > limit {
                 continue;
             }
-            if distance > *radius {
+            if distance > radius {
                 let half_angle = (radius / distance).asin();
                 let off_axis = (v.dot(&axis) / distance).clamp(-1.0, 1.0).acos();
                 if off_axis > spread + half_angle + 1e-5 {
@@ -137,11 +134,11 @@ impl View {
             let up = direction.z.clamp(-0.2, 1.0);
             [0.45 - 0.25 * up, 0.6 - 0.2 * up, 0.85]
         };
-        let hit = scene.cast_among(
+        let hit = scene.cast_in(
+            &self.snapshot,
             candidates,
             &self.origin,
             direction,
-            self.t_secs,
             CAMERA_MAX_RANGE,
         );
         match hit {
@@ -174,7 +171,11 @@ fn render_band(scene: &Scene, view: &View, rays: &[Vector3<f64>], width: usize, 
         directions.clear();
         for r in 0..rows {
             let start = (band.first_row + r) * width + first_col;
-            directions.extend(rays[start..start + cols].iter().map(|ray| view.rotation * ray));
+            directions.extend(
+                rays[start..start + cols]
+                    .iter()
+                    .map(|ray| view.rotation * ray),
+            );
         }
         view.candidates(&directions, &mut candidates);
         for r in 0..rows {
@@ -211,13 +212,8 @@ pub fn render_camera(
     let view = View {
         origin: map_from_camera.translation.vector.into(),
         rotation: map_from_camera.rotation,
-        t_secs,
         sun: Vector3::from(SUN).normalize(),
-        spheres: scene
-            .boxes
-            .iter()
-            .map(|b| (b.center_at(t_secs), b.half.norm()))
-            .collect(),
+        snapshot: scene.snapshot(t_secs),
     };
     let mut rgb = vec![0u8; w * h * 3];
     let mut classes = vec![class::NOISE; w * h];
@@ -282,4 +278,124 @@ pub fn pixel_rays(calibration: &CameraCalibration) -> Vec<Vector3<f64>> {
                 .normalize()
         })
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)] // tests fail loudly on purpose
+    use super::*;
+    use crate::scene::Scene;
+    use crate::sim::{Return, simulate_sweep};
+    use crate::{Dialect, SCENE_SEED};
+    use std::collections::BTreeMap;
+
+    /// Returns on moving boxes by (camera, firing stamp), with their projected pixel.
+    type Seen = BTreeMap<(usize, Stamp), Vec<(Return, Point2<f64>)>>;
+
+    /// A LiDAR return on a moving box, projected into a camera whose frame is rendered at
+    /// the return's firing instant (with the true rig geometry and lens distortion), lands
+    /// on a pixel whose object id is that box.
+    #[test]
+    fn returns_on_moving_boxes_project_onto_their_object() {
+        let dialect = Dialect::Ros2;
+        let scene = Scene::street(SCENE_SEED);
+        let mut rig = Rig::new(320, 180, dialect.distortion());
+        rig.columns = 360;
+        let timing = dialect.timing();
+        // (camera, firing stamp) → returns on moving boxes seen strictly inside the image.
+        let mut seen: Seen = BTreeMap::new();
+        for k in (0..timing.sweep_count()).step_by(4) {
+            for r in simulate_sweep(&scene, &rig, &timing, k) {
+                let Some(id) = r.object.filter(|id| scene.is_moving(*id)) else {
+                    continue;
+                };
+                assert_eq!(Some(r.class), scene.object(id).map(|b| b.class));
+                for (i, cam) in rig.cameras.iter().enumerate() {
+                    let map_from_camera =
+                        map_from_ego(timing.start, r.stamp) * cam.ego_from_optical();
+                    let p = map_from_camera.inverse_transform_point(&r.point_in_map);
+                    let Some(pixel) = cam.calibration.project(&p) else {
+                        continue;
+                    };
+                    if p.z > 0.5 && cam.calibration.contains_strict(&pixel) {
+                        seen.entry((i, r.stamp)).or_default().push((r, pixel));
+                    }
+                }
+            }
+        }
+        let rays: Vec<Vec<Vector3<f64>>> = rig
+            .cameras
+            .iter()
+            .map(|c| pixel_rays(&c.calibration))
+            .collect();
+        let (mut tested, mut matched) = (0usize, 0usize);
+        let mut objects = std::collections::BTreeSet::new();
+        let step = (seen.len() / 40).max(1);
+        for ((camera, stamp), returns) in seen.iter().step_by(step) {
+            let frame = render_camera(&scene, &rig, timing.start, *camera, *stamp, &rays[*camera]);
+            for (r, pixel) in returns {
+                let (col, row) = (pixel.x.round() as u32, pixel.y.round() as u32);
+                tested += 1;
+                if frame.objects.get(col, row) == r.object {
+                    matched += 1;
+                    objects.insert(r.object);
+                }
+            }
+        }
+        eprintln!("{matched} of {tested} returns on moving boxes land on their object");
+        assert!(
+            tested >= 100,
+            "only {tested} returns on moving boxes in view"
+        );
+        assert!(objects.len() >= 2, "moving objects matched: {objects:?}");
+        // Misses are box edges (the point's pixel centre ray grazes past) and points the
+        // camera sees occluded from its own viewpoint.
+        assert!(
+            matched as f64 >= 0.9 * tested as f64,
+            "{matched} of {tested} returns land on their object"
+        );
+    }
+
+    #[test]
+    fn ground_and_sky_have_no_object() {
+        let scene = Scene::street(SCENE_SEED);
+        let rig = Rig::new(64, 36, superflow_schemas::sensor::Distortion::None);
+        let rays = pixel_rays(&rig.cameras[0].calibration);
+        let start = Stamp::from_nanos(0);
+        let frame = render_camera(&scene, &rig, start, 0, start, &rays);
+        // Bottom centre: the road in front of the car; top row: sky or a building.
+        assert_eq!(frame.objects.get(32, 35), None);
+        assert_eq!(frame.classes.data[35 * 64 + 32], class::DRIVEABLE_SURFACE);
+        for col in 0..64 {
+            let (object, class_id) = (frame.objects.get(col, 0), frame.classes.data[col as usize]);
+            assert_eq!(object.is_none(), class_id == class::NOISE, "column {col}");
+        }
+        assert_eq!(frame.objects.get(64, 0), None);
+    }
+
+    /// Casting each tile against its candidate boxes gives the same frame as casting
+    /// every pixel against every box.
+    #[test]
+    fn tile_culling_changes_nothing() {
+        let scene = Scene::street(SCENE_SEED);
+        let rig = Rig::new(96, 54, Dialect::Ros2.distortion());
+        let start = Stamp::from_nanos(0);
+        for camera in 0..rig.cameras.len() {
+            let cam = &rig.cameras[camera];
+            let rays = pixel_rays(&cam.calibration);
+            let stamp = start.add_nanos(700_000_000);
+            let frame = render_camera(&scene, &rig, start, camera, stamp, &rays);
+            let map_from_camera = map_from_ego(start, stamp) * cam.ego_from_optical();
+            let origin: Point3<f64> = map_from_camera.translation.vector.into();
+            for (i, ray) in rays.iter().enumerate() {
+                let direction = map_from_camera.rotation * ray;
+                let hit = scene.cast(&origin, &direction, 0.7, CAMERA_MAX_RANGE);
+                assert_eq!(
+                    ObjectMap::store(hit.and_then(|h| h.object)),
+                    frame.objects.ids[i]
+                );
+                assert_eq!(hit.map_or(class::NOISE, |h| h.class), frame.classes.data[i]);
+            }
+        }
+    }
 }

@@ -165,14 +165,13 @@ pub fn write(sim: &Simulation) -> Result<GeneratedDrive> {
     );
     out.metadata("rosbag2", &[("serialized_metadata", &metadata)]);
     let (mcap, channels) = out.finish("ros2", Some(mcap::Compression::Zstd))?;
-    let (sidecar, sidecar_channels): (Option<Vec<u8>>, Option<Vec<ChannelTruth>>) =
-        match sidecar {
-            Some(side) => {
-                let (bytes, channels) = side.finish("ros2", Some(mcap::Compression::Zstd))?;
-                (Some(bytes), Some(channels))
-            }
-            None => (None, None),
-        };
+    let (sidecar, sidecar_channels): (Option<Vec<u8>>, Option<Vec<ChannelTruth>>) = match sidecar {
+        Some(side) => {
+            let (bytes, channels) = side.finish("ros2", Some(mcap::Compression::Zstd))?;
+            (Some(bytes), Some(channels))
+        }
+        None => (None, None),
+    };
     let truth = sim.ground_truth(WrittenDrive {
         dialect: Dialect::Ros2,
         profile: "ros2",
