@@ -20,6 +20,20 @@ pub enum GenerateError {
         /// What the encoder reported.
         source: jpeg_encoder::EncodingError,
     },
+    /// A class map could not be encoded as PNG.
+    #[error("encoding PNG for {frame_id}: {source}")]
+    Png {
+        /// Frame id of the class map.
+        frame_id: String,
+        /// What the encoder reported.
+        source: png::EncodingError,
+    },
+    /// A class map to encode as 8-bit grey PNG is not Mono8.
+    #[error("class map of {frame_id} is not Mono8")]
+    NotMono8 {
+        /// Frame id of the class map.
+        frame_id: String,
+    },
     /// A camera image is larger than JPEG allows (65535 pixels a side).
     #[error("image of {frame_id} is {width}x{height}: too large for JPEG (65535 a side)")]
     ImageTooLarge {

@@ -1,13 +1,16 @@
 //! Writes a simulated drive as the nuScenes converter does (2024 layout, Foxglove
 //! protobuf schemas): `/LIDAR_TOP`, `/CAM_*/image_rect_compressed`, `/CAM_*/camera_info`,
 //! `/tf` with the ego pose at every sensor stamp and the extrinsics re-published at every
-//! keyframe, plus `/CAM_*/superpixels` class maps and an unrelated JSON `/odom` channel.
+//! keyframe, plus `/CAM_*/superpixels` class maps (raw `mono8` images in the drive, or
+//! `png` compressed images in a sidecar file) and an unrelated JSON `/odom` channel.
 
+use crate::encode::{class_map_pngs, jpegs};
 use crate::error::{GenerateError, Result};
+use crate::options::ClassMapStorage;
 use crate::out::McapOut;
-use crate::sim::CameraRig;
+use crate::sim::{CameraFrame, CameraRig};
 use crate::truth::{CameraTruth, FramesTruth, PoseTruth, SweepTruth};
-use crate::{Dialect, GeneratedDrive, Simulation, WrittenDrive, encode_jpeg};
+use crate::{Dialect, GeneratedDrive, Simulation, WrittenDrive};
 use foxglove::Encode;
 use foxglove::messages::{
     CameraCalibration, CompressedImage, FrameTransform, PackedElementField, PointCloud, Quaternion,
@@ -102,7 +105,22 @@ impl Schema {
 struct CameraChannels {
     image: usize,
     info: usize,
+    /// In the drive, or in the sidecar when there is one.
     superpixels: usize,
+}
+
+/// The drive file and, with [`ClassMapStorage::PngSidecar`], the class-map sidecar.
+#[derive(Debug)]
+struct Files {
+    drive: McapOut,
+    sidecar: Option<McapOut>,
+}
+
+impl Files {
+    /// The file the class maps go into.
+    fn class_maps(&mut self) -> &mut McapOut {
+        self.sidecar.as_mut().unwrap_or(&mut self.drive)
+    }
 }
 
 /// The channels of the file.
@@ -115,37 +133,44 @@ struct Channels {
 }
 
 impl Channels {
-    /// Declares every channel, in the order the converter does.
-    fn declare(out: &mut McapOut, sim: &Simulation) -> Result<Self> {
+    /// Declares every channel, in the order the converter does; class maps in the
+    /// sidecar, if there is one, as compressed images.
+    fn declare(files: &mut Files, sim: &Simulation) -> Result<Self> {
         let point_cloud = Schema::of::<PointCloud>()?;
         let compressed_image = Schema::of::<CompressedImage>()?;
         let calibration = Schema::of::<CameraCalibration>()?;
-        let raw_image = Schema::of::<RawImage>()?;
+        let class_map = match files.sidecar {
+            Some(_) => Schema::of::<CompressedImage>()?,
+            None => Schema::of::<RawImage>()?,
+        };
         let frame_transform = Schema::of::<FrameTransform>()?;
+        let out = &mut files.drive;
         let lidar = point_cloud.channel(out, &format!("/{LIDAR}"), "lidar");
         let tf = frame_transform.channel(out, "/tf", "transforms");
-        let cameras = sim
-            .rig
-            .cameras
-            .iter()
-            .map(|cam| CameraChannels {
-                image: compressed_image.channel(
-                    out,
-                    &format!("/{}/image_rect_compressed", cam.name),
-                    "image",
-                ),
-                info: calibration.channel(
-                    out,
-                    &format!("/{}/camera_info", cam.name),
-                    "calibration",
-                ),
-                superpixels: raw_image.channel(
-                    out,
-                    &format!("/{}/superpixels", cam.name),
-                    "superpixels",
-                ),
-            })
-            .collect();
+        let mut cameras = Vec::with_capacity(sim.rig.cameras.len());
+        for cam in &sim.rig.cameras {
+            let image = compressed_image.channel(
+                &mut files.drive,
+                &format!("/{}/image_rect_compressed", cam.name),
+                "image",
+            );
+            let info = calibration.channel(
+                &mut files.drive,
+                &format!("/{}/camera_info", cam.name),
+                "calibration",
+            );
+            let superpixels = class_map.channel(
+                files.class_maps(),
+                &format!("/{}/superpixels", cam.name),
+                "superpixels",
+            );
+            cameras.push(CameraChannels {
+                image,
+                info,
+                superpixels,
+            });
+        }
+        let out = &mut files.drive;
         let odom_schema = br#"{"type":"object","properties":{"timestamp":{"type":"object"},"pos":{"type":"array"},"orientation":{"type":"array"},"vel":{"type":"array"}}}"#;
         let odom = out.channel(
             "/odom",
@@ -163,12 +188,20 @@ impl Channels {
     }
 }
 
-/// Writes the drive; returns the MCAP bytes and the ground truth.
+/// Writes the drive; returns the MCAP bytes (and the class-map sidecar's) and the
+/// ground truth.
 pub fn write(sim: &Simulation) -> Result<GeneratedDrive> {
-    let mut out = McapOut::default();
-    out.set_chunk_size(sim.options.chunk_size);
-    let channels = Channels::declare(&mut out, sim)?;
-    let (sweeps, lidar_stamps) = write_lidar(&mut out, &channels, sim)?;
+    let new_file = || {
+        let mut out = McapOut::default();
+        out.set_chunk_size(sim.options.chunk_size);
+        out
+    };
+    let mut files = Files {
+        drive: new_file(),
+        sidecar: (sim.options.class_maps == ClassMapStorage::PngSidecar).then(new_file),
+    };
+    let channels = Channels::declare(&mut files, sim)?;
+    let (sweeps, lidar_stamps) = write_lidar(&mut files.drive, &channels, sim)?;
     let keyframe_stamps: Vec<Stamp> = lidar_stamps
         .iter()
         .step_by(KEYFRAME_EVERY)
@@ -179,20 +212,26 @@ pub fn write(sim: &Simulation) -> Result<GeneratedDrive> {
         .cameras
         .iter()
         .enumerate()
-        .map(|(i, cam)| write_camera(&mut out, &channels, sim, (i, cam), &keyframe_stamps))
+        .map(|(i, cam)| write_camera(&mut files, &channels, sim, (i, cam), &keyframe_stamps))
         .collect::<Result<Vec<_>>>()?;
+    let Files {
+        drive: mut out,
+        sidecar,
+    } = files;
     write_odometry(&mut out, channels.odom, sim);
 
     let description = format!(
-        "superflow synthetic street, {} s, {} cameras, 16-beam LiDAR",
+        "superflow synthetic street, {} s, {} cameras, {}-beam LiDAR",
         sim.options.duration_secs(),
-        sim.rig.cameras.len()
+        sim.rig.cameras.len(),
+        sim.rig.beam_elevations.len()
     );
+    let name = sim.options.drive_name(Dialect::Foxglove);
     out.metadata(
         "scene-info",
         &[
             ("description", &description),
-            ("name", "street_foxglove"),
+            ("name", &name),
             ("location", "procedural"),
             ("vehicle", "superflow-sim"),
             ("date_captured", "2023-11-14"),
@@ -200,6 +239,13 @@ pub fn write(sim: &Simulation) -> Result<GeneratedDrive> {
     );
 
     let (mcap, channels) = out.finish("", Some(mcap::Compression::Lz4))?;
+    let (sidecar, sidecar_channels) = match sidecar {
+        Some(side) => {
+            let (bytes, channels) = side.finish("", Some(mcap::Compression::Lz4))?;
+            (Some(bytes), Some(channels))
+        }
+        None => (None, None),
+    };
     let truth = sim.ground_truth(WrittenDrive {
         dialect: Dialect::Foxglove,
         profile: "",
@@ -216,8 +262,13 @@ pub fn write(sim: &Simulation) -> Result<GeneratedDrive> {
         sweeps,
         lidar_stamps,
         cameras,
+        sidecar_channels,
     });
-    Ok(GeneratedDrive { mcap, truth })
+    Ok(GeneratedDrive {
+        mcap,
+        sidecar,
+        truth,
+    })
 }
 
 /// The LiDAR, motion compensated into the LiDAR frame at the end of the sweep, with the
@@ -284,7 +335,7 @@ fn write_lidar(
 /// at its stamp and, at keyframes, the camera's extrinsics. Keyframe images are logged
 /// at the keyframe LiDAR stamp, as the converter does. Returns the camera's truth.
 fn write_camera(
-    out: &mut McapOut,
+    files: &mut Files,
     channels: &Channels,
     sim: &Simulation,
     (i, cam): (usize, &CameraRig),
@@ -305,12 +356,20 @@ fn write_camera(
         p.extend_from_slice(&k[row * 3..row * 3 + 3]);
         p.push(0.0);
     }
-    for (frame, stamp) in sim.frames[i].iter().zip(stamps) {
+    let frames = &sim.frames[i];
+    let mut jpegs = jpegs(frames)?.into_iter();
+    let mut pngs = match files.sidecar {
+        Some(_) => class_map_pngs(frames)?,
+        None => Vec::new(),
+    }
+    .into_iter();
+    for (frame, stamp) in frames.iter().zip(stamps) {
         let log_time = keyframe_log.get(stamp).unwrap_or(stamp).nanos();
+        let out = &mut files.drive;
         let image = CompressedImage {
             timestamp: Some(timestamp(*stamp)?),
             frame_id: cam.name.to_string(),
-            data: encode_jpeg(&frame.image)?.into(),
+            data: jpegs.next().unwrap_or_default().into(),
             format: "jpeg".into(),
         };
         out.message(camera.image, log_time, log_time, image.encode_to_vec());
@@ -326,21 +385,11 @@ fn write_camera(
             p: p.clone(),
         };
         out.message(camera.info, log_time, log_time, info.encode_to_vec());
-        let superpixels = RawImage {
-            timestamp: Some(timestamp(*stamp)?),
-            frame_id: cam.name.to_string(),
-            width: frame.classes.width,
-            height: frame.classes.height,
-            encoding: "mono8".into(),
-            step: frame.classes.width,
-            data: frame.classes.data.clone().into(),
-        };
-        out.message(
-            camera.superpixels,
-            log_time,
-            log_time,
-            superpixels.encode_to_vec(),
-        );
+        let superpixels = class_map(frame, *stamp, cam.name, pngs.next())?;
+        files
+            .class_maps()
+            .message(camera.superpixels, log_time, log_time, superpixels);
+        let out = &mut files.drive;
         let ego = frame_transform(*stamp, MAP_FRAME, EGO_FRAME, &sim.map_from_ego(*stamp))?;
         out.message(channels.tf, stamp.nanos(), stamp.nanos(), ego);
         if keyframe_log.contains_key(stamp) {
@@ -361,6 +410,35 @@ fn write_camera(
         d: Vec::new(),
         ego_from_camera: PoseTruth::from(&cam.ego_from_optical()),
         stamps_nanos: stamps.iter().map(|s| s.nanos()).collect(),
+    })
+}
+
+/// The class-map message of `frame`: a raw `mono8` image, or with `png` (the class map
+/// as PNG, for the sidecar) a compressed image of format `png`.
+fn class_map(
+    frame: &CameraFrame,
+    stamp: Stamp,
+    name: &str,
+    png: Option<Vec<u8>>,
+) -> Result<Vec<u8>> {
+    Ok(match png {
+        Some(png) => CompressedImage {
+            timestamp: Some(timestamp(stamp)?),
+            frame_id: name.to_string(),
+            data: png.into(),
+            format: "png".into(),
+        }
+        .encode_to_vec(),
+        None => RawImage {
+            timestamp: Some(timestamp(stamp)?),
+            frame_id: name.to_string(),
+            width: frame.classes.width,
+            height: frame.classes.height,
+            encoding: "mono8".into(),
+            step: frame.classes.width,
+            data: frame.classes.data.clone().into(),
+        }
+        .encode_to_vec(),
     })
 }
 

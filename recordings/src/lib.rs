@@ -2,10 +2,17 @@
 //!
 //! A drive is simulated once per dialect through a small procedural street
 //! ([`scene::Scene`]): the ego weaves along the road at 8 m/s, a spinning 16-beam LiDAR
-//! ([`sim::simulate_sweep`]) fires 360 columns per 20 Hz revolution, each column at its own
+//! ([`sim::simulate_sweep`]) fires 300 columns per 20 Hz revolution, each column at its own
 //! instant, and six surround cameras ([`sim::render_camera`]) ray-cast every pixel at ~12 Hz
 //! from the same scene, so a LiDAR point projects onto the object it hit. Each camera also
 //! gets a per-pixel class map, the "superpixels" a vision foundation model would give.
+//! Returns and pixels also carry the id of the scene box they hit (ground truth for
+//! checks, never written).
+//!
+//! [`DriveOptions`] changes the rig and the layout: beams, columns, image size, camera
+//! triggers ([`CameraTrigger`]), class maps in the drive or in a PNG sidecar
+//! ([`ClassMapStorage`]); [`DriveOptions::nuscenes`] is a nuScenes-sized drive for
+//! benchmarks.
 //!
 //! The drive is then written in one of two real-world dialects ([`Dialect`]) — the
 //! nuScenes-converter Foxglove protobuf layout or a ROS 2 rosbag2 layout — together with
@@ -19,16 +26,23 @@
 //! ```
 
 pub mod damaged;
+pub mod encode;
 pub mod error;
 pub mod foxglove;
+pub mod options;
 pub mod out;
+pub mod render;
 pub mod ros2;
 pub mod scene;
 pub mod sim;
+pub mod srgb;
+pub mod trigger;
 pub mod truth;
 
+pub use encode::{encode_jpeg, encode_png_mono};
 pub use error::GenerateError;
 use nalgebra::{Isometry3, Point3};
+pub use options::{CameraTrigger, ClassMapStorage, DriveOptions};
 use rayon::prelude::*;
 use scene::Scene;
 use sim::{CameraFrame, DriveTiming, Return, Rig};
@@ -40,59 +54,10 @@ use truth::{GroundTruth, Landmark, Observation, PoseSample, PoseTruth};
 pub const GENERATOR_VERSION: u32 = 1;
 /// Seed of the street scene.
 pub const SCENE_SEED: u64 = 20_240_705;
-/// Camera image size.
+/// Camera image size of the sample drives.
 pub const IMAGE_SIZE: (u32, u32) = (480, 270);
 /// JPEG quality of the camera images.
 pub const JPEG_QUALITY: u8 = 80;
-
-/// What to simulate: the sample drives use [`DriveOptions::default`]; shorter, smaller
-/// drives (the source of `recordings/damaged/`) change it.
-#[derive(Debug, Clone, PartialEq)]
-pub struct DriveOptions {
-    /// Length of the drive, nanoseconds (3 s for the sample drives).
-    pub duration_nanos: i64,
-    /// The first this many cameras of the rig, in nuScenes order (6 for the sample drives).
-    pub cameras: usize,
-    /// Camera image size (480×270 for the sample drives; K scales with it).
-    pub image_size: (u32, u32),
-    /// LiDAR firings per revolution (300 for the sample drives).
-    pub lidar_columns: usize,
-    /// MCAP chunk size, bytes (512 KiB for the sample drives).
-    pub chunk_size: u64,
-}
-
-impl Default for DriveOptions {
-    /// The sample drives of `recordings/drives/`.
-    fn default() -> Self {
-        Self {
-            duration_nanos: 3_000_000_000,
-            cameras: 6,
-            image_size: IMAGE_SIZE,
-            lidar_columns: 300,
-            chunk_size: 512 * 1024,
-        }
-    }
-}
-
-impl DriveOptions {
-    /// A short, small drive: 1.5 s (3 keyframes at 0.5 s), the front and front-right
-    /// cameras at 240×136, 60 LiDAR columns, 32 KiB chunks (so that damage to one chunk
-    /// costs a small part of the file). About 0.4 MB per dialect.
-    pub fn short() -> Self {
-        Self {
-            duration_nanos: 1_500_000_000,
-            cameras: 2,
-            image_size: (240, 136),
-            lidar_columns: 60,
-            chunk_size: 32 * 1024,
-        }
-    }
-
-    /// The drive length in seconds, as the writers' descriptions spell it.
-    pub fn duration_secs(&self) -> f64 {
-        self.duration_nanos as f64 * 1e-9
-    }
-}
 
 /// The MCAP layouts the generator writes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -149,11 +114,14 @@ impl Dialect {
     }
 }
 
-/// A generated drive: the MCAP bytes and its ground truth.
+/// A generated drive: the MCAP bytes, its class-map sidecar and its ground truth.
 #[derive(Debug, Clone)]
 pub struct GeneratedDrive {
     /// The MCAP file.
     pub mcap: Vec<u8>,
+    /// The class-map sidecar `<drive>.superpixels.mcap` with
+    /// [`ClassMapStorage::PngSidecar`]; `None` when the class maps are in the drive.
+    pub sidecar: Option<Vec<u8>>,
     /// The facts about it.
     pub truth: GroundTruth,
 }
@@ -224,13 +192,14 @@ pub(crate) struct WrittenDrive {
     pub(crate) sweeps: Vec<truth::SweepTruth>,
     pub(crate) lidar_stamps: Vec<Stamp>,
     pub(crate) cameras: Vec<truth::CameraTruth>,
+    pub(crate) sidecar_channels: Option<Vec<truth::ChannelTruth>>,
 }
 
 impl Simulation {
     /// The ground truth of a drive written from this simulation.
     pub(crate) fn ground_truth(&self, written: WrittenDrive) -> GroundTruth {
         GroundTruth {
-            drive: written.dialect.drive_name(),
+            drive: self.options.drive_name(written.dialect),
             dialect: written.dialect.name().into(),
             profile: written.profile.into(),
             compression: written.compression.into(),
@@ -259,6 +228,15 @@ impl Simulation {
             cameras: written.cameras,
             ego_poses: self.pose_samples(&written.lidar_stamps),
             landmarks: self.landmarks.clone(),
+            sidecar: written
+                .sidecar_channels
+                .map(|channels| truth::SidecarTruth {
+                    file: self
+                        .options
+                        .sidecar_name(written.dialect)
+                        .unwrap_or_default(),
+                    channels,
+                }),
         }
     }
 }
@@ -268,13 +246,15 @@ pub fn simulate(dialect: Dialect) -> Simulation {
     simulate_with(dialect, &DriveOptions::default())
 }
 
-/// Simulates a drive of `options` as `dialect` records it.
+/// Simulates a drive of `options` as `dialect` records it. Sweeps and camera frames
+/// are simulated in parallel (each frame also row band by row band).
 pub fn simulate_with(dialect: Dialect, options: &DriveOptions) -> Simulation {
     let scene = Scene::street(SCENE_SEED);
     let (width, height) = options.image_size;
     let mut rig = Rig::new(width, height, dialect.distortion());
     rig.cameras.truncate(options.cameras);
     rig.columns = options.lidar_columns;
+    rig.beam_elevations = sim::beam_elevations(options.beams);
     let mut timing = dialect.timing();
     timing.duration_nanos = options.duration_nanos;
     let sweeps: Vec<Vec<Return>> = (0..timing.sweep_count())
@@ -282,20 +262,27 @@ pub fn simulate_with(dialect: Dialect, options: &DriveOptions) -> Simulation {
         .map(|k| sim::simulate_sweep(&scene, &rig, &timing, k))
         .collect();
     let camera_stamps: Vec<Vec<Stamp>> = (0..rig.cameras.len())
-        .map(|i| timing.camera_stamps(i))
+        .map(|i| trigger::camera_stamps(options.camera_trigger, &timing, &rig, i))
         .collect();
-    let frames = rig
+    let rays: Vec<Vec<nalgebra::Vector3<f64>>> = rig
         .cameras
+        .par_iter()
+        .map(|cam| sim::pixel_rays(&cam.calibration))
+        .collect();
+    let jobs: Vec<(usize, Stamp)> = camera_stamps
         .iter()
         .enumerate()
-        .map(|(i, cam)| {
-            let rays = sim::pixel_rays(&cam.calibration);
-            camera_stamps[i]
-                .iter()
-                .map(|stamp| sim::render_camera(&scene, &rig, timing.start, i, *stamp, &rays))
-                .collect()
-        })
+        .flat_map(|(i, stamps)| stamps.iter().map(move |s| (i, *s)))
         .collect();
+    let mut rendered: Vec<CameraFrame> = jobs
+        .par_iter()
+        .map(|(i, stamp)| sim::render_camera(&scene, &rig, timing.start, *i, *stamp, &rays[*i]))
+        .collect();
+    let mut frames: Vec<Vec<CameraFrame>> = Vec::with_capacity(camera_stamps.len());
+    for stamps in camera_stamps.iter().rev() {
+        frames.push(rendered.split_off(rendered.len() - stamps.len()));
+    }
+    frames.reverse();
     let mut simulation = Simulation {
         scene,
         rig,
@@ -393,27 +380,6 @@ fn landmarks(sim: &Simulation) -> Vec<Landmark> {
                 .collect(),
         })
         .collect()
-}
-
-/// Encodes an RGB8 image as a baseline JPEG (deterministic: scalar code path).
-pub fn encode_jpeg(image: &superflow_schemas::sensor::Image) -> error::Result<Vec<u8>> {
-    let mut out = Vec::new();
-    let mut encoder = jpeg_encoder::Encoder::new(&mut out, JPEG_QUALITY);
-    encoder.set_optimized_huffman_tables(true);
-    let (Ok(w), Ok(h)) = (u16::try_from(image.width), u16::try_from(image.height)) else {
-        return Err(GenerateError::ImageTooLarge {
-            frame_id: image.frame_id.clone(),
-            width: image.width,
-            height: image.height,
-        });
-    };
-    encoder
-        .encode(&image.data, w, h, jpeg_encoder::ColorType::Rgb)
-        .map_err(|source| GenerateError::Jpeg {
-            frame_id: image.frame_id.clone(),
-            source,
-        })?;
-    Ok(out)
 }
 
 /// Simulates and writes the sample drive in `dialect`.

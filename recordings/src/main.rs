@@ -1,31 +1,165 @@
 //! `superflow-recordings --out DIR`: writes the sample drives and their ground truth;
-//! `superflow-recordings --damaged DIR`: writes the damaged recordings.
+//! `superflow-recordings --damaged DIR`: writes the damaged recordings;
+//! `superflow-recordings --preset nuscenes --image-size 1600x900`: a nuScenes-sized drive
+//! for benchmarks, under its own file stem.
 
 use anyhow::Context as _;
-use clap::Parser;
-use std::path::PathBuf;
-use superflow_recordings::{Dialect, DriveOptions, damaged, generate_with};
+use clap::{Parser, ValueEnum};
+use std::path::{Path, PathBuf};
+use superflow_recordings::{
+    CameraTrigger, ClassMapStorage, Dialect, DriveOptions, GeneratedDrive, damaged, generate_with,
+};
+
+/// Drive presets.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum Preset {
+    /// The sample drives of `recordings/drives/`.
+    Sample,
+    /// A nuScenes-sized drive (`DriveOptions::nuscenes`): 32 beams, 1084 columns, six
+    /// cameras at `--image-size`, staggered triggers, PNG class-map sidecar, 2 s.
+    Nuscenes,
+}
+
+/// `--trigger` values.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum Trigger {
+    /// Fixed phases (the sample drives).
+    Fixed,
+    /// Each camera fires as the LiDAR beam passes the centre of its view (nuScenes).
+    Staggered,
+}
+
+/// `--class-maps` values.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum ClassMaps {
+    /// Raw Mono8 images in the drive (the sample drives).
+    InDrive,
+    /// PNGs in `<drive>.superpixels.mcap` next to the drive.
+    PngSidecar,
+}
 
 /// Generates the sample drives of `recordings/` (deterministic: same bytes every run).
 #[derive(Debug, Parser)]
 #[command(version, about)]
 struct Args {
-    /// Directory to write `<drive>.mcap` and `<drive>.truth.json` into.
+    /// Directory to write `<drive>.mcap`, `<drive>.superpixels.mcap` (with a class-map
+    /// sidecar) and `<drive>.truth.json` into.
     #[arg(long, default_value = "recordings/drives")]
     out: PathBuf,
     /// Only this dialect (`foxglove` or `ros2`); both by default.
     #[arg(long)]
     dialect: Option<String>,
+    /// Start from this preset; the flags below change it. A nuScenes drive is named
+    /// `nuscenes_<dialect>_<W>x<H>`, never overwriting the sample drives.
+    #[arg(long, value_enum, default_value = "sample")]
+    preset: Preset,
+    /// Camera image size `WxH` of the nuScenes preset: 800x450 (default) or 1600x900.
+    #[arg(long, value_name = "WxH")]
+    image_size: Option<String>,
     /// Length of the drive in seconds (the sample drives: 3).
     #[arg(long)]
     duration_secs: Option<f64>,
     /// Cameras of the rig, the first N in nuScenes order (the sample drives: 6).
     #[arg(long)]
     cameras: Option<usize>,
+    /// LiDAR beams, 2..=128 (the sample drives: 16; other counts spread over
+    /// -30.67°..+10.67°).
+    #[arg(long)]
+    beams: Option<usize>,
+    /// Camera triggering.
+    #[arg(long, value_enum)]
+    trigger: Option<Trigger>,
+    /// Where the class maps go.
+    #[arg(long, value_enum)]
+    class_maps: Option<ClassMaps>,
     /// Write the damaged recordings (`recordings/damaged/`, from a short drive) into this
     /// directory instead of the sample drives.
     #[arg(long, value_name = "DIR")]
     damaged: Option<PathBuf>,
+}
+
+/// Parses `WxH` (`800x450`) into a non-zero size JPEG can hold.
+fn parse_size(text: &str) -> anyhow::Result<(u32, u32)> {
+    let invalid = || anyhow::anyhow!("--image-size {text:?}: expected WxH, e.g. 800x450");
+    let (w, h) = text
+        .split_once(['x', 'X'])
+        .ok_or_else(invalid)
+        .and_then(|(w, h)| Ok((w.trim().parse::<u32>()?, h.trim().parse::<u32>()?)))
+        .map_err(|_: anyhow::Error| invalid())?;
+    anyhow::ensure!(
+        (16..=8192).contains(&w) && (16..=8192).contains(&h),
+        "--image-size {text:?}: each side must be 16..=8192 pixels"
+    );
+    Ok((w, h))
+}
+
+/// The drive options the flags ask for.
+fn options(args: &Args) -> anyhow::Result<DriveOptions> {
+    let mut options = match args.preset {
+        Preset::Sample => {
+            anyhow::ensure!(
+                args.image_size.is_none(),
+                "--image-size only applies to --preset nuscenes"
+            );
+            DriveOptions::default()
+        }
+        Preset::Nuscenes => {
+            let (w, h) = parse_size(args.image_size.as_deref().unwrap_or("800x450"))?;
+            DriveOptions::nuscenes(w, h)
+        }
+    };
+    if let Some(secs) = args.duration_secs {
+        anyhow::ensure!(
+            (0.05..=3600.0).contains(&secs),
+            "--duration-secs must be 0.05..=3600 (one LiDAR sweep at least)"
+        );
+        options.duration_nanos = (secs * 1e9).round() as i64;
+    }
+    if let Some(cameras) = args.cameras {
+        anyhow::ensure!((1..=6).contains(&cameras), "--cameras must be 1..=6");
+        options.cameras = cameras;
+    }
+    if let Some(beams) = args.beams {
+        anyhow::ensure!((2..=128).contains(&beams), "--beams must be 2..=128");
+        options.beams = beams;
+    }
+    if let Some(trigger) = args.trigger {
+        options.camera_trigger = match trigger {
+            Trigger::Fixed => CameraTrigger::Fixed,
+            Trigger::Staggered => CameraTrigger::Staggered,
+        };
+    }
+    if let Some(class_maps) = args.class_maps {
+        options.class_maps = match class_maps {
+            ClassMaps::InDrive => ClassMapStorage::InDrive,
+            ClassMaps::PngSidecar => ClassMapStorage::PngSidecar,
+        };
+    }
+    Ok(options)
+}
+
+/// Writes `bytes` to `dir/name`; returns the path.
+fn write(dir: &Path, name: &str, bytes: &[u8]) -> anyhow::Result<PathBuf> {
+    let path = dir.join(name);
+    std::fs::write(&path, bytes).with_context(|| format!("writing {}", path.display()))?;
+    Ok(path)
+}
+
+/// Writes a generated drive's files into `dir`; returns the drive's path.
+fn write_drive(
+    dir: &Path,
+    options: &DriveOptions,
+    dialect: Dialect,
+    drive: &GeneratedDrive,
+) -> anyhow::Result<PathBuf> {
+    let stem = options.drive_name(dialect);
+    let mcap = write(dir, &format!("{stem}.mcap"), &drive.mcap)?;
+    if let (Some(bytes), Some(name)) = (&drive.sidecar, options.sidecar_name(dialect)) {
+        let path = write(dir, &name, bytes)?;
+        tracing::info!(sidecar = %path.display(), bytes = bytes.len(), "wrote class-map sidecar");
+    }
+    write(dir, &format!("{stem}.truth.json"), &drive.truth_json()?)?;
+    Ok(mcap)
 }
 
 fn main() -> anyhow::Result<()> {
@@ -46,15 +180,13 @@ fn main() -> anyhow::Result<()> {
         }
         return Ok(());
     }
-    let mut options = DriveOptions::default();
-    if let Some(secs) = args.duration_secs {
-        anyhow::ensure!(secs > 0.0, "--duration-secs must be positive");
-        options.duration_nanos = (secs * 1e9).round() as i64;
+    if let Some(name) = &args.dialect {
+        anyhow::ensure!(
+            Dialect::ALL.iter().any(|d| d.name() == name),
+            "--dialect must be foxglove or ros2, not {name:?}"
+        );
     }
-    if let Some(cameras) = args.cameras {
-        anyhow::ensure!((1..=6).contains(&cameras), "--cameras must be 1..=6");
-        options.cameras = cameras;
-    }
+    let options = options(&args)?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
     for dialect in Dialect::ALL {
@@ -63,18 +195,14 @@ fn main() -> anyhow::Result<()> {
         }
         let started = std::time::Instant::now();
         let drive = generate_with(dialect, &options)?;
-        let mcap_path = args.out.join(format!("{}.mcap", dialect.drive_name()));
-        let truth_path = args
-            .out
-            .join(format!("{}.truth.json", dialect.drive_name()));
-        std::fs::write(&mcap_path, &drive.mcap)
-            .with_context(|| format!("writing {}", mcap_path.display()))?;
-        std::fs::write(&truth_path, drive.truth_json()?)
-            .with_context(|| format!("writing {}", truth_path.display()))?;
+        let path = write_drive(&args.out, &options, dialect, &drive)?;
+        let sweeps = &drive.truth.lidar.sweeps;
+        let points: u64 = sweeps.iter().map(|s| s.points).sum();
         tracing::info!(
-            drive = %mcap_path.display(),
+            drive = %path.display(),
             bytes = drive.mcap.len(),
-            sweeps = drive.truth.lidar.sweeps.len(),
+            sweeps = sweeps.len(),
+            points_per_sweep = points / (sweeps.len().max(1) as u64),
             landmarks = drive.truth.landmarks.len(),
             secs = started.elapsed().as_secs_f64(),
             "wrote drive"

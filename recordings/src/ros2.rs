@@ -2,13 +2,17 @@
 //! messages, zstd chunks, receive-time `log_time`s; a velodyne-layout raw cloud with
 //! per-point time (not motion compensated), `image_transport` compressed JPEGs with
 //! plumb_bob distortion, `CameraInfo`, `map → odom → base_link` on `/tf` and the
-//! extrinsics (`base_link → cam_*_link → cam_*_optical_frame`) once on `/tf_static`.
+//! extrinsics (`base_link → cam_*_link → cam_*_optical_frame`) once on `/tf_static`;
+//! class maps as raw `mono8` images in the bag, or as `png` compressed images in a
+//! sidecar file.
 
+use crate::encode::{class_map_pngs, jpegs};
 use crate::error::{GenerateError, Result};
+use crate::options::ClassMapStorage;
 use crate::out::McapOut;
-use crate::sim::{CameraRig, Return, body_from_optical};
-use crate::truth::{CameraTruth, FramesTruth, PoseTruth, SweepTruth};
-use crate::{Dialect, GeneratedDrive, Simulation, WrittenDrive, encode_jpeg};
+use crate::sim::{CameraFrame, CameraRig, Return, body_from_optical};
+use crate::truth::{CameraTruth, ChannelTruth, FramesTruth, PoseTruth, SweepTruth};
+use crate::{Dialect, GeneratedDrive, Simulation, WrittenDrive};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 use std::collections::BTreeMap;
 use superflow_schemas::Stamp;
@@ -142,22 +146,32 @@ pub fn write(sim: &Simulation) -> Result<GeneratedDrive> {
     write_static_transforms(&mut out, tf_static, sim)?;
     write_odometry(&mut out, tf, sim)?;
     let (sweeps, lidar_stamps) = write_lidar(&mut out, lidar, sim)?;
+    let mut sidecar = (sim.options.class_maps == ClassMapStorage::PngSidecar).then(|| {
+        let mut side = McapOut::default();
+        side.set_chunk_size(sim.options.chunk_size);
+        side
+    });
     let cameras = sim
         .rig
         .cameras
         .iter()
         .enumerate()
-        .map(|(i, cam)| write_camera(&mut out, sim, i, cam))
+        .map(|(i, cam)| write_camera(&mut out, sidecar.as_mut(), sim, i, cam))
         .collect::<Result<Vec<_>>>()?;
 
-    out.metadata(
-        "rosbag2",
-        &[(
-            "serialized_metadata",
-            "rosbag2_bagfile_information:\n  version: 8\n  storage_identifier: mcap\n  relative_file_paths:\n    - street_ros2.mcap\n",
-        )],
+    let metadata = format!(
+        "rosbag2_bagfile_information:\n  version: 8\n  storage_identifier: mcap\n  relative_file_paths:\n    - {}.mcap\n",
+        sim.options.drive_name(Dialect::Ros2)
     );
+    out.metadata("rosbag2", &[("serialized_metadata", &metadata)]);
     let (mcap, channels) = out.finish("ros2", Some(mcap::Compression::Zstd))?;
+    let (sidecar, sidecar_channels): (Option<Vec<u8>>, Option<Vec<ChannelTruth>>) = match sidecar {
+        Some(side) => {
+            let (bytes, channels) = side.finish("ros2", Some(mcap::Compression::Zstd))?;
+            (Some(bytes), Some(channels))
+        }
+        None => (None, None),
+    };
     let truth = sim.ground_truth(WrittenDrive {
         dialect: Dialect::Ros2,
         profile: "ros2",
@@ -174,8 +188,13 @@ pub fn write(sim: &Simulation) -> Result<GeneratedDrive> {
         sweeps,
         lidar_stamps,
         cameras,
+        sidecar_channels,
     });
-    Ok(GeneratedDrive { mcap, truth })
+    Ok(GeneratedDrive {
+        mcap,
+        sidecar,
+        truth,
+    })
 }
 
 /// The static extrinsics, once, at the start (latched): `base_link → lidar_top` and,
@@ -358,9 +377,11 @@ impl Intrinsics {
 }
 
 /// Camera `i`: its three channels (compressed image, `CameraInfo`, superpixel class
-/// map), every frame on each; returns the camera's truth.
+/// map, the last in `sidecar` when there is one), every frame on each; returns the
+/// camera's truth.
 fn write_camera(
     out: &mut McapOut,
+    mut sidecar: Option<&mut McapOut>,
     sim: &Simulation,
     i: usize,
     cam: &CameraRig,
@@ -372,16 +393,26 @@ fn write_camera(
     let superpixel_topic = format!("/{base}/superpixels");
     let image_channel = channel::<CompressedImage>(out, &image_topic, "image");
     let info_channel = channel::<CameraInfo>(out, &info_topic, "calibration");
-    let superpixel_channel = channel::<Image>(out, &superpixel_topic, "superpixels");
+    let superpixel_channel = match sidecar.as_deref_mut() {
+        Some(side) => channel::<CompressedImage>(side, &superpixel_topic, "superpixels"),
+        None => channel::<Image>(out, &superpixel_topic, "superpixels"),
+    };
     let calibration = &cam.calibration;
     let intrinsics = Intrinsics::of(calibration);
     let stamps = &sim.camera_stamps[i];
-    for (frame, stamp) in sim.frames[i].iter().zip(stamps) {
+    let frames = &sim.frames[i];
+    let mut jpegs = jpegs(frames)?.into_iter();
+    let mut pngs = match sidecar {
+        Some(_) => class_map_pngs(frames)?,
+        None => Vec::new(),
+    }
+    .into_iter();
+    for (frame, stamp) in frames.iter().zip(stamps) {
         let header = header(*stamp, &optical)?;
         let image = CompressedImage {
             header: header.clone(),
             format: "rgb8; jpeg compressed bgr8".into(),
-            data: encode_jpeg(&frame.image)?,
+            data: jpegs.next().unwrap_or_default(),
         };
         queue(
             out,
@@ -408,23 +439,13 @@ fn write_camera(
             CAMERA_LATENCY_NANOS,
             ros2::encode(&info)?,
         );
-        let superpixels = Image {
-            header,
-            height: frame.classes.height,
-            width: frame.classes.width,
-            encoding: "mono8".into(),
-            is_bigendian: 0,
-            step: frame.classes.width,
-            data: frame.classes.data.clone(),
-        };
+        let superpixels = class_map(frame, header, pngs.next())?;
         let latency = CAMERA_LATENCY_NANOS + 9_000_000;
-        queue(
-            out,
-            superpixel_channel,
-            *stamp,
-            latency,
-            ros2::encode(&superpixels)?,
-        );
+        let file = match sidecar.as_deref_mut() {
+            Some(side) => side,
+            None => &mut *out,
+        };
+        queue(file, superpixel_channel, *stamp, latency, superpixels);
     }
     Ok(CameraTruth {
         name: cam.name.to_string(),
@@ -439,5 +460,26 @@ fn write_camera(
         d: intrinsics.d,
         ego_from_camera: PoseTruth::from(&cam.ego_from_optical()),
         stamps_nanos: stamps.iter().map(|s| s.nanos()).collect(),
+    })
+}
+
+/// The class-map message of `frame`: a raw `mono8` image, or with `png` (the class map
+/// as PNG, for the sidecar) a compressed image of format `png`.
+fn class_map(frame: &CameraFrame, header: Header, png: Option<Vec<u8>>) -> Result<Vec<u8>> {
+    Ok(match png {
+        Some(data) => ros2::encode(&CompressedImage {
+            header,
+            format: "png".into(),
+            data,
+        })?,
+        None => ros2::encode(&Image {
+            header,
+            height: frame.classes.height,
+            width: frame.classes.width,
+            encoding: "mono8".into(),
+            is_bigendian: 0,
+            step: frame.classes.width,
+            data: frame.classes.data.clone(),
+        })?,
     })
 }

@@ -1,5 +1,10 @@
 //! A small procedural street: ground regions, buildings, trees, cones, parked and moving
-//! cars and a pedestrian, all boxes, with semantic classes and colours; exact ray casting.
+//! cars and a pedestrian, all boxes, with semantic classes and colours; exact ray casting
+//! ([`cast`]).
+
+mod cast;
+
+pub use cast::{BoxPose, Snapshot};
 
 use nalgebra::{Point3, Vector3};
 
@@ -116,6 +121,11 @@ impl SceneBox {
         }
     }
 
+    /// Whether the box moves during the drive.
+    pub fn is_moving(&self) -> bool {
+        self.motion.is_some_and(|m| m.speed_x != 0.0)
+    }
+
     /// The eight corners at `t_secs`, bottom ones first.
     pub fn corners_at(&self, t_secs: f64) -> [Point3<f64>; 8] {
         let c = self.center_at(t_secs);
@@ -158,6 +168,8 @@ pub struct Hit {
     pub color: [f64; 3],
     /// LiDAR reflectivity at the hit.
     pub reflectivity: f64,
+    /// Id of the box hit (its index in [`Scene::boxes`]); `None` for the ground.
+    pub object: Option<u32>,
 }
 
 /// The street scene.
@@ -386,171 +398,15 @@ impl Scene {
         }
     }
 
-    /// The first surface hit by the ray `origin + s·direction` (unit direction, s > 1 cm)
-    /// at `t_secs` after the drive's start, if any within `max_range`.
-    pub fn cast(
-        &self,
-        origin: &Point3<f64>,
-        direction: &Vector3<f64>,
-        t_secs: f64,
-        max_range: f64,
-    ) -> Option<Hit> {
-        let mut best: Option<(f64, usize, Vector3<f64>)> = None;
-        let mut nearest = max_range;
-        for (index, b) in self.boxes.iter().enumerate() {
-            // Bounding-sphere rejection before the exact slab test.
-            let to_center = b.center_at(t_secs) - origin;
-            let along = to_center.dot(direction);
-            let radius2 = b.half.norm_squared();
-            if along < -radius2.sqrt()
-                || along - radius2.sqrt() > nearest
-                || to_center.norm_squared() - along * along > radius2
-            {
-                continue;
-            }
-            if let Some((s, normal)) = intersect_box(b, origin, direction, t_secs, nearest) {
-                nearest = s;
-                best = Some((s, index, normal));
-            }
-        }
-        let ground = (direction.z < -1e-9)
-            .then(|| -origin.z / direction.z)
-            .filter(|s| *s > 0.01 && *s < nearest);
-        if let Some(s) = ground {
-            let point = origin + direction * s;
-            let (class, color, reflectivity) = ground_material(&point);
-            return Some(Hit {
-                distance: s,
-                point,
-                normal: Vector3::z(),
-                class,
-                color,
-                reflectivity,
-            });
-        }
-        let (s, index, normal) = best?;
-        let b = &self.boxes[index];
-        let point = origin + direction * s;
-        let (color, reflectivity) = box_material(b, &point, &normal, t_secs);
-        Some(Hit {
-            distance: s,
-            point,
-            normal,
-            class: b.class,
-            color,
-            reflectivity,
-        })
+    /// The box of object id `id` (as [`Hit::object`] gives it), if there is one.
+    pub fn object(&self, id: u32) -> Option<&SceneBox> {
+        self.boxes.get(usize::try_from(id).ok()?)
     }
-}
 
-/// Slab test in the box's own frame; returns the entry distance and outward normal.
-fn intersect_box(
-    b: &SceneBox,
-    origin: &Point3<f64>,
-    direction: &Vector3<f64>,
-    t_secs: f64,
-    max_s: f64,
-) -> Option<(f64, Vector3<f64>)> {
-    let c = b.center_at(t_secs);
-    let (s, co) = b.yaw.sin_cos();
-    let rel = origin - c;
-    // Rotate into the box frame (inverse yaw).
-    let o = Vector3::new(co * rel.x + s * rel.y, -s * rel.x + co * rel.y, rel.z);
-    let d = Vector3::new(
-        co * direction.x + s * direction.y,
-        -s * direction.x + co * direction.y,
-        direction.z,
-    );
-    let mut t_near = 0.01f64;
-    let mut t_far = max_s;
-    let mut axis = usize::MAX;
-    let mut sign = 0.0;
-    for i in 0..3 {
-        if d[i].abs() < 1e-12 {
-            if o[i].abs() > b.half[i] {
-                return None;
-            }
-            continue;
-        }
-        let inv = 1.0 / d[i];
-        let mut t0 = (-b.half[i] - o[i]) * inv;
-        let mut t1 = (b.half[i] - o[i]) * inv;
-        let mut entry_sign = -1.0;
-        if t0 > t1 {
-            std::mem::swap(&mut t0, &mut t1);
-            entry_sign = 1.0;
-        }
-        if t0 > t_near {
-            t_near = t0;
-            axis = i;
-            sign = entry_sign;
-        }
-        t_far = t_far.min(t1);
-        if t_near > t_far {
-            return None;
-        }
-    }
-    if axis == usize::MAX {
-        return None; // origin inside the box
-    }
-    let mut local = Vector3::zeros();
-    local[axis] = sign;
-    let normal = Vector3::new(
-        co * local.x - s * local.y,
-        s * local.x + co * local.y,
-        local.z,
-    );
-    Some((t_near, normal))
-}
-
-fn ground_material(p: &Point3<f64>) -> (u8, [f64; 3], f64) {
-    let ay = p.y.abs();
-    if ay < ROAD_HALF_WIDTH {
-        // Dashed centre line and solid edge lines.
-        let dash = (p.y + 1.5).abs() < 0.08 && p.x.rem_euclid(6.0) < 3.0;
-        let edge = (ay - 7.2).abs() < 0.1;
-        if dash || edge {
-            (class::DRIVEABLE_SURFACE, [0.92, 0.92, 0.88], 0.85)
-        } else {
-            let patch = ((p.x * 0.7).floor() + (p.y * 0.7).floor()).rem_euclid(2.0);
-            let g = 0.26 + 0.03 * patch;
-            (class::DRIVEABLE_SURFACE, [g, g, g + 0.01], 0.12)
-        }
-    } else if ay < SIDEWALK_EDGE {
-        let tile = ((p.x * 2.0).floor() + (p.y * 2.0).floor()).rem_euclid(2.0);
-        let g = 0.58 + 0.05 * tile;
-        (class::SIDEWALK, [g, g * 0.97, g * 0.92], 0.3)
-    } else {
-        let n = ((p.x * 1.3).sin() * (p.y * 1.7).cos() * 0.5 + 0.5) * 0.08;
-        (class::TERRAIN, [0.22 + n, 0.42 + n, 0.16], 0.2)
-    }
-}
-
-fn box_material(
-    b: &SceneBox,
-    p: &Point3<f64>,
-    normal: &Vector3<f64>,
-    t_secs: f64,
-) -> ([f64; 3], f64) {
-    if b.class != class::MANMADE || b.half.z < 3.5 {
-        // Darker lower half on cars (windows are above the belt line in reality; any
-        // contrast will do for the images).
-        if b.class == class::CAR && p.z > b.center_at(t_secs).z + 0.2 {
-            return (b.color.map(|c| c * 0.45), b.reflectivity * 0.6);
-        }
-        return (b.color, b.reflectivity);
-    }
-    // Buildings: a grid of windows on the facades.
-    let along = if normal.z.abs() > 0.5 {
-        return (b.color.map(|c| c * 0.8), b.reflectivity);
-    } else {
-        p.x * normal.y.abs() + p.y * normal.x.abs()
-    };
-    let window = along.rem_euclid(2.5) > 0.8 && p.z.rem_euclid(3.0) > 1.0 && p.z > 2.5;
-    if window {
-        ([0.2, 0.27, 0.35], 0.1)
-    } else {
-        (b.color, b.reflectivity)
+    /// Whether object `id` is a box that moves during the drive (`false` for an id
+    /// without a box).
+    pub fn is_moving(&self, id: u32) -> bool {
+        self.object(id).is_some_and(SceneBox::is_moving)
     }
 }
 

@@ -1,11 +1,11 @@
 //! The simulated drive: ego trajectory, sensor rig, a spinning LiDAR ray-cast per
 //! column, and cameras rendered per pixel from the same scene at their own stamps.
 
-use crate::scene::{CLASSES, Scene, class};
-use nalgebra::{Isometry3, Point2, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
-use rayon::prelude::*;
+pub use crate::render::{CameraFrame, ObjectMap, pixel_rays, render_camera};
+use crate::scene::{CLASSES, Scene};
+use nalgebra::{Isometry3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use superflow_schemas::Stamp;
-use superflow_schemas::sensor::{CameraCalibration, Distortion, Image, PixelFormat};
+use superflow_schemas::sensor::{CameraCalibration, Distortion};
 
 /// Longest LiDAR range, metres.
 pub const LIDAR_MAX_RANGE: f64 = 70.0;
@@ -155,19 +155,33 @@ impl Rig {
                 }
             })
             .collect();
-        let beams = 16;
         Rig {
             ego_from_lidar: Isometry3::from_parts(
                 Translation3::new(0.94, 0.0, 1.84),
                 UnitQuaternion::from_euler_angles(0.0, 0.0, -std::f64::consts::FRAC_PI_2),
             ),
-            beam_elevations: (0..beams)
-                .map(|b| (-25.0 + 30.0 * b as f64 / (beams - 1) as f64).to_radians())
-                .collect(),
+            beam_elevations: beam_elevations(16),
             columns: 300,
             cameras,
         }
     }
+}
+
+/// Elevations of `beams` LiDAR beams, lowest first, radians: 16 beams spread evenly over
+/// -25°..+5° (the sample drives), any other count over an HDL-32E-like -30.67°..+10.67°
+/// (one beam: the middle of that).
+pub fn beam_elevations(beams: usize) -> Vec<f64> {
+    let (low, high) = if beams == 16 {
+        (-25.0, 5.0)
+    } else {
+        (-30.67, 10.67)
+    };
+    if beams < 2 {
+        return vec![((low + high) / 2.0f64).to_radians(); beams];
+    }
+    (0..beams)
+        .map(|b| (low + (high - low) * b as f64 / (beams - 1) as f64).to_radians())
+        .collect()
 }
 
 /// One LiDAR return, before it is expressed in any sensor frame.
@@ -183,6 +197,9 @@ pub struct Return {
     pub intensity: f32,
     /// Semantic class of the surface hit.
     pub class: u8,
+    /// Id of the scene box hit ([`crate::scene::Hit::object`]); `None` for the ground.
+    /// Simulation ground truth, not written to the drive.
+    pub object: Option<u32>,
 }
 
 /// Fires every column of sweep `k`: column `c` at `begin + c·T/C`, beams bottom to top.
@@ -195,8 +212,7 @@ pub fn simulate_sweep(scene: &Scene, rig: &Rig, timing: &DriveTiming, k: usize) 
         let map_from_lidar = map_from_ego(timing.start, stamp) * rig.ego_from_lidar;
         let origin = map_from_lidar.translation.vector.into();
         // Clockwise spin seen from above, starting behind the sensor.
-        let azimuth =
-            std::f64::consts::PI * 1.5 - 2.0 * std::f64::consts::PI * c as f64 / rig.columns as f64;
+        let azimuth = crate::trigger::column_azimuth(c, rig.columns);
         for (ring, elevation) in rig.beam_elevations.iter().enumerate() {
             let d_lidar = Vector3::new(
                 elevation.cos() * azimuth.cos(),
@@ -213,110 +229,12 @@ pub fn simulate_sweep(scene: &Scene, rig: &Rig, timing: &DriveTiming, k: usize) 
                     ring: ring as u16,
                     intensity: intensity as f32,
                     class: hit.class,
+                    object: hit.object,
                 });
             }
         }
     }
     out
-}
-
-/// A rendered camera frame: the RGB image and the per-pixel class map.
-#[derive(Debug, Clone)]
-pub struct CameraFrame {
-    /// Colour image (RGB8).
-    pub image: Image,
-    /// Class id per pixel (Mono8), what a vision foundation model would segment.
-    pub classes: Image,
-}
-
-const SUN: [f64; 3] = [0.35, -0.45, 0.82];
-
-fn to_srgb(linear: f64) -> u8 {
-    (linear.clamp(0.0, 1.0).powf(1.0 / 2.2) * 255.0).round() as u8
-}
-
-/// Renders camera `camera` of the rig at `stamp`: one ray through each pixel centre.
-pub fn render_camera(
-    scene: &Scene,
-    rig: &Rig,
-    start: Stamp,
-    camera: usize,
-    stamp: Stamp,
-    rays_in_camera: &[Vector3<f64>],
-) -> CameraFrame {
-    let cam = &rig.cameras[camera];
-    let (w, h) = (
-        cam.calibration.width as usize,
-        cam.calibration.height as usize,
-    );
-    let map_from_camera = map_from_ego(start, stamp) * cam.ego_from_optical();
-    let origin: Point3<f64> = map_from_camera.translation.vector.into();
-    let t_secs = stamp.secs_since(start);
-    let sun = Vector3::from(SUN).normalize();
-    let mut rgb = vec![0u8; w * h * 3];
-    let mut classes = vec![class::NOISE; w * h];
-    rgb.par_chunks_mut(w * 3)
-        .zip(classes.par_chunks_mut(w))
-        .enumerate()
-        .for_each(|(row, (rgb_row, class_row))| {
-            for col in 0..w {
-                let direction = map_from_camera.rotation * rays_in_camera[row * w + col];
-                let sky = {
-                    let up = direction.z.clamp(-0.2, 1.0);
-                    [0.45 - 0.25 * up, 0.6 - 0.2 * up, 0.85]
-                };
-                let (color, class_id) = match scene.cast(&origin, &direction, t_secs, 400.0) {
-                    Some(hit) => {
-                        let light = 0.35 + 0.65 * hit.normal.dot(&sun).max(0.0);
-                        let fog = 1.0 - (-hit.distance / 250.0).exp();
-                        let lit =
-                            [0, 1, 2].map(|i| hit.color[i] * light * (1.0 - fog) + sky[i] * fog);
-                        (lit, hit.class)
-                    }
-                    None => (sky, class::NOISE),
-                };
-                for i in 0..3 {
-                    rgb_row[col * 3 + i] = to_srgb(color[i]);
-                }
-                class_row[col] = class_id;
-            }
-        });
-    let frame_id = cam.calibration.frame_id.clone();
-    // Sizes are consistent by construction; `Image::new` re-checks them.
-    let image = Image::new(
-        stamp,
-        frame_id.clone(),
-        w as u32,
-        h as u32,
-        PixelFormat::Rgb8,
-        rgb,
-    );
-    let classes = Image::new(
-        stamp,
-        frame_id,
-        w as u32,
-        h as u32,
-        PixelFormat::Mono8,
-        classes,
-    );
-    match (image, classes) {
-        (Ok(image), Ok(classes)) => CameraFrame { image, classes },
-        (Err(e), _) | (_, Err(e)) => unreachable!("rendered image has a consistent size: {e}"),
-    }
-}
-
-/// The unit ray through the centre of every pixel of a camera, row-major.
-pub fn pixel_rays(calibration: &CameraCalibration) -> Vec<Vector3<f64>> {
-    let (w, h) = (calibration.width, calibration.height);
-    (0..h)
-        .flat_map(|row| (0..w).map(move |col| (col, row)))
-        .map(|(col, row)| {
-            calibration
-                .unproject(&Point2::new(f64::from(col), f64::from(row)))
-                .coords
-                .normalize()
-        })
-        .collect()
 }
 
 /// Number of classes in the class maps.

@@ -195,4 +195,17 @@ pub struct GroundTruth {
     pub ego_poses: Vec<PoseSample>,
     /// Landmarks and their expected pixels.
     pub landmarks: Vec<Landmark>,
+    /// The class-map sidecar file, when the class maps are not in the drive (absent from
+    /// the JSON otherwise).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sidecar: Option<SidecarTruth>,
+}
+
+/// A sidecar file (`<drive>.<tag>.mcap`, next to the drive) and its channels.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SidecarTruth {
+    /// File name (`street_ros2.superpixels.mcap`).
+    pub file: String,
+    /// Every channel of the sidecar.
+    pub channels: Vec<ChannelTruth>,
 }

@@ -1,0 +1,172 @@
+//! [`DriveOptions`]: what to simulate and how to write it — the sample drives'
+//! settings by default, a short drive for the damaged recordings, and a nuScenes-sized
+//! drive for benchmarks.
+
+use crate::{Dialect, IMAGE_SIZE};
+
+/// When the cameras fire.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum CameraTrigger {
+    /// Every camera at a fixed phase: 5 ms after the drive's start plus 7.5 ms per camera
+    /// index (the sample drives).
+    #[default]
+    Fixed,
+    /// As nuScenes' rig: each camera fires when the spinning LiDAR's beam passes the
+    /// centre of its field of view ([`crate::trigger::trigger_phase_nanos`]).
+    Staggered,
+}
+
+impl CameraTrigger {
+    /// The CLI spelling (`fixed`, `staggered`).
+    pub fn name(self) -> &'static str {
+        match self {
+            CameraTrigger::Fixed => "fixed",
+            CameraTrigger::Staggered => "staggered",
+        }
+    }
+}
+
+/// Where the per-pixel class maps ("superpixels") go.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum ClassMapStorage {
+    /// Raw Mono8 images on `/CAM_*/superpixels` in the drive file (the sample drives).
+    #[default]
+    InDrive,
+    /// 8-bit grey PNGs (`CompressedImage`, format `png`) on the same topics, in a sidecar
+    /// file `<drive>.superpixels.mcap` ([`crate::GeneratedDrive::sidecar`]).
+    PngSidecar,
+}
+
+impl ClassMapStorage {
+    /// The CLI spelling (`in-drive`, `png-sidecar`).
+    pub fn name(self) -> &'static str {
+        match self {
+            ClassMapStorage::InDrive => "in-drive",
+            ClassMapStorage::PngSidecar => "png-sidecar",
+        }
+    }
+}
+
+/// The tag of the class-map sidecar: `<drive>.superpixels.mcap`.
+pub const SIDECAR_TAG: &str = "superpixels";
+
+/// What to simulate: the sample drives use [`DriveOptions::default`]; shorter, smaller
+/// drives (the source of `recordings/damaged/`) and larger ones ([`DriveOptions::nuscenes`])
+/// change it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DriveOptions {
+    /// File stem of the drive, `{dialect}` standing for the dialect's name
+    /// (`street_{dialect}` for the sample drives).
+    pub name: String,
+    /// Length of the drive, nanoseconds (3 s for the sample drives).
+    pub duration_nanos: i64,
+    /// The first this many cameras of the rig, in nuScenes order (6 for the sample drives).
+    pub cameras: usize,
+    /// Camera image size (480×270 for the sample drives; K scales with it).
+    pub image_size: (u32, u32),
+    /// LiDAR firings per revolution (300 for the sample drives).
+    pub lidar_columns: usize,
+    /// LiDAR beams (16 for the sample drives: -25°..+5°; other counts spread evenly over
+    /// an HDL-32E-like -30.67°..+10.67°, see [`crate::sim::beam_elevations`]).
+    pub beams: usize,
+    /// When the cameras fire ([`CameraTrigger::Fixed`] for the sample drives).
+    pub camera_trigger: CameraTrigger,
+    /// Where the class maps go ([`ClassMapStorage::InDrive`] for the sample drives).
+    pub class_maps: ClassMapStorage,
+    /// MCAP chunk size, bytes (512 KiB for the sample drives).
+    pub chunk_size: u64,
+}
+
+impl Default for DriveOptions {
+    /// The sample drives of `recordings/drives/`.
+    fn default() -> Self {
+        Self {
+            name: "street_{dialect}".into(),
+            duration_nanos: 3_000_000_000,
+            cameras: 6,
+            image_size: IMAGE_SIZE,
+            lidar_columns: 300,
+            beams: 16,
+            camera_trigger: CameraTrigger::Fixed,
+            class_maps: ClassMapStorage::InDrive,
+            chunk_size: 512 * 1024,
+        }
+    }
+}
+
+impl DriveOptions {
+    /// A short, small drive: 1.5 s (3 keyframes at 0.5 s), the front and front-right
+    /// cameras at 240×136, 60 LiDAR columns, 32 KiB chunks (so that damage to one chunk
+    /// costs a small part of the file). About 0.4 MB per dialect.
+    pub fn short() -> Self {
+        Self {
+            duration_nanos: 1_500_000_000,
+            cameras: 2,
+            image_size: (240, 136),
+            lidar_columns: 60,
+            chunk_size: 32 * 1024,
+            ..Self::default()
+        }
+    }
+
+    /// A nuScenes-sized drive for benchmarks: 2 s (4 keyframes at 2 Hz), a 32-beam LiDAR
+    /// with 1084 firings per 20 Hz revolution, six cameras at `width × height` triggered
+    /// as the beam passes them, class maps as PNGs in a sidecar, 4 MiB chunks. Its stem is
+    /// `nuscenes_{dialect}_<width>x<height>`.
+    pub fn nuscenes(width: u32, height: u32) -> Self {
+        Self {
+            name: format!("nuscenes_{{dialect}}_{width}x{height}"),
+            duration_nanos: 2_000_000_000,
+            cameras: 6,
+            image_size: (width, height),
+            lidar_columns: 1084,
+            beams: 32,
+            camera_trigger: CameraTrigger::Staggered,
+            class_maps: ClassMapStorage::PngSidecar,
+            chunk_size: 4 * 1024 * 1024,
+        }
+    }
+
+    /// The drive length in seconds, as the writers' descriptions spell it.
+    pub fn duration_secs(&self) -> f64 {
+        self.duration_nanos as f64 * 1e-9
+    }
+
+    /// File stem of the drive in `dialect` (`street_ros2`, `nuscenes_foxglove_800x450`).
+    pub fn drive_name(&self, dialect: Dialect) -> String {
+        self.name.replace("{dialect}", dialect.name())
+    }
+
+    /// File name of the class-map sidecar in `dialect`, if the class maps go to one.
+    pub fn sidecar_name(&self, dialect: Dialect) -> Option<String> {
+        (self.class_maps == ClassMapStorage::PngSidecar)
+            .then(|| format!("{}.{SIDECAR_TAG}.mcap", self.drive_name(dialect)))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names_follow_the_dialect_and_presets_keep_their_own_stem() {
+        let default = DriveOptions::default();
+        for dialect in Dialect::ALL {
+            assert_eq!(default.drive_name(dialect), dialect.drive_name());
+            assert_eq!(
+                DriveOptions::short().drive_name(dialect),
+                dialect.drive_name()
+            );
+            assert_eq!(default.sidecar_name(dialect), None);
+        }
+        let nuscenes = DriveOptions::nuscenes(800, 450);
+        assert_eq!(
+            nuscenes.drive_name(Dialect::Foxglove),
+            "nuscenes_foxglove_800x450"
+        );
+        assert_eq!(
+            nuscenes.sidecar_name(Dialect::Ros2).as_deref(),
+            Some("nuscenes_ros2_800x450.superpixels.mcap")
+        );
+    }
+}
