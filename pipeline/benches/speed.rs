@@ -1,48 +1,211 @@
-//! Scratch: nuScenes-sized drive, samples on one core, stage times.
+//! The pipeline on nuScenes-sized drives: samples/s on one core and on all cores, where
+//! the time of a sample goes (ms per stage), SLIC instead of class maps, and the batch
+//! write against one plain write of its bytes.
+//!
+//! `cargo bench -p superflow-pipeline --bench speed` (options: `-- --samples N` (48),
+//! `--slic-samples N` (12), `--sizes 800x450,1600x900`, `--regenerate`).
+//!
+//! The drives come from the generator (`superflow-recordings --preset nuscenes`): the
+//! nuscenes2mcap layout (Foxglove protobuf), a 32-beam LiDAR at 20 Hz (~33 k returns a
+//! sweep), six JPEG cameras at ~12 Hz triggered as the beam passes them, class maps as
+//! PNG in a `<drive>.superpixels.mcap` sidecar. They are written once under
+//! `target/bench-drives/` (a few seconds each) and reused while the generator version
+//! is the same.
+
 #[allow(dead_code)]
 #[path = "../../tests/src/bench/common.rs"]
 mod common;
+
+use common::{arg_count, arg_value, cores, flag, load_average};
+use rayon::prelude::*;
+use std::path::PathBuf;
+use std::time::Instant;
+use superflow_pipeline::batch::{BatchPlan, BatchShape};
 use superflow_pipeline::drive::{Dataset, IngestConfig};
-use superflow_pipeline::sample::{SampleBuilder, SampleConfig};
-use superflow_recordings::{Dialect, DriveOptions, generate_with};
+use superflow_pipeline::sample::recipe::SuperpixelSource;
+use superflow_pipeline::sample::{Sample, SampleBuilder, SampleConfig, StageTimes};
+use superflow_recordings::{Dialect, DriveOptions, GENERATOR_VERSION, generate_with};
+
+/// The pipeline binary's allocator (see `src/main.rs`).
+#[global_allocator]
+static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
+/// Samples in the batch of the batch-write measurement (the service's default).
+const BATCH: usize = 4;
+
+/// Writes (or finds) the nuScenes-sized drive of `width × height`; returns its path.
+fn drive(width: u32, height: u32, regenerate: bool) -> anyhow::Result<PathBuf> {
+    let options = DriveOptions::nuscenes(width, height);
+    let dialect = Dialect::Foxglove;
+    let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../target/bench-drives")
+        .join(format!("v{GENERATOR_VERSION}"));
+    std::fs::create_dir_all(&dir)?;
+    let path = dir.join(format!("{}.mcap", options.drive_name(dialect)));
+    if path.exists() && !regenerate {
+        return Ok(path);
+    }
+    let started = Instant::now();
+    let generated = generate_with(dialect, &options)?;
+    if let (Some(name), Some(bytes)) = (options.sidecar_name(dialect), &generated.sidecar) {
+        std::fs::write(dir.join(format!("{name}.mcap")), bytes)?;
+    }
+    std::fs::write(&path, &generated.mcap)?;
+    eprintln!(
+        "generated {} ({:.1} MB) in {:.1} s",
+        path.display(),
+        generated.mcap.len() as f64 / 1e6,
+        started.elapsed().as_secs_f64()
+    );
+    Ok(path)
+}
+
+/// Builds `n` samples (epoch-major over the plan) on a pool of `threads`; returns
+/// samples/s and the summed stage times.
+fn throughput(
+    builder: &SampleBuilder<'_>,
+    n: usize,
+    threads: usize,
+) -> anyhow::Result<(f64, StageTimes)> {
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()?;
+    let per_epoch = builder.plan().keyframes.len();
+    let started = Instant::now();
+    let times = pool.install(|| {
+        (0..n)
+            .into_par_iter()
+            .map(|i| {
+                builder
+                    .build((i / per_epoch) as u64, (i % per_epoch) as u64)
+                    .map(|s| s.times)
+            })
+            .collect::<Result<Vec<_>, _>>()
+    })?;
+    let secs = started.elapsed().as_secs_f64();
+    let mut total = StageTimes::default();
+    for t in &times {
+        total.add(t);
+    }
+    Ok((n as f64 / secs, total))
+}
+
+/// Median milliseconds of `runs` calls of `f`.
+fn median_ms(runs: usize, mut f: impl FnMut()) -> f64 {
+    let ms: Vec<f64> = (0..runs)
+        .map(|_| {
+            let t = Instant::now();
+            f();
+            t.elapsed().as_secs_f64() * 1e3
+        })
+        .collect();
+    common::median(&ms)
+}
+
+/// Producer ms per batch of [`BATCH`] samples (plan + write every section into a
+/// zeroed payload, as into a fresh loan) and ms of one plain copy of the same bytes;
+/// also the batch size in bytes.
+fn batch_write(samples: &[Sample], shape: BatchShape) -> anyhow::Result<(f64, f64, usize)> {
+    let plan = BatchPlan::new(samples, shape)?;
+    let len = plan.layout().payload_len();
+    let mut payload = vec![0u8; len];
+    let source = vec![7u8; len];
+    let mut failed = None;
+    let write = median_ms(9, || {
+        payload.fill(0);
+        let result =
+            BatchPlan::new(samples, shape).and_then(|p| p.write_zeroed(samples, &mut payload));
+        if let Err(e) = result {
+            failed = Some(e);
+        }
+    });
+    if let Some(e) = failed {
+        return Err(e.into());
+    }
+    // `write` includes the memset above: measure it alone and take it off.
+    let memset = median_ms(9, || payload.fill(0));
+    let copy = median_ms(9, || payload.copy_from_slice(&source));
+    std::hint::black_box(&payload);
+    Ok(((write - memset).max(0.0), copy, len))
+}
 
 fn main() -> anyhow::Result<()> {
-    let n = common::arg_count("--samples")?.unwrap_or(24);
-    let path = std::path::PathBuf::from("/tmp/nus_prof.mcap");
-    if !path.exists() {
-        let t = std::time::Instant::now();
-        let opts = DriveOptions {
-            duration_nanos: 2_000_000_000,
-            cameras: 6,
-            image_size: (800, 450),
-            lidar_columns: 2168,
-            chunk_size: 4 << 20,
-        };
-        let drive = generate_with(Dialect::Foxglove, &opts)?;
-        std::fs::write(&path, &drive.mcap)?;
-        eprintln!("generated in {:.1} s", t.elapsed().as_secs_f64());
-    }
-    let dataset = Dataset::open(std::slice::from_ref(&path), &IngestConfig::default())?;
-    let builder = SampleBuilder::new(&dataset, SampleConfig::default())?;
-    let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build()?;
-    let per = builder.plan().keyframes.len();
-    let mut times = superflow_pipeline::sample::StageTimes::default();
-    let t = std::time::Instant::now();
-    let mut points = 0;
-    pool.install(|| -> anyhow::Result<()> {
-        for i in 0..n {
-            let s = builder.build((i / per) as u64, (i % per) as u64)?;
-            points += s.dense.xyz.len();
-            times.add(&s.times);
-        }
-        Ok(())
-    })?;
-    let ms = |ns: u64| ns as f64 / 1e6 / n as f64;
+    let n = arg_count("--samples")?.unwrap_or(48);
+    let n_slic = arg_count("--slic-samples")?.unwrap_or(12);
+    let sizes = arg_value("--sizes").unwrap_or_else(|| "800x450,1600x900".into());
+    let regenerate = flag("--regenerate");
+    let cores = cores();
     println!(
-        "{n} samples, {:.1} ms/sample wall; dense points {}; decode {:.1} sweeps {:.1} images {:.1} proj {:.1} sp {:.1} voxels {:.1}",
-        t.elapsed().as_secs_f64() * 1e3 / n as f64,
-        points / n,
-        ms(times.decode), ms(times.sweeps), ms(times.images), ms(times.projection), ms(times.superpixels), ms(times.voxels)
+        "nuScenes-sized drives, default recipe; {n} samples per run ({n_slic} with SLIC), {cores} cores, load average {} at start",
+        load_average(3)
+    );
+    println!(
+        "| cameras | superpixels | ms/sample 1 core | samples/s 1 core | samples/s {cores} cores | scaling | decode | sweeps | images | projection | superpixels | voxels+maps |"
+    );
+    println!("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    let mut batch_rows = Vec::new();
+    for size in sizes.split(',') {
+        let (w, h) = size
+            .split_once('x')
+            .and_then(|(w, h)| Some((w.parse::<u32>().ok()?, h.parse::<u32>().ok()?)))
+            .ok_or_else(|| anyhow::anyhow!("--sizes {size}: expected WIDTHxHEIGHT"))?;
+        let path = drive(w, h, regenerate)?;
+        let dataset = Dataset::open(std::slice::from_ref(&path), &IngestConfig::default())?;
+        for (source, count) in [
+            (SuperpixelSource::Channel, n),
+            (SuperpixelSource::Slic, n_slic),
+        ] {
+            let config = SampleConfig {
+                superpixels: source,
+                ..SampleConfig::default()
+            };
+            let builder = SampleBuilder::new(&dataset, config)?;
+            // A warm-up epoch (page cache, allocator, decoder handles).
+            throughput(&builder, builder.plan().keyframes.len(), cores)?;
+            let (one, times) = throughput(&builder, count, 1)?;
+            let (all, _) = throughput(&builder, count, cores)?;
+            let ms = |ns: u64| ns as f64 / 1e6 / count as f64;
+            println!(
+                "| {w}×{h} | {} | {:.1} | {one:.1} | {all:.1} | {:.2}× | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} |",
+                match source {
+                    SuperpixelSource::Slic => "SLIC",
+                    _ => "class map (PNG)",
+                },
+                1e3 / one,
+                all / one,
+                ms(times.decode),
+                ms(times.sweeps),
+                ms(times.images),
+                ms(times.projection),
+                ms(times.superpixels),
+                ms(times.voxels),
+            );
+            if source == SuperpixelSource::Channel {
+                let samples = (0..BATCH as u64)
+                    .map(|i| builder.build(0, i % builder.plan().keyframes.len() as u64))
+                    .collect::<Result<Vec<_>, _>>()?;
+                let shape = BatchShape::of(builder.config());
+                batch_rows.push((format!("{w}×{h}"), batch_write(&samples, shape)?));
+            }
+        }
+    }
+    println!(
+        "stage columns: ms per sample on 1 core (decode: 5 sweeps, 9 JPEGs, 9 PNG class maps)"
+    );
+    println!();
+    println!(
+        "| cameras | batch of {BATCH} | producer write ms | one copy of its bytes ms | ratio |"
+    );
+    println!("|---|---:|---:|---:|---:|");
+    for (name, (write, copy, len)) in batch_rows {
+        println!(
+            "| {name} | {:.1} MB | {write:.2} | {copy:.2} | {:.2}× |",
+            len as f64 / 1e6,
+            write / copy
+        );
+    }
+    println!(
+        "producer write: plan + every section into a zeroed payload (a fresh loan); copy: one memcpy of as many bytes"
     );
     Ok(())
 }

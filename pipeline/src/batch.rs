@@ -243,30 +243,42 @@ fn write_images(
 /// `voxel_features`; returns the first point row of every cloud (and the total).
 fn write_points(samples: &[Sample], w: &mut BatchWriter<'_>) -> Result<Vec<usize>, BatchError> {
     let all_clouds = || samples.iter().flat_map(clouds);
-    fill(
-        w.take_section::<f32>(Section::Points)?,
-        all_clouds().flat_map(|c| {
-            c.xyz
-                .iter()
-                .zip(&c.intensity)
-                .flat_map(|(p, i)| [p[0], p[1], p[2], *i])
-        }),
-    );
+    let out = w.take_section::<f32>(Section::Points)?;
+    concat(out, 4, all_clouds().map(|c| c.xyz.len()), |ci, dst| {
+        let c = cloud_at(samples, ci);
+        for ((d, p), i) in dst.chunks_exact_mut(4).zip(&c.xyz).zip(&c.intensity) {
+            d.copy_from_slice(&[p[0], p[1], p[2], *i]);
+        }
+    });
     let point_offsets = offsets(all_clouds().map(|c| c.xyz.len()));
     fill(
         w.take_section::<u32>(Section::PointClouds)?,
         point_offsets.iter().map(|&o| o as u32),
     );
-    fill(
-        w.take_section::<u8>(Section::SourceSweep)?,
-        all_clouds().flat_map(|c| c.source_sweep.iter().copied()),
+    let out = w.take_section::<u8>(Section::SourceSweep)?;
+    concat(
+        out,
+        1,
+        all_clouds().map(|c| c.source_sweep.len()),
+        |ci, dst| {
+            dst.copy_from_slice(&cloud_at(samples, ci).source_sweep);
+        },
     );
     let voxel_offsets = offsets(all_clouds().map(|c| c.voxels.coords.len()));
-    fill(
-        w.take_section::<u32>(Section::PointToVoxel)?,
-        all_clouds()
-            .zip(&voxel_offsets)
-            .flat_map(|(c, &o)| c.voxels.point_to_voxel.iter().map(move |&v| v + o as u32)),
+    let out = w.take_section::<u32>(Section::PointToVoxel)?;
+    concat(
+        out,
+        1,
+        all_clouds().map(|c| c.voxels.point_to_voxel.len()),
+        |ci, dst| {
+            let first = voxel_offsets[ci] as u32;
+            for (d, v) in dst
+                .iter_mut()
+                .zip(&cloud_at(samples, ci).voxels.point_to_voxel)
+            {
+                *d = v + first;
+            }
+        },
     );
     fill(
         w.take_section::<f32>(Section::Augmentation)?,
@@ -280,9 +292,14 @@ fn write_points(samples: &[Sample], w: &mut BatchWriter<'_>) -> Result<Vec<usize
             ]
         }),
     );
-    fill(
-        w.take_section::<f32>(Section::VoxelFeatures)?,
-        all_clouds().flat_map(|c| c.voxel_features.iter().flatten().copied()),
+    let out = w.take_section::<f32>(Section::VoxelFeatures)?;
+    concat(
+        out,
+        4,
+        all_clouds().map(|c| c.voxel_features.len()),
+        |ci, dst| {
+            dst.copy_from_slice(cloud_at(samples, ci).voxel_features.as_flattened());
+        },
     );
     Ok(point_offsets)
 }
@@ -307,38 +324,51 @@ fn write_pairings(
             })
         })
     };
-    fill(
-        w.take_section::<u32>(Section::PairingPoint)?,
-        pairings().flat_map(|(ci, _, cloud)| {
-            let o = point_offsets[ci] as u32;
-            cloud.pairings.iter().map(move |p| p.point + o)
-        }),
-    );
-    fill(
-        w.take_section::<u32>(Section::PairingImage)?,
-        pairings().flat_map(|(_, first_image, cloud)| {
-            cloud
-                .pairings
-                .iter()
-                .map(move |p| (first_image + usize::from(p.camera)) as u32)
-        }),
-    );
-    fill(
-        w.take_section::<u16>(Section::PairingPixel)?,
-        all_clouds().flat_map(|c| c.pairings.iter().flat_map(|p| [p.row, p.col])),
-    );
-    fill(
-        w.take_section::<f32>(Section::PairingUv)?,
-        all_clouds().flat_map(|c| c.pairings.iter().flat_map(|p| [p.u, p.v])),
-    );
-    fill(
-        w.take_section::<f32>(Section::PairingDepth)?,
-        all_clouds().flat_map(|c| c.pairings.iter().map(|p| p.depth)),
-    );
-    fill(
-        w.take_section::<u32>(Section::PairingSuperpixel)?,
-        all_clouds().flat_map(|c| c.pairings.iter().map(|p| p.superpixel)),
-    );
+    // One pass over each cloud's pairings fills the six sections together.
+    let mut point = w.take_section::<u32>(Section::PairingPoint)?;
+    let mut image = w.take_section::<u32>(Section::PairingImage)?;
+    let mut pixel = w.take_section::<u16>(Section::PairingPixel)?;
+    let mut uv = w.take_section::<f32>(Section::PairingUv)?;
+    let mut depth = w.take_section::<f32>(Section::PairingDepth)?;
+    let mut superpixel = w.take_section::<u32>(Section::PairingSuperpixel)?;
+    for (ci, first_image, cloud) in pairings() {
+        let first_point = point_offsets[ci] as u32;
+        let n = cloud.pairings.len();
+        if [
+            point.len(),
+            image.len(),
+            pixel.len() / 2,
+            uv.len() / 2,
+            depth.len(),
+            superpixel.len(),
+        ]
+        .iter()
+        .any(|&room| room < n)
+        {
+            return Err(err("pairings", "more pairings than planned"));
+        }
+        let rows = point
+            .iter_mut()
+            .zip(image.iter_mut())
+            .zip(pixel.chunks_exact_mut(2));
+        let rows = rows.zip(uv.chunks_exact_mut(2)).zip(depth.iter_mut());
+        for (((((pt, im), px), uv), d), (sp, p)) in
+            rows.zip(superpixel.iter_mut().zip(&cloud.pairings))
+        {
+            *pt = p.point + first_point;
+            *im = first_image as u32 + u32::from(p.camera);
+            px.copy_from_slice(&[p.row, p.col]);
+            uv.copy_from_slice(&[p.u, p.v]);
+            *d = p.depth;
+            *sp = p.superpixel;
+        }
+        point = &mut point[n..];
+        image = &mut image[n..];
+        pixel = &mut pixel[2 * n..];
+        uv = &mut uv[2 * n..];
+        depth = &mut depth[n..];
+        superpixel = &mut superpixel[n..];
+    }
     let pairing_offsets = offsets(all_clouds().map(|c| c.pairings.len()));
     fill(
         w.take_section::<u32>(Section::PairingClouds)?,
@@ -357,22 +387,31 @@ fn write_level(
 ) -> Result<(), BatchError> {
     let all_clouds = || samples.iter().flat_map(clouds);
     let rows = offsets(all_clouds().map(|c| c.levels[l].coords.len()));
-    fill(
-        w.take_section::<i32>(Section::LevelCoords(l))?,
-        all_clouds().enumerate().flat_map(|(ci, c)| {
-            c.levels[l]
-                .coords
-                .iter()
-                .flat_map(move |x| [ci as i32, x[0], x[1], x[2]])
-        }),
+    let out = w.take_section::<i32>(Section::LevelCoords(l))?;
+    concat(
+        out,
+        4,
+        all_clouds().map(|c| c.levels[l].coords.len()),
+        |ci, dst| {
+            for (d, x) in dst
+                .chunks_exact_mut(4)
+                .zip(&cloud_at(samples, ci).levels[l].coords)
+            {
+                d.copy_from_slice(&[ci as i32, x[0], x[1], x[2]]);
+            }
+        },
     );
     fill(
         w.take_section::<u32>(Section::LevelClouds(l))?,
         rows.iter().map(|&o| o as u32),
     );
     let maps: Vec<&KernelMap> = all_clouds().map(|c| &c.levels[l].neighbours).collect();
-    let (pairs, starts) = merge(&maps, &rows, &rows, 27)?;
-    w.write_section(Section::LevelNbr(l), &pairs)?;
+    let starts = merge(
+        w.take_section::<u32>(Section::LevelNbr(l))?,
+        &maps,
+        (&rows, &rows),
+        27,
+    )?;
     w.write_section(Section::LevelNbrStarts(l), &starts)?;
     if down {
         let coarse = offsets(all_clouds().map(|c| c.levels[l + 1].coords.len()));
@@ -384,8 +423,12 @@ fn write_level(
                     .ok_or_else(|| err("levels", format!("level {l} has no down map")))
             })
             .collect::<Result<Vec<_>, _>>()?;
-        let (pairs, starts) = merge(&maps, &rows, &coarse, 8)?;
-        w.write_section(Section::LevelDown(l), &pairs)?;
+        let starts = merge(
+            w.take_section::<u32>(Section::LevelDown(l))?,
+            &maps,
+            (&rows, &coarse),
+            8,
+        )?;
         w.write_section(Section::LevelDownStarts(l), &starts)?;
     }
     Ok(())
@@ -407,34 +450,60 @@ fn offsets(counts: impl Iterator<Item = usize>) -> Vec<usize> {
     out
 }
 
-/// Concatenates per-cloud kernel maps offset by offset, shifting input rows by
-/// `in_rows[cloud]` and output rows by `out_rows[cloud]`; returns flattened pairs and the
-/// `kernels + 1` starts.
+/// Cloud `ci` of the batch, counting every sample's clouds in batch order.
+fn cloud_at(samples: &[Sample], ci: usize) -> &Cloud {
+    let per = samples[0].frames.len() + 1;
+    let s = &samples[ci / per];
+    s.frames.get(ci % per).map_or(&s.dense, |f| &f.cloud)
+}
+
+/// Fills `dst` cloud after cloud: `write(ci, part)` gets cloud `ci`'s part of `width`
+/// elements per item, `counts` giving the items of each cloud in order (the section was
+/// sized for exactly their sum).
+fn concat<T>(
+    dst: &mut [T],
+    width: usize,
+    counts: impl Iterator<Item = usize>,
+    mut write: impl FnMut(usize, &mut [T]),
+) {
+    let mut rest = dst;
+    for (ci, n) in counts.enumerate() {
+        let (part, tail) = rest.split_at_mut((n * width).min(rest.len()));
+        write(ci, part);
+        rest = tail;
+    }
+}
+
+/// Writes per-cloud kernel maps into `dst` offset by offset, shifting input rows by
+/// `rows.0[cloud]` and output rows by `rows.1[cloud]`; returns the `kernels + 1` starts.
 fn merge(
+    dst: &mut [u32],
     maps: &[&KernelMap],
-    in_rows: &[usize],
-    out_rows: &[usize],
+    (in_rows, out_rows): (&[usize], &[usize]),
     kernels: usize,
-) -> Result<(Vec<u32>, Vec<u32>), BatchError> {
-    let total: usize = maps.iter().map(|m| m.pairs.len()).sum();
-    let mut pairs = Vec::with_capacity(total * 2);
+) -> Result<Vec<u32>, BatchError> {
+    if let Some(map) = maps.iter().find(|m| m.offsets.len() != kernels) {
+        return Err(err(
+            "maps",
+            format!("{} kernel offsets, expected {kernels}", map.offsets.len()),
+        ));
+    }
     let mut starts = Vec::with_capacity(kernels + 1);
     starts.push(0);
+    let mut rest = dst;
+    let mut written = 0;
     for kern in 0..kernels {
         for (ci, map) in maps.iter().enumerate() {
-            if map.offsets.len() != kernels {
-                return Err(err(
-                    "maps",
-                    format!("{} kernel offsets, expected {kernels}", map.offsets.len()),
-                ));
-            }
             let (i0, o0) = (in_rows[ci] as u32, out_rows[ci] as u32);
-            for [i, o] in map.pairs_of(kern) {
-                pairs.push(i + i0);
-                pairs.push(o + o0);
+            let pairs = map.pairs_of(kern);
+            let (part, tail) = rest.split_at_mut((pairs.len() * 2).min(rest.len()));
+            for (d, [i, o]) in part.chunks_exact_mut(2).zip(pairs) {
+                d.copy_from_slice(&[i + i0, o + o0]);
             }
+            rest = tail;
+            written += pairs.len();
         }
-        starts.push((pairs.len() / 2) as u32);
+        starts.push(written as u32);
     }
-    Ok((pairs, starts))
+    Ok(starts)
 }

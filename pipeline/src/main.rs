@@ -17,6 +17,12 @@ use superflow_pipeline::drive::Dataset;
 use superflow_pipeline::inspect::InspectReport;
 use superflow_pipeline::publish::{Metrics, Mode};
 use superflow_pipeline::sample::SampleBuilder;
+
+/// mimalloc keeps the pages of the large per-sample buffers (clouds, maps, images)
+/// mapped between samples, where glibc's malloc unmaps and faults them in again; also
+/// faster across rayon's threads. (`cargo bench -p superflow-pipeline --bench speed`.)
+#[global_allocator]
+static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 use superflow_pipeline::sample::export::write_sample;
 
 /// Streams SuperFlow training batches from recorded drives to trainers over shared memory.

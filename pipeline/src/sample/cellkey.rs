@@ -131,7 +131,12 @@ mod tests {
 
     #[test]
     fn wide_ranges_have_no_packing_and_sort_without_one() {
-        let cells = [[i32::MAX, 0, 0], [i32::MIN, 5, 0], [0, i32::MIN, i32::MAX], [0, 0, 0]];
+        let cells = [
+            [i32::MAX, 0, 0],
+            [i32::MIN, 5, 0],
+            [0, i32::MIN, i32::MAX],
+            [0, 0, 0],
+        ];
         assert!(CellKeys::covering(&cells).is_none());
         let (order, keys) = sort_cells(&cells);
         assert!(keys.is_none());
@@ -147,7 +152,10 @@ mod tests {
                 [x, (i * 104_729) % 4001, -(i % 13) * 40_000_000]
             })
             .collect();
-        let narrow: Vec<[i32; 3]> = wide.iter().map(|c| [c[0] % 7, c[1] % 5, c[2] % 3]).collect();
+        let narrow: Vec<[i32; 3]> = wide
+            .iter()
+            .map(|c| [c[0] % 7, c[1] % 5, c[2] % 3])
+            .collect();
         for (cells, pair_sort) in [(wide, true), (narrow, false)] {
             let (order, keys) = sort_cells(&cells);
             let (packing, sorted) = keys.unwrap();

@@ -106,9 +106,15 @@ pub fn flip_horizontal<T>(data: &mut [T], width: usize, channels: usize) {
         return;
     }
     for row in data.chunks_exact_mut(stride) {
-        for x in 0..width / 2 {
-            for c in 0..channels {
-                row.swap(x * channels + c, (width - 1 - x) * channels + c);
+        match channels {
+            1 => row.reverse(),
+            3 => row.as_chunks_mut::<3>().0.reverse(),
+            _ => {
+                for x in 0..width / 2 {
+                    for c in 0..channels {
+                        row.swap(x * channels + c, (width - 1 - x) * channels + c);
+                    }
+                }
             }
         }
     }

@@ -130,9 +130,8 @@ impl SampleContext<'_> {
             Scale::Full
         };
         let t = Instant::now();
-        let ScaledImage { image, native } = with_cache(|cache| {
-            drive.read_image_scaled(camera, &frame, Target::Rgb, scale, cache)
-        })?;
+        let ScaledImage { image, native } =
+            with_cache(|cache| drive.read_image_scaled(camera, &frame, Target::Rgb, scale, cache))?;
         times.decode += elapsed(t);
         if native != (calibration.width, calibration.height) || image.format != PixelFormat::Rgb8 {
             let reason = format!(

@@ -4,7 +4,7 @@
 //! raw sweeps with per-point time.
 
 use crate::drive::{TfError, TransformTree};
-use nalgebra::{Isometry3, Point2, Point3, Vector2};
+use nalgebra::{Isometry3, Matrix3, Point2, Point3, Vector3};
 use superflow_schemas::Stamp;
 use superflow_schemas::sensor::{CameraCalibration, PointCloud};
 
@@ -33,8 +33,11 @@ pub fn camera_from_lidar(
 #[derive(Debug, Clone)]
 pub struct CameraView<'a> {
     calibration: &'a CameraCalibration,
-    camera_from_lidar: Isometry3<f64>,
-    max_ideal_radius: f64,
+    /// `camera_from_lidar` as a rotation matrix and a translation: the depth row alone
+    /// rejects the points behind the camera (most of them) before the rest is computed.
+    rotation: Matrix3<f64>,
+    translation: Vector3<f64>,
+    max_ideal_radius_sq: f64,
 }
 
 impl<'a> CameraView<'a> {
@@ -56,10 +59,12 @@ impl<'a> CameraView<'a> {
                 .norm()
         })
         .fold(0.0, f64::max);
+        let max_ideal_radius = max_ideal_radius * 1.02;
         Self {
             calibration,
-            camera_from_lidar,
-            max_ideal_radius: max_ideal_radius * 1.02,
+            rotation: camera_from_lidar.rotation.to_rotation_matrix().into_inner(),
+            translation: camera_from_lidar.translation.vector,
+            max_ideal_radius_sq: max_ideal_radius * max_ideal_radius,
         }
     }
 
@@ -67,12 +72,19 @@ impl<'a> CameraView<'a> {
     /// lies more than [`MIN_DEPTH_M`] in front of the camera and strictly inside the
     /// image (`0 < u < W − 1`, `0 < v < H − 1`).
     pub fn project(&self, point_in_lidar: [f32; 3]) -> Option<(Point2<f64>, f64)> {
-        let [x, y, z] = point_in_lidar.map(f64::from);
-        let p = self.camera_from_lidar * Point3::new(x, y, z);
-        if p.z <= MIN_DEPTH_M {
+        let q = Vector3::from(point_in_lidar.map(f64::from));
+        let (r, t) = (&self.rotation, &self.translation);
+        let depth = r.row(2).transpose().dot(&q) + t.z;
+        if depth <= MIN_DEPTH_M {
             return None;
         }
-        if Vector2::new(p.x / p.z, p.y / p.z).norm() > self.max_ideal_radius {
+        let p = Point3::new(
+            r.row(0).transpose().dot(&q) + t.x,
+            r.row(1).transpose().dot(&q) + t.y,
+            depth,
+        );
+        let (ix, iy) = (p.x / p.z, p.y / p.z);
+        if ix * ix + iy * iy > self.max_ideal_radius_sq {
             return None;
         }
         let pixel = self.calibration.project(&p)?;

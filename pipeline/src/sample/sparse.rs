@@ -103,7 +103,11 @@ pub fn neighbour_map(coords: &[[i32; 3]]) -> KernelMap {
     // The offsets after the centre, by column (dx, dy): one pass finds every dz.
     for (dx, dy) in [(0, 0), (0, 1), (1, -1), (1, 0), (1, 1)] {
         let dz_first = if (dx, dy) == (0, 0) { 1 } else { -1 };
-        let found = merge_column(&sorted, keys.delta([dx, dy, dz_first]), (2 - dz_first) as u64);
+        let found = merge_column(
+            &sorted,
+            keys.delta([dx, dy, dz_first]),
+            (2 - dz_first) as u64,
+        );
         for (j, (forward, backward)) in found.into_iter().enumerate() {
             let dz = dz_first + j as i32;
             per_offset[cube_index([dx, dy, dz])] = forward;
@@ -140,7 +144,12 @@ type MergedPairs = (Vec<[u32; 2]>, Vec<[u32; 2]>);
 /// `0..count` (`delta > 0`: offsets of one column, consecutive in z), per `j`.
 fn merge_column(sorted: &[u64], delta: u64, count: u64) -> Vec<MergedPairs> {
     let mut out: Vec<MergedPairs> = (0..count)
-        .map(|_| (Vec::with_capacity(sorted.len() / 2), Vec::with_capacity(sorted.len() / 2)))
+        .map(|_| {
+            (
+                Vec::with_capacity(sorted.len() / 2),
+                Vec::with_capacity(sorted.len() / 2),
+            )
+        })
         .collect();
     let mut b = 0;
     for (a, key) in sorted.iter().enumerate() {
@@ -335,7 +344,9 @@ mod tests {
             let c = coords[*i as usize];
             assert_eq!(coarse[*out as usize], [c[0] >> 1, c[1] >> 1, c[2] >> 1]);
         }
-        let rows: Vec<u32> = (0..8).flat_map(|k| map.pairs_of(k).iter().map(|p| p[0])).collect();
+        let rows: Vec<u32> = (0..8)
+            .flat_map(|k| map.pairs_of(k).iter().map(|p| p[0]))
+            .collect();
         assert_eq!(rows.len(), coords.len());
         for k in 0..8 {
             assert!(map.pairs_of(k).windows(2).all(|w| w[0][0] < w[1][0]));

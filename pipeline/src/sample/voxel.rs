@@ -1,8 +1,8 @@
 //! Voxelization: points → unique integer cells, one representative point per cell, and
 //! the map from every point to its cell.
 
-use crate::invalid::InvalidSetting;
 use super::cellkey::sort_cells;
+use crate::invalid::InvalidSetting;
 use serde::{Deserialize, Serialize};
 
 /// How points are binned.

@@ -56,7 +56,9 @@ fn scale_for(header: &DecompressHeader, scale: Scale) -> ScalingFactor {
     }
     REDUCED
         .into_iter()
-        .find(|f| f.scale(header.width) >= width as usize && f.scale(header.height) >= height as usize)
+        .find(|f| {
+            f.scale(header.width) >= width as usize && f.scale(header.height) >= height as usize
+        })
         .unwrap_or(ScalingFactor::ONE)
 }
 

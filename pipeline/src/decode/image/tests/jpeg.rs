@@ -226,7 +226,11 @@ fn camera_jpeg(w: usize, h: usize) -> Vec<u8> {
 /// Mean and largest absolute difference of two equally long byte slices.
 fn mean_and_max_diff(a: &[u8], b: &[u8]) -> (f64, u8) {
     assert_eq!(a.len(), b.len());
-    let sum: u64 = a.iter().zip(b).map(|(x, y)| u64::from(x.abs_diff(*y))).sum();
+    let sum: u64 = a
+        .iter()
+        .zip(b)
+        .map(|(x, y)| u64::from(x.abs_diff(*y)))
+        .sum();
     (sum as f64 / a.len() as f64, max_abs_diff(a, b))
 }
 
@@ -237,13 +241,19 @@ fn reduced_scale_decodes_average_the_full_decode() {
     let msg = ros2_compressed("jpeg", camera_jpeg(w, h));
     let decode = |scale| decode_ros2_compressed_scaled(&msg, Target::Rgb, scale).unwrap();
     let full = decode(Scale::Full);
-    assert_eq!((full.image.width, full.image.height, full.native), (1600, 900, (1600, 900)));
+    assert_eq!(
+        (full.image.width, full.image.height, full.native),
+        (1600, 900, (1600, 900))
+    );
     // 448×224 is reached by 1/2 (800×450), not by 1/4 (400×225).
     let half = decode(Scale::AtLeast {
         width: 448,
         height: 224,
     });
-    assert_eq!((half.image.width, half.image.height, half.native), (800, 450, (1600, 900)));
+    assert_eq!(
+        (half.image.width, half.image.height, half.native),
+        (800, 450, (1600, 900))
+    );
     let quarter = decode(Scale::AtLeast {
         width: 400,
         height: 225,
@@ -266,7 +276,10 @@ fn reduced_scale_decodes_average_the_full_decode() {
     let boxed = resize_bilinear(&full.image.data, w, h, 3, w / 2, h / 2);
     let (mean, max) = mean_and_max_diff(&half.image.data, &boxed);
     eprintln!("1/2 decode vs full decode averaged 2x2: mean {mean:.3}, max {max}");
-    assert!(mean < 3.0, "1/2 decode vs full decode averaged 2x2: mean {mean:.3}");
+    assert!(
+        mean < 3.0,
+        "1/2 decode vs full decode averaged 2x2: mean {mean:.3}"
+    );
     // What a sample sees: both resized to 448×224.
     let from_full = resize_bilinear(&full.image.data, w, h, 3, 448, 224);
     let from_half = resize_bilinear(&half.image.data, w / 2, h / 2, 3, 448, 224);
