@@ -6,6 +6,8 @@
 use crate::drive::SkipReport;
 use crate::drive::dataset::ChannelSummary;
 use crate::drive::{Dataset, Drive, Role};
+use crate::sample::SampleConfig;
+use crate::sample::plan::drive_keyframes;
 use serde::{Deserialize, Serialize};
 use std::fmt::Write as _;
 
@@ -134,6 +136,10 @@ pub struct DriveReport {
     pub duration_secs: Option<f64>,
     /// Keyframes usable at the default 0.5 s interval.
     pub usable_keyframes: usize,
+    /// How camera images meet sweeps under the default recipe (`camera_sync = "scan"`,
+    /// `keyframe_choice = "least_camera_offset"`).
+    #[serde(default)]
+    pub camera_timing: CameraTimingReport,
     /// Skipped messages by kind.
     pub skipped: SkipReport,
     /// Why the dataset cannot be trained on, if it cannot.
@@ -142,6 +148,46 @@ pub struct DriveReport {
 
 /// Keyframe spacing of the paper and the official code.
 pub const DEFAULT_KEYFRAME_INTERVAL_NANOS: i64 = 500_000_000;
+
+/// When the LiDAR scans each camera, and how far the keyframes' images are from those
+/// moments (see `sample::timing`).
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct CameraTimingReport {
+    /// Per camera, the scan moments relative to the sweep stamp, ms.
+    pub scan_ms: Vec<(String, Vec<f64>)>,
+    /// How they were found: `point_time`, `point_order` or `stamp`.
+    pub timing: String,
+    /// Keyframes of the default recipe's plan.
+    pub keyframes: usize,
+    /// Median and largest worst-camera offset of those keyframes, ms.
+    pub worst_offset_ms: Option<[f64; 2]>,
+}
+
+impl CameraTimingReport {
+    /// The report of `drive` under the default recipe.
+    fn of(drive: &Drive) -> Self {
+        let (scan, keys) = drive_keyframes(drive, &SampleConfig::default());
+        let mut worst: Vec<f64> = keys.iter().map(|(_, w)| *w as f64 * 1e-6).collect();
+        worst.sort_by(f64::total_cmp);
+        let scan_ms = drive
+            .cameras
+            .iter()
+            .zip(&scan.offsets_nanos)
+            .map(|(c, m)| (c.name.clone(), m.iter().map(|n| *n as f64 * 1e-6).collect()))
+            .collect();
+        let timing = serde_json::to_value(scan.timing)
+            .ok()
+            .and_then(|v| v.as_str().map(str::to_owned))
+            .unwrap_or_default();
+        Self {
+            scan_ms,
+            timing,
+            keyframes: keys.len(),
+            worst_offset_ms: (!worst.is_empty())
+                .then(|| [worst[worst.len() / 2], worst[worst.len() - 1]]),
+        }
+    }
+}
 
 impl DriveReport {
     /// Builds the report of an indexed drive.
@@ -230,6 +276,7 @@ impl DriveReport {
             end_stamp_nanos: span.map(|s| s.1.nanos()),
             duration_secs: span.map(|(a, b)| b.secs_since(a)),
             usable_keyframes: dataset.keyframes(DEFAULT_KEYFRAME_INTERVAL_NANOS).len(),
+            camera_timing: CameraTimingReport::of(dataset),
             skipped: dataset.skipped.clone(),
             problems: dataset.check_sensors().err().map(|e| e.to_string()),
         }
@@ -303,6 +350,21 @@ impl DriveReport {
                 out,
                 "\ntime span {d:.3} s; usable keyframes (0.5 s): {}",
                 self.usable_keyframes
+            );
+        }
+        let t = &self.camera_timing;
+        if !t.scan_ms.is_empty() {
+            let _ = writeln!(out, "LiDAR scans the cameras at (ms from the sweep stamp, {}):", t.timing);
+            for (camera, moments) in &t.scan_ms {
+                let ms: Vec<String> = moments.iter().map(|m| format!("{m:+.1}")).collect();
+                let _ = writeln!(out, "  {camera}: {}", ms.join(" and "));
+            }
+        }
+        if let Some([median, max]) = t.worst_offset_ms {
+            let _ = writeln!(
+                out,
+                "keyframes (least camera offset): {}; worst camera offset median {median:.1} ms, max {max:.1} ms",
+                t.keyframes
             );
         }
         let _ = writeln!(out, "skipped {} messages", self.skipped.total());

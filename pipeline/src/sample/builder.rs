@@ -122,6 +122,7 @@ impl<'d> SampleBuilder<'d> {
             id,
             class_superpixels: self.class_superpixels[key.drive as usize],
             chosen: &chosen,
+            scan: &self.plan.scans[key.drive as usize],
         };
         let key_frame = cfg
             .frame_offsets()

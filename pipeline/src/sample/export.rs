@@ -238,6 +238,7 @@ fn frame_json(frame: &Frame) -> serde_json::Value {
                 "camera": i.camera,
                 "topic": i.topic,
                 "stamp_nanos": i.stamp.nanos(),
+                "scan_offset_ms": i.scan_offset_nanos as f64 * 1e-6,
                 "native_width": i.native_size.0,
                 "native_height": i.native_size.1,
                 "flipped": i.flipped,

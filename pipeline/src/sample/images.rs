@@ -25,6 +25,8 @@ pub const CLASS_MAP_TOLERANCE_NANOS: i64 = 1_000_000;
 struct RawImage {
     /// Where the image is in the drive.
     frame: FrameRef,
+    /// Its stamp minus the moment the LiDAR scanned the camera's direction.
+    scan_offset_nanos: i64,
     /// The calibration in force at its stamp.
     calibration: CameraCalibration,
     /// The decoded RGB8 image (at a reduced scale when the recipe allows it).
@@ -36,19 +38,22 @@ struct RawImage {
 }
 
 impl SampleContext<'_> {
-    /// The image of `camera` for the sweep at `lidar_stamp`, resized and maybe flipped
+    /// The image of camera `camera_index` of the drive for the sweep at `lidar_stamp`
+    /// (the one nearest the LiDAR's scan of it, see `timing.rs`), resized and maybe flipped
     /// (the draw of frame `frame_pos`, camera slot `slot`), with its superpixels; also
     /// the number of superpixel ids it uses and the time spent.
     pub(super) fn load_image(
         &self,
-        camera: &CameraStream,
+        camera_index: usize,
         lidar_stamp: Stamp,
         frame_pos: u32,
         slot: usize,
     ) -> Result<(SampleImage, u32, StageTimes), SampleError> {
         let cfg = self.config;
         let mut times = StageTimes::default();
-        let raw = self.read_camera(camera, lidar_stamp, &mut times)?;
+        let camera = &self.drive.cameras[camera_index];
+        let moments = &self.scan.offsets_nanos[camera_index];
+        let raw = self.read_camera(camera, moments, lidar_stamp, &mut times)?;
         let t = Instant::now();
         let (rgb, flipped) = self.resize_and_flip(&raw.image, frame_pos, slot);
         times.images += elapsed(t);
@@ -75,6 +80,7 @@ impl SampleContext<'_> {
                 camera: camera.name.clone(),
                 topic: camera.image_topic.clone(),
                 stamp: raw.frame.stamp,
+                scan_offset_nanos: raw.scan_offset_nanos,
                 native_size: raw.native,
                 flipped,
                 rgb,
@@ -97,16 +103,18 @@ impl SampleContext<'_> {
         }
     }
 
-    /// Finds, decodes and checks the image of `camera` for the sweep at `lidar_stamp`,
-    /// and looks up its `camera_from_lidar`. Adds the decoding time to `times`.
+    /// Finds (nearest `lidar_stamp + m` for one of its scan `moments`), decodes and
+    /// checks the image of `camera` for the sweep at `lidar_stamp`, and looks up its
+    /// `camera_from_lidar`. Adds the decoding time to `times`.
     fn read_camera(
         &self,
         camera: &CameraStream,
+        moments: &[i64],
         lidar_stamp: Stamp,
         times: &mut StageTimes,
     ) -> Result<RawImage, SampleError> {
         let drive = self.drive;
-        let frame = *camera_frame_for(camera, lidar_stamp).ok_or_else(|| {
+        let (frame, scan_offset_nanos) = camera_frame_for(camera, lidar_stamp, moments).ok_or_else(|| {
             let reason = format!(
                 "{}: no image within half a period of the sweep",
                 camera.name
@@ -156,7 +164,8 @@ impl SampleContext<'_> {
         )
         .map_err(|e| self.transform_error(format!("{} from LiDAR", camera.name), frame.stamp, e))?;
         Ok(RawImage {
-            frame,
+            frame: *frame,
+            scan_offset_nanos,
             calibration,
             image,
             native,

@@ -8,6 +8,7 @@
 use super::error::SampleError;
 use super::project::deskew;
 use super::recipe::SampleConfig;
+use super::timing::CameraScan;
 use super::types::{SampleId, SampleImage, StageTimes};
 use crate::drive::TfError;
 use crate::drive::dataset::{Drive, LidarStream};
@@ -51,6 +52,8 @@ pub(super) struct SampleContext<'a> {
     pub class_superpixels: bool,
     /// The chosen cameras' indices in the drive, slot order.
     pub chosen: &'a [usize],
+    /// When the drive's LiDAR scans each camera.
+    pub scan: &'a CameraScan,
 }
 
 /// A sweep decoded, de-skewed and in its LiDAR frame at its stamp.
@@ -186,7 +189,7 @@ impl SampleContext<'_> {
                     .par_iter()
                     .enumerate()
                     .map(|(slot, &c)| {
-                        self.load_image(&drive.cameras[c], lidar_stamp, frame_pos, slot)
+                        self.load_image(c, lidar_stamp, frame_pos, slot)
                     })
                     .collect::<Result<Vec<_>, _>>()
             },

@@ -6,6 +6,7 @@
 //!
 //! * [`recipe`]: the `[sample]` config with the paper's defaults;
 //! * [`plan`]: the keyframes and their context sweeps, the epoch's shuffled order;
+//! * [`timing`]: when the LiDAR scans each camera, which matches images to sweeps;
 //! * [`builder`]: [`SampleBuilder`], a sample from its loaded parts (`load.rs`: sweeps
 //!   and frames; `images.rs`: one camera image with its superpixels; `cloud.rs`: the
 //!   dense cloud, pairing, augmentation, voxels and maps);
@@ -38,6 +39,7 @@ pub mod recipe;
 pub mod rng;
 pub mod slic;
 pub mod sparse;
+pub mod timing;
 pub mod types;
 pub mod voxel;
 

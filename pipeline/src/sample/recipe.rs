@@ -17,6 +17,30 @@ pub enum EdgePolicy {
     Skip,
 }
 
+/// Which sweep of each keyframe interval becomes the keyframe.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum KeyframeChoice {
+    /// The sweep whose worst camera is nearest its scan moment (see
+    /// [`CameraSync`]), one per interval: moving objects then pair with their own pixels.
+    #[default]
+    LeastCameraOffset,
+    /// The first usable sweep, the next one at least an interval later.
+    First,
+}
+
+/// Which camera image goes with a sweep.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum CameraSync {
+    /// The image nearest the moment the LiDAR scanned the camera's direction (measured
+    /// once per drive from a sweep's point times or firing order).
+    #[default]
+    Scan,
+    /// The image nearest the sweep's stamp.
+    Stamp,
+}
+
 /// Where superpixels come from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -69,8 +93,12 @@ impl Default for AugmentConfig {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct SampleConfig {
-    /// Minimum spacing of keyframes, seconds (0.5).
+    /// One keyframe per interval of this many seconds (0.5).
     pub keyframe_interval_secs: f64,
+    /// Which sweep of an interval is its keyframe.
+    pub keyframe_choice: KeyframeChoice,
+    /// Which camera image goes with a sweep.
+    pub camera_sync: CameraSync,
     /// Δt between the keyframe and its temporal context, seconds (0.5; 0.5–2.0).
     pub delta_t_secs: f64,
     /// 3: (t−Δt, t, t+Δt); 2: (t−Δt, t).
@@ -117,6 +145,8 @@ impl Default for SampleConfig {
     fn default() -> Self {
         Self {
             keyframe_interval_secs: 0.5,
+            keyframe_choice: KeyframeChoice::LeastCameraOffset,
+            camera_sync: CameraSync::Scan,
             delta_t_secs: 0.5,
             temporal_frames: 3,
             edge: EdgePolicy::Reuse,

@@ -77,6 +77,9 @@ pub struct SampleImage {
     pub topic: String,
     /// Image stamp.
     pub stamp: Stamp,
+    /// Image stamp minus the moment the LiDAR scanned this camera's direction in the
+    /// frame's sweep, nanoseconds (see `sample.camera_sync`).
+    pub scan_offset_nanos: i64,
     /// Raw size (width, height).
     pub native_size: (u32, u32),
     /// Mirrored left to right.
