@@ -354,7 +354,11 @@ impl DriveReport {
         }
         let t = &self.camera_timing;
         if !t.scan_ms.is_empty() {
-            let _ = writeln!(out, "LiDAR scans the cameras at (ms from the sweep stamp, {}):", t.timing);
+            let _ = writeln!(
+                out,
+                "LiDAR scans the cameras at (ms from the sweep stamp, {}):",
+                t.timing
+            );
             for (camera, moments) in &t.scan_ms {
                 let ms: Vec<String> = moments.iter().map(|m| format!("{m:+.1}")).collect();
                 let _ = writeln!(out, "  {camera}: {}", ms.join(" and "));

@@ -15,6 +15,7 @@ use std::process::Command;
 use std::time::{Duration, Instant};
 use superflow_pipeline::drive::{Dataset, IngestConfig};
 use superflow_pipeline::inspect::{INSPECT_FORMAT, InspectReport};
+use superflow_pipeline::sample::recipe::{CameraSync, KeyframeChoice};
 use superflow_pipeline::sample::{SampleBuilder, SampleConfig};
 use superflow_tests::process::{finish, spawn};
 use superflow_tests::{pipeline_binary, workspace_root};
@@ -310,11 +311,18 @@ fn check(stem: &str) -> Vec<String> {
     errors
 }
 
-/// Builds every keyframe through the library with the default recipe, no augmentation.
+/// Builds every keyframe through the library with the default recipe, no augmentation,
+/// keyframes chosen as the first sweep of each interval with images at the sweep stamp:
+/// the damage of these files was placed in the sweeps (0, 10, 20) and images that rule
+/// picks, so that it lands in the samples.
 fn check_library(stem: &str, path: &Path, expected: &ExpectedSamples) -> Vec<String> {
     let mut errors = Vec::new();
     let dataset = Dataset::open(&[path.to_path_buf()], &IngestConfig::default()).unwrap();
-    let mut config = SampleConfig::default();
+    let mut config = SampleConfig {
+        keyframe_choice: KeyframeChoice::First,
+        camera_sync: CameraSync::Stamp,
+        ..SampleConfig::default()
+    };
     config.augment.enabled = false;
     let builder = match SampleBuilder::new(&dataset, config) {
         Ok(b) => b,

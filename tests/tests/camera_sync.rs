@@ -23,7 +23,11 @@ fn moving_share(sim: &Simulation, dataset: &Dataset, config: SampleConfig) -> (u
         let sample = builder.build_keyframe(k, 0, k as u64).expect("sample");
         for frame in &sample.frames {
             let returns = &sim.sweeps[frame.sweep as usize];
-            assert_eq!(frame.cloud.xyz.len(), returns.len(), "every return decoded, in order");
+            assert_eq!(
+                frame.cloud.xyz.len(),
+                returns.len(),
+                "every return decoded, in order"
+            );
             for pair in &frame.cloud.pairings {
                 let Some(object) = returns[pair.point as usize].object else {
                     continue;
@@ -76,8 +80,8 @@ fn before_and_after(dialect: Dialect, trigger: CameraTrigger) -> [(usize, usize)
     std::fs::create_dir_all(&dir).expect("temp dir");
     let path = dir.join("drive.mcap");
     std::fs::write(&path, &drive.mcap).expect("drive file");
-    let dataset = Dataset::open(std::slice::from_ref(&path), &IngestConfig::default())
-        .expect("dataset");
+    let dataset =
+        Dataset::open(std::slice::from_ref(&path), &IngestConfig::default()).expect("dataset");
     let before = SampleConfig {
         keyframe_choice: KeyframeChoice::First,
         camera_sync: CameraSync::Stamp,
@@ -108,7 +112,10 @@ fn moving_objects_pair_with_their_pixels_when_images_follow_the_scan() {
                 pct(after),
                 after.1
             );
-            assert!(before.1 >= 100 && after.1 >= 100, "too few moving pairings to judge");
+            assert!(
+                before.1 >= 100 && after.1 >= 100,
+                "too few moving pairings to judge"
+            );
             // Measured (2026-12-02): fixed 89.6 -> 95.0 % (foxglove), 89.1 -> 97.6 % (ros2);
             // staggered 99.3 and 99.2 % both ways (its first sweeps are already in step).
             let rise = match trigger {

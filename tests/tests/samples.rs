@@ -9,7 +9,9 @@
 use nalgebra::Point3;
 use superflow_pipeline::drive::Dataset;
 use superflow_pipeline::sample::project::{CameraView, camera_from_lidar};
-use superflow_pipeline::sample::recipe::{EdgePolicy, SuperpixelSource};
+use superflow_pipeline::sample::recipe::{
+    CameraSync, EdgePolicy, KeyframeChoice, SuperpixelSource,
+};
 use superflow_pipeline::sample::{Sample, SampleBuilder, SampleConfig, SampleError};
 use superflow_recordings::sim::{DriveTiming, Rig, simulate_sweep};
 use superflow_recordings::{Dialect, IMAGE_SIZE, SCENE_SEED, scene::Scene};
@@ -186,53 +188,64 @@ fn landmarks_project_through_the_sample_transforms() {
         let truth = &drive.truth;
         let ds = open(dialect);
         let d = &ds.drives[0];
-        let mut config = no_augment();
-        config.cameras = 6;
-        let builder = SampleBuilder::new(&ds, config).unwrap();
         let lidar_frame = &d.lidar.as_ref().unwrap().frame_id;
         let (mut checked, mut worst, mut naive_worst, mut naive_sum) = (0, 0.0f64, 0.0f64, 0.0);
-        for k in 0..builder.plan().keyframes.len() {
-            let sample = builder.build_keyframe(k, 0, k as u64).unwrap();
-            for frame in &sample.frames {
-                let map_from_lidar = d.tf.lookup("map", lidar_frame, frame.lidar_stamp).unwrap();
-                for image in &frame.images {
-                    let camera = truth
-                        .cameras
-                        .iter()
-                        .find(|c| c.image_topic == image.topic)
+        // The truth observes landmarks in the images at 1 s: the images matched at the
+        // sweep stamp (first-sweep keyframes) and at the LiDAR's scan both meet some.
+        let recipes = [
+            (KeyframeChoice::First, CameraSync::Stamp),
+            (KeyframeChoice::LeastCameraOffset, CameraSync::Scan),
+        ];
+        for (keyframe_choice, camera_sync) in recipes {
+            let mut config = no_augment();
+            config.cameras = 6;
+            config.keyframe_choice = keyframe_choice;
+            config.camera_sync = camera_sync;
+            let builder = SampleBuilder::new(&ds, config).unwrap();
+            for k in 0..builder.plan().keyframes.len() {
+                let sample = builder.build_keyframe(k, 0, k as u64).unwrap();
+                for frame in &sample.frames {
+                    let map_from_lidar =
+                        d.tf.lookup("map", lidar_frame, frame.lidar_stamp).unwrap();
+                    for image in &frame.images {
+                        let camera = truth
+                            .cameras
+                            .iter()
+                            .find(|c| c.image_topic == image.topic)
+                            .unwrap();
+                        let view = CameraView::new(&image.calibration, image.camera_from_lidar);
+                        let stale = camera_from_lidar(
+                            &d.tf,
+                            "map",
+                            lidar_frame,
+                            frame.lidar_stamp,
+                            &camera.frame_id,
+                            frame.lidar_stamp,
+                        )
                         .unwrap();
-                    let view = CameraView::new(&image.calibration, image.camera_from_lidar);
-                    let stale = camera_from_lidar(
-                        &d.tf,
-                        "map",
-                        lidar_frame,
-                        frame.lidar_stamp,
-                        &camera.frame_id,
-                        frame.lidar_stamp,
-                    )
-                    .unwrap();
-                    let stale_view = CameraView::new(&image.calibration, stale);
-                    for landmark in &truth.landmarks {
-                        let Some(obs) = landmark.observations.iter().find(|o| {
-                            o.camera == camera.name && o.stamp_nanos == image.stamp.nanos()
-                        }) else {
-                            continue;
-                        };
-                        let [x, y, z] = landmark.point_in_map;
-                        let p = map_from_lidar.inverse() * Point3::new(x, y, z);
-                        let p = [p.x as f32, p.y as f32, p.z as f32];
-                        let Some((pixel, _)) = view.project(p) else {
-                            panic!("{dialect:?} {}: not projected", landmark.name)
-                        };
-                        let e = (pixel.x - obs.pixel[0]).hypot(pixel.y - obs.pixel[1]);
-                        worst = worst.max(e);
-                        if let Some((stale_pixel, _)) = stale_view.project(p) {
-                            let n =
-                                (stale_pixel.x - obs.pixel[0]).hypot(stale_pixel.y - obs.pixel[1]);
-                            naive_worst = naive_worst.max(n);
-                            naive_sum += n;
+                        let stale_view = CameraView::new(&image.calibration, stale);
+                        for landmark in &truth.landmarks {
+                            let Some(obs) = landmark.observations.iter().find(|o| {
+                                o.camera == camera.name && o.stamp_nanos == image.stamp.nanos()
+                            }) else {
+                                continue;
+                            };
+                            let [x, y, z] = landmark.point_in_map;
+                            let p = map_from_lidar.inverse() * Point3::new(x, y, z);
+                            let p = [p.x as f32, p.y as f32, p.z as f32];
+                            let Some((pixel, _)) = view.project(p) else {
+                                panic!("{dialect:?} {}: not projected", landmark.name)
+                            };
+                            let e = (pixel.x - obs.pixel[0]).hypot(pixel.y - obs.pixel[1]);
+                            worst = worst.max(e);
+                            if let Some((stale_pixel, _)) = stale_view.project(p) {
+                                let n = (stale_pixel.x - obs.pixel[0])
+                                    .hypot(stale_pixel.y - obs.pixel[1]);
+                                naive_worst = naive_worst.max(n);
+                                naive_sum += n;
+                            }
+                            checked += 1;
                         }
-                        checked += 1;
                     }
                 }
             }

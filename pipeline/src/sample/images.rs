@@ -114,13 +114,14 @@ impl SampleContext<'_> {
         times: &mut StageTimes,
     ) -> Result<RawImage, SampleError> {
         let drive = self.drive;
-        let (frame, scan_offset_nanos) = camera_frame_for(camera, lidar_stamp, moments).ok_or_else(|| {
-            let reason = format!(
-                "{}: no image within half a period of the sweep",
-                camera.name
-            );
-            self.image_error(camera, lidar_stamp, reason)
-        })?;
+        let (frame, scan_offset_nanos) = camera_frame_for(camera, lidar_stamp, moments)
+            .ok_or_else(|| {
+                let reason = format!(
+                    "{}: no image within half a period of the sweep",
+                    camera.name
+                );
+                self.image_error(camera, lidar_stamp, reason)
+            })?;
         let calibration = camera
             .calibration_at(frame.stamp)
             .ok_or_else(|| {

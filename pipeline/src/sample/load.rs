@@ -188,9 +188,7 @@ impl SampleContext<'_> {
                 self.chosen
                     .par_iter()
                     .enumerate()
-                    .map(|(slot, &c)| {
-                        self.load_image(c, lidar_stamp, frame_pos, slot)
-                    })
+                    .map(|(slot, &c)| self.load_image(c, lidar_stamp, frame_pos, slot))
                     .collect::<Result<Vec<_>, _>>()
             },
         );

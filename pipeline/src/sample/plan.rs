@@ -3,8 +3,8 @@
 //! shuffled keyframe order of an epoch.
 
 use super::recipe::{EdgePolicy, KeyframeChoice, SampleConfig};
-use super::timing::{CameraScan, median_sweep_period, scan_offsets};
 use super::rng::{Purpose, SampleRng};
+use super::timing::{CameraScan, median_sweep_period, scan_offsets};
 use crate::drive::dataset::{CameraStream, Dataset, Drive, FrameRef, nearest};
 use serde::Serialize;
 use superflow_schemas::Stamp;

@@ -94,7 +94,11 @@ pub(super) fn median_sweep_period(drive: &Drive) -> i64 {
 fn wrap(a: f64) -> f64 {
     let two_pi = 2.0 * std::f64::consts::PI;
     let r = a.rem_euclid(two_pi);
-    if r > std::f64::consts::PI { r - two_pi } else { r }
+    if r > std::f64::consts::PI {
+        r - two_pi
+    } else {
+        r
+    }
 }
 
 /// The scan moments of `drive`'s cameras (see the module documentation); every camera
@@ -120,7 +124,10 @@ pub fn scan_offsets(drive: &Drive, config: &SampleConfig) -> CameraScan {
     let period = median_sweep_period(drive);
     let n = cloud.len().max(1) as f64;
     let (timing, times): (ScanTiming, Vec<f64>) = match &cloud.time_offset_secs {
-        Some(t) => (ScanTiming::PointTime, t.iter().map(|s| f64::from(*s) * 1e9).collect()),
+        Some(t) => (
+            ScanTiming::PointTime,
+            t.iter().map(|s| f64::from(*s) * 1e9).collect(),
+        ),
         None => (
             ScanTiming::PointOrder,
             (0..cloud.len())
@@ -140,7 +147,10 @@ pub fn scan_offsets(drive: &Drive, config: &SampleConfig) -> CameraScan {
         .cameras
         .iter()
         .map(|camera| {
-            let Ok(lidar_from_camera) = drive.tf.lookup(&lidar.frame_id, &camera.frame_id, cloud.stamp)
+            let Ok(lidar_from_camera) =
+                drive
+                    .tf
+                    .lookup(&lidar.frame_id, &camera.frame_id, cloud.stamp)
             else {
                 return vec![0];
             };
