@@ -26,9 +26,9 @@ use superflow_pipeline::sample::recipe::SuperpixelSource;
 use superflow_pipeline::sample::{Sample, SampleBuilder, SampleConfig, StageTimes};
 use superflow_recordings::{Dialect, DriveOptions, GENERATOR_VERSION, generate_with};
 
-/// The pipeline binary's allocator (see `src/main.rs`).
+/// The pipeline binary's allocator (see `superflow_pipeline::memory`).
 #[global_allocator]
-static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
+static ALLOCATOR: superflow_pipeline::memory::Allocator = superflow_pipeline::memory::Allocator;
 
 /// Samples in the batch of the batch-write measurement (the service's default).
 const BATCH: usize = 4;
@@ -130,6 +130,7 @@ fn batch_write(samples: &[Sample], shape: BatchShape) -> anyhow::Result<(f64, f6
 }
 
 fn main() -> anyhow::Result<()> {
+    superflow_pipeline::memory::keep_freed_pages();
     let n = arg_count("--samples")?.unwrap_or(48);
     let n_slic = arg_count("--slic-samples")?.unwrap_or(12);
     let sizes = arg_value("--sizes").unwrap_or_else(|| "800x450,1600x900".into());

@@ -58,6 +58,7 @@ pub mod decode;
 pub mod drive;
 pub mod inspect;
 pub mod invalid;
+pub mod memory;
 pub mod publish;
 pub mod sample;
 pub mod source;

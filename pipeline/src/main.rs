@@ -18,11 +18,9 @@ use superflow_pipeline::inspect::InspectReport;
 use superflow_pipeline::publish::{Metrics, Mode};
 use superflow_pipeline::sample::SampleBuilder;
 
-/// mimalloc keeps the pages of the large per-sample buffers (clouds, maps, images)
-/// mapped between samples, where glibc's malloc unmaps and faults them in again; also
-/// faster across rayon's threads. (`cargo bench -p superflow-pipeline --bench speed`.)
+/// mimalloc, keeping freed pages for the next sample (see `superflow_pipeline::memory`).
 #[global_allocator]
-static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
+static ALLOCATOR: superflow_pipeline::memory::Allocator = superflow_pipeline::memory::Allocator;
 use superflow_pipeline::sample::export::write_sample;
 
 /// Streams SuperFlow training batches from recorded drives to trainers over shared memory.
@@ -388,6 +386,7 @@ async fn serve_metrics(listener: tokio::net::TcpListener, metrics: Arc<Metrics>)
 }
 
 fn main() -> std::process::ExitCode {
+    superflow_pipeline::memory::keep_freed_pages();
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
         // Colour only on a terminal: logs redirected to files stay plain text.
