@@ -17,7 +17,12 @@ use superflow_pipeline::drive::{Dataset, IngestConfig};
 use superflow_pipeline::sample::recipe::SuperpixelSource;
 use superflow_pipeline::sample::{SampleBuilder, SampleConfig};
 
+/// The pipeline binary's allocator (see `superflow_pipeline::memory`).
+#[global_allocator]
+static ALLOCATOR: superflow_pipeline::memory::Allocator = superflow_pipeline::memory::Allocator;
+
 fn main() -> anyhow::Result<()> {
+    superflow_pipeline::memory::keep_freed_pages();
     let n = arg_count("--samples")?.unwrap_or(48);
     let cores = cores();
     println!("sample building, default recipe, {n} samples per run, {cores} cores");

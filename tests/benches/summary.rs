@@ -267,7 +267,12 @@ fn trainer(
     Ok(())
 }
 
+/// The pipeline binary's allocator (see `superflow_pipeline::memory`).
+#[global_allocator]
+static ALLOCATOR: superflow_pipeline::memory::Allocator = superflow_pipeline::memory::Allocator;
+
 fn main() -> anyhow::Result<()> {
+    superflow_pipeline::memory::keep_freed_pages();
     let args = Args::parse()?;
     let cores = cores();
     let started = Instant::now();
