@@ -15,15 +15,18 @@
 #[allow(dead_code)]
 #[path = "../../tests/src/bench/common.rs"]
 mod common;
+#[allow(dead_code)]
+#[path = "../../tests/src/bench/sample.rs"]
+mod sample;
 
 use common::{arg_count, arg_value, cores, flag, load_average};
-use rayon::prelude::*;
+use sample::throughput;
 use std::path::PathBuf;
 use std::time::Instant;
 use superflow_pipeline::batch::{BatchPlan, BatchShape};
 use superflow_pipeline::drive::{Dataset, IngestConfig};
 use superflow_pipeline::sample::recipe::SuperpixelSource;
-use superflow_pipeline::sample::{Sample, SampleBuilder, SampleConfig, StageTimes};
+use superflow_pipeline::sample::{Sample, SampleBuilder, SampleConfig};
 use superflow_recordings::{Dialect, DriveOptions, GENERATOR_VERSION, generate_with};
 
 /// The pipeline binary's allocator (see `superflow_pipeline::memory`).
@@ -58,36 +61,6 @@ fn drive(width: u32, height: u32, regenerate: bool) -> anyhow::Result<PathBuf> {
         started.elapsed().as_secs_f64()
     );
     Ok(path)
-}
-
-/// Builds `n` samples (epoch-major over the plan) on a pool of `threads`; returns
-/// samples/s and the summed stage times.
-fn throughput(
-    builder: &SampleBuilder<'_>,
-    n: usize,
-    threads: usize,
-) -> anyhow::Result<(f64, StageTimes)> {
-    let pool = rayon::ThreadPoolBuilder::new()
-        .num_threads(threads)
-        .build()?;
-    let per_epoch = builder.plan().keyframes.len();
-    let started = Instant::now();
-    let times = pool.install(|| {
-        (0..n)
-            .into_par_iter()
-            .map(|i| {
-                builder
-                    .build((i / per_epoch) as u64, (i % per_epoch) as u64)
-                    .map(|s| s.times)
-            })
-            .collect::<Result<Vec<_>, _>>()
-    })?;
-    let secs = started.elapsed().as_secs_f64();
-    let mut total = StageTimes::default();
-    for t in &times {
-        total.add(t);
-    }
-    Ok((n as f64 / secs, total))
 }
 
 /// Median milliseconds of `runs` calls of `f`.

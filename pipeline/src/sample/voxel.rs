@@ -38,6 +38,15 @@ impl Default for VoxelGrid {
     }
 }
 
+/// `v.floor() as i32` without a call to libm's `floorf` (x86-64 without SSE4.1 has no
+/// floor instruction): truncate, then step down for negative non-integers. Saturates
+/// like the cast.
+#[inline]
+fn floor_i32(v: f32) -> i32 {
+    let t = v as i32;
+    t.saturating_sub(i32::from(v < t as f32))
+}
+
 impl VoxelGrid {
     /// The cell of one point.
     pub fn cell(&self, p: [f32; 3]) -> [i32; 3] {
@@ -53,15 +62,15 @@ impl VoxelGrid {
                 // atan2 returns 180 for (-x, +0): fold it onto -180 so phi is in [-180, 180).
                 let phi = if phi >= 180.0 { phi - 360.0 } else { phi };
                 [
-                    (rho / rho_m).floor() as i32,
-                    (phi / phi_deg).floor() as i32,
-                    (z / z_m).floor() as i32,
+                    floor_i32(rho / rho_m),
+                    floor_i32(phi / phi_deg),
+                    floor_i32(z / z_m),
                 ]
             }
             VoxelGrid::Cartesian { size_m } => [
-                (x / size_m[0]).floor() as i32,
-                (y / size_m[1]).floor() as i32,
-                (z / size_m[2]).floor() as i32,
+                floor_i32(x / size_m[0]),
+                floor_i32(y / size_m[1]),
+                floor_i32(z / size_m[2]),
             ],
         }
     }
@@ -136,6 +145,41 @@ pub fn voxelize(xyz: &[[f32; 3]], grid: &VoxelGrid) -> Voxelized {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn floor_without_libm_is_floor() {
+        for v in [
+            0.0f32,
+            -0.0,
+            0.5,
+            -0.5,
+            1.0,
+            -1.0,
+            2.999_999_8,
+            -2.999_999_8,
+            1e-30,
+            -1e-30,
+            16_777_217.0,
+            -16_777_217.0,
+            3e9,
+            -3e9,
+            f32::MAX,
+            f32::MIN,
+            f32::NAN,
+        ] {
+            assert_eq!(floor_i32(v), v.floor() as i32, "{v}");
+        }
+        let mut state = 0x9E37_79B9u32;
+        for _ in 0..100_000 {
+            state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            let v = f32::from_bits(state);
+            if v.is_finite() {
+                assert_eq!(floor_i32(v), v.floor() as i32, "{v}");
+            }
+            let w = (state as i32) as f32 / 1000.0;
+            assert_eq!(floor_i32(w), w.floor() as i32, "{w}");
+        }
+    }
 
     #[test]
     fn cylindrical_cells_match_hand_computed_values() {
