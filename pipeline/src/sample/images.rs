@@ -140,7 +140,7 @@ impl SampleContext<'_> {
         };
         let t = Instant::now();
         let ScaledImage { image, native } =
-            with_cache(|cache| drive.read_image_scaled(camera, &frame, Target::Rgb, scale, cache))?;
+            with_cache(|cache| drive.read_image_scaled(camera, frame, Target::Rgb, scale, cache))?;
         times.decode += elapsed(t);
         if native != (calibration.width, calibration.height) || image.format != PixelFormat::Rgb8 {
             let reason = format!(
