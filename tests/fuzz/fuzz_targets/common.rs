@@ -73,7 +73,7 @@ pub fn let_guarded_decoder_panics_unwind() {
         let fuzzer_hook = std::panic::take_hook();
         std::panic::set_hook(Box::new(move |info| {
             let file = info.location().map_or("", |l| l.file());
-            let third_party = ["/jpeg-decoder-", "/png-", "/fdeflate-", "/miniz_oxide-"]
+            let third_party = ["/turbojpeg-", "/png-", "/fdeflate-", "/miniz_oxide-"]
                 .iter()
                 .any(|krate| file.contains(krate));
             if third_party {
