@@ -119,10 +119,12 @@ fn reflect(i: isize, len: usize) -> usize {
     (if m < len { m } else { 2 * len - 1 - m }) as usize
 }
 
+/// Outputs of a convolution computed together, kept in registers over the taps.
+const BLOCK: usize = 16;
+
 /// Convolves every row of `src` with the symmetric `kernel` into `dst`.
 fn blur_rows(src: &[f32], dst: &mut [f32], width: usize, kernel: &[f32], pad: &mut Vec<f32>) {
     let radius = kernel.len() - 1;
-    let k0 = kernel.first().copied().unwrap_or(1.0);
     let index: Vec<usize> = (0..width + 2 * radius)
         .map(|i| reflect(i as isize - radius as isize, width))
         .collect();
@@ -131,34 +133,83 @@ fn blur_rows(src: &[f32], dst: &mut [f32], width: usize, kernel: &[f32], pad: &m
         for (p, &i) in pad.iter_mut().zip(&index) {
             *p = src[i];
         }
-        for (d, &p) in dst.iter_mut().zip(&pad[radius..radius + width]) {
-            *d = k0 * p;
+        // Output x reads pad[x..=x + 2 radius]; tap j pairs pad[x + radius ∓ j].
+        let taps = |x: usize, j: usize| (&pad[x + radius - j..], &pad[x + radius + j..]);
+        let mut blocks = dst.chunks_exact_mut(BLOCK);
+        for (b, out) in (&mut blocks).enumerate() {
+            convolve_block(out, kernel, |j| {
+                let (a, b) = taps(b * BLOCK, j);
+                (&a[..BLOCK], &b[..BLOCK])
+            });
         }
-        for (j, &k) in kernel.iter().enumerate().skip(1) {
-            let left = &pad[radius - j..radius - j + width];
-            let right = &pad[radius + j..radius + j + width];
-            for ((d, &a), &b) in dst.iter_mut().zip(left).zip(right) {
-                *d += k * (a + b);
-            }
+        let done = width - width % BLOCK;
+        for (x, out) in blocks.into_remainder().iter_mut().enumerate() {
+            convolve_one(out, kernel, |j| taps(done + x, j));
         }
     }
 }
 
 /// Convolves every column of `src` with the symmetric `kernel` into `dst`.
 fn blur_columns(src: &[f32], dst: &mut [f32], width: usize, height: usize, kernel: &[f32]) {
-    let k0 = kernel.first().copied().unwrap_or(1.0);
     let row = |y: usize| &src[y * width..(y + 1) * width];
+    let mut rows = Vec::with_capacity(kernel.len());
     for (y, dst) in dst.chunks_exact_mut(width).enumerate() {
-        for (d, &p) in dst.iter_mut().zip(row(y)) {
-            *d = k0 * p;
+        // Tap j pairs the rows above and below.
+        rows.clear();
+        rows.extend((0..kernel.len()).map(|j| {
+            (
+                row(reflect(y as isize - j as isize, height)),
+                row(reflect((y + j) as isize, height)),
+            )
+        }));
+        let mut blocks = dst.chunks_exact_mut(BLOCK);
+        for (b, out) in (&mut blocks).enumerate() {
+            let x = b * BLOCK;
+            convolve_block(out, kernel, |j| {
+                let (a, b) = rows[j];
+                (&a[x..x + BLOCK], &b[x..x + BLOCK])
+            });
         }
-        for (j, &k) in kernel.iter().enumerate().skip(1) {
-            let above = row(reflect(y as isize - j as isize, height));
-            let below = row(reflect((y + j) as isize, height));
-            for ((d, &a), &b) in dst.iter_mut().zip(above).zip(below) {
-                *d += k * (a + b);
-            }
+        let done = width - width % BLOCK;
+        for (x, out) in blocks.into_remainder().iter_mut().enumerate() {
+            convolve_one(out, kernel, |j| {
+                let (a, b) = rows[j];
+                (&a[done + x..], &b[done + x..])
+            });
         }
+    }
+}
+
+/// One block of outputs of a symmetric convolution, `tap(j)` giving the samples at
+/// `∓ j` (`tap(0)`: the centre): `k0 p + k1 (a1 + b1) + k2 (a2 + b2) + …`, added in
+/// that order.
+#[inline(always)]
+fn convolve_block<'a>(
+    out: &mut [f32],
+    kernel: &[f32],
+    tap: impl Fn(usize) -> (&'a [f32], &'a [f32]),
+) {
+    let k0 = kernel.first().copied().unwrap_or(1.0);
+    let (centre, _) = tap(0);
+    let mut acc: [f32; BLOCK] = std::array::from_fn(|i| k0 * centre[i]);
+    for (j, &k) in kernel.iter().enumerate().skip(1) {
+        let (a, b) = tap(j);
+        let (a, b) = (&a[..BLOCK], &b[..BLOCK]);
+        for i in 0..BLOCK {
+            acc[i] += k * (a[i] + b[i]);
+        }
+    }
+    out.copy_from_slice(&acc);
+}
+
+/// One output of a symmetric convolution, as [`convolve_block`] computes it.
+#[inline(always)]
+fn convolve_one<'a>(out: &mut f32, kernel: &[f32], tap: impl Fn(usize) -> (&'a [f32], &'a [f32])) {
+    let k0 = kernel.first().copied().unwrap_or(1.0);
+    *out = k0 * tap(0).0[0];
+    for (j, &k) in kernel.iter().enumerate().skip(1) {
+        let (a, b) = tap(j);
+        *out += k * (a[0] + b[0]);
     }
 }
 

@@ -1,0 +1,229 @@
+//! The data of SLIC's tiled search: the Lab image cut into tile rows with each tile's Lab
+//! bounding box (once per image), and the centres whose windows meet a band of tiles,
+//! with their lower bounds on a tile (each pass).
+
+use super::Centre;
+use super::lab::Lab;
+use super::search::spatial;
+use std::ops::Range;
+
+/// Tile width, pixels: a row of a tile is offered to a centre as a unit.
+pub(super) const TW: usize = 16;
+/// Tile height, rows.
+pub(super) const TH: usize = 8;
+
+/// The Lab image cut into rows of tiles (`TW` pixels of each plane side by side, padded
+/// with zeros at the right edge), and the Lab bounding box of each tile's pixels.
+pub(super) struct Tiles {
+    /// Image width, pixels.
+    pub width: usize,
+    /// Image height, pixels.
+    pub height: usize,
+    /// Tiles per row.
+    tiles_x: usize,
+    /// Per image row and tile column (row-major): the tile row's L, a and b.
+    cells: Vec<[[f32; TW]; 3]>,
+    /// Per tile (row-major): `[l_min, l_max, a_min, a_max, b_min, b_max]`.
+    boxes: Vec<[f32; 6]>,
+}
+
+impl Tiles {
+    /// Cuts `lab` (`width × height`, both positive) into tiles and bounds them.
+    pub(super) fn new(lab: &Lab, width: usize, height: usize) -> Self {
+        let tiles_x = width.div_ceil(TW);
+        let mut cells = vec![[[0f32; TW]; 3]; tiles_x * height];
+        for (y, cells) in cells.chunks_exact_mut(tiles_x).enumerate() {
+            let row = y * width..(y + 1) * width;
+            for (dst, src) in [&lab.l[row.clone()], &lab.a[row.clone()], &lab.b[row]]
+                .into_iter()
+                .enumerate()
+            {
+                for (cell, src) in cells.iter_mut().zip(src.chunks(TW)) {
+                    cell[dst][..src.len()].copy_from_slice(src);
+                }
+            }
+        }
+        let mut boxes = vec![[0f32; 6]; tiles_x * height.div_ceil(TH)];
+        for (ty, boxes) in boxes.chunks_exact_mut(tiles_x).enumerate() {
+            let rows = ty * TH..(ty * TH + TH).min(height);
+            for (tx, bx) in boxes.iter_mut().enumerate() {
+                let n = TW.min(width - tx * TW);
+                let first = &cells[rows.start * tiles_x + tx];
+                let mut lo: [[f32; TW]; 3] = *first;
+                let mut hi: [[f32; TW]; 3] = *first;
+                for y in rows.clone().skip(1) {
+                    let cell = &cells[y * tiles_x + tx];
+                    for p in 0..3 {
+                        for j in 0..TW {
+                            let v = cell[p][j];
+                            lo[p][j] = if v < lo[p][j] { v } else { lo[p][j] };
+                            hi[p][j] = if v > hi[p][j] { v } else { hi[p][j] };
+                        }
+                    }
+                }
+                for p in 0..3 {
+                    bx[2 * p] = lo[p][..n].iter().fold(f32::INFINITY, |m, &v| m.min(v));
+                    bx[2 * p + 1] = hi[p][..n].iter().fold(f32::NEG_INFINITY, |m, &v| m.max(v));
+                }
+            }
+        }
+        Tiles {
+            width,
+            height,
+            tiles_x,
+            cells,
+            boxes,
+        }
+    }
+
+    /// The L, a and b of the `TW` pixels from `(y, x0)`, `x0` a multiple of `TW`.
+    #[inline(always)]
+    pub(super) fn cell(&self, y: usize, x0: usize) -> &[[f32; TW]; 3] {
+        &self.cells[y * self.tiles_x + x0 / TW]
+    }
+
+    /// The Lab bounding box of the tile at `(y0, x0)`, multiples of `TH` and `TW`.
+    pub(super) fn tile_box(&self, y0: usize, x0: usize) -> [f32; 6] {
+        self.boxes[y0 / TH * self.tiles_x + x0 / TW]
+    }
+}
+
+/// The centres whose windows meet a band of rows, in order of their columns, as arrays;
+/// and, for the current tile, their lower bounds.
+#[derive(Default)]
+pub(super) struct Band {
+    /// Centre index.
+    pub k: Vec<u32>,
+    /// The window's rows, relative to the band's first row and clipped to the band.
+    pub rows: Vec<[u32; 2]>,
+    /// The window's columns `x0..x1`.
+    pub columns: Vec<[u32; 2]>,
+    /// First column of the window.
+    pub x0: Vec<f32>,
+    /// One past the last column of the window.
+    pub x1: Vec<f32>,
+    /// Centre row.
+    pub cy: Vec<f32>,
+    /// Centre column.
+    pub cx: Vec<f32>,
+    /// Centre colour.
+    pub lab: Vec<[f32; 3]>,
+    /// The least row spatial term over the band's rows within the window.
+    dy2: Vec<f32>,
+    /// For the current tile: a lower bound of the colour term over its pixels.
+    pub colour: Vec<f32>,
+    /// For the current tile: the least column spatial term over its columns within the
+    /// window.
+    pub dx2: Vec<f32>,
+    /// For the current tile: the lower bound of the distance (infinite once tried).
+    pub bound: Vec<f32>,
+    /// Each centre's position in the band (`u32::MAX`: not in it).
+    pub slot: Vec<u32>,
+}
+
+impl Band {
+    /// Number of centres.
+    pub(super) fn len(&self) -> usize {
+        self.k.len()
+    }
+
+    /// Collects the centres (visited in `order`) whose windows meet `rows`.
+    pub(super) fn gather(
+        &mut self,
+        centres: &[Centre],
+        windows: &[[usize; 4]],
+        order: &[u32],
+        rows: Range<usize>,
+        weight: f32,
+    ) {
+        self.k.clear();
+        self.rows.clear();
+        self.columns.clear();
+        self.x0.clear();
+        self.x1.clear();
+        self.cy.clear();
+        self.cx.clear();
+        self.lab.clear();
+        self.dy2.clear();
+        self.slot.clear();
+        self.slot.resize(centres.len(), u32::MAX);
+        for &k in order {
+            let [y0, y1, x0, x1] = windows[k as usize];
+            if y0 >= rows.end || y1 <= rows.start || x0 >= x1 {
+                continue;
+            }
+            let c = &centres[k as usize];
+            let (top, bottom) = (y0.max(rows.start), y1.min(rows.end));
+            // The window's row in the band nearest the centre (its own row if inside).
+            let near = c.y.max(top as f32).min((bottom - 1) as f32);
+            self.slot[k as usize] = self.k.len() as u32;
+            self.k.push(k);
+            self.rows
+                .push([(top - rows.start) as u32, (bottom - rows.start) as u32]);
+            self.columns.push([x0 as u32, x1 as u32]);
+            self.x0.push(x0 as f32);
+            self.x1.push(x1 as f32);
+            self.cy.push(c.y);
+            self.cx.push(c.x);
+            self.lab.push(c.lab);
+            self.dy2.push(spatial(weight, c.y - near));
+        }
+        let n = self.k.len();
+        self.colour.resize(n, 0.0);
+        self.dx2.resize(n, 0.0);
+        self.bound.resize(n, 0.0);
+    }
+
+    /// The lower bounds of centres `active` on the tile of columns `cols` with the Lab
+    /// bounding box `colour`.
+    pub(super) fn bounds(
+        &mut self,
+        active: Range<usize>,
+        cols: Range<usize>,
+        colour: [f32; 6],
+        weight: f32,
+    ) {
+        let (left, right) = (cols.start as f32, (cols.end - 1) as f32);
+        // Distance of a value to an interval (0 inside), as the colour term computes
+        // differences: `pixel - centre`, no smaller in magnitude for any pixel inside.
+        let gap = |lo: f32, hi: f32, v: f32| max(max(lo - v, v - hi), 0.0);
+        let n = active.len();
+        let (x0, x1, cx) = (
+            &self.x0[active.clone()],
+            &self.x1[active.clone()][..n],
+            &self.cx[active.clone()][..n],
+        );
+        let (lab, dy2) = (
+            &self.lab[active.clone()][..n],
+            &self.dy2[active.clone()][..n],
+        );
+        let (out_colour, out_dx2, out_bound) = (
+            &mut self.colour[active.clone()][..n],
+            &mut self.dx2[active.clone()][..n],
+            &mut self.bound[active][..n],
+        );
+        for i in 0..n {
+            let near = min(max(cx[i], max(x0[i], left)), min(x1[i] - 1.0, right));
+            let dx2 = spatial(weight, near - cx[i]);
+            let dl = gap(colour[0], colour[1], lab[i][0]);
+            let da = gap(colour[2], colour[3], lab[i][1]);
+            let db = gap(colour[4], colour[5], lab[i][2]);
+            let colour = dl * dl + da * da + db * db;
+            out_colour[i] = colour;
+            out_dx2[i] = dx2;
+            out_bound[i] = colour + (dy2[i] + dx2);
+        }
+    }
+}
+
+/// The larger of two (non-NaN) values, without `f32::max`'s NaN handling.
+#[inline(always)]
+fn max(a: f32, b: f32) -> f32 {
+    if a > b { a } else { b }
+}
+
+/// The smaller of two (non-NaN) values, without `f32::min`'s NaN handling.
+#[inline(always)]
+fn min(a: f32, b: f32) -> f32 {
+    if a < b { a } else { b }
+}
