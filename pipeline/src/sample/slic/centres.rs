@@ -30,6 +30,7 @@ impl Means {
     ///
     /// Each run of equal labels along a row is summed in `f32` from left to right, and
     /// the runs are added to the centre's `f64` sums in raster order.
+    #[inline(always)]
     pub(super) fn update(
         &mut self,
         lab: &Lab,
@@ -92,6 +93,7 @@ impl Means {
     }
 
     /// The runs of the `ROWS` rows from `y0`, walked side by side.
+    #[inline(always)]
     fn runs_of_rows(&mut self, width: usize, (labels, stride): (&[u32], usize), y0: usize) {
         let span = |r: usize| (y0 + r) * width..(y0 + r + 1) * width;
         let labels: [&[u32]; ROWS] = std::array::from_fn(|r| &labels[(y0 + r) * stride..][..width]);
@@ -117,6 +119,7 @@ impl Means {
 }
 
 /// The runs of one row (`labels` and its pixels) into `runs`.
+#[inline(always)]
 fn runs_of_row(labels: &[u32], pixels: &[[f32; 4]], runs: &mut Vec<Run>) {
     runs.clear();
     let (mut k, mut start, mut acc) = (labels[0], 0, [0f32; 4]);
@@ -133,5 +136,5 @@ fn runs_of_row(labels: &[u32], pixels: &[[f32; 4]], runs: &mut Vec<Run>) {
 /// Lane-wise sum.
 #[inline(always)]
 fn add(a: [f32; 4], b: [f32; 4]) -> [f32; 4] {
-    std::array::from_fn(|i| a[i] + b[i])
+    [a[0] + b[0], a[1] + b[1], a[2] + b[2], a[3] + b[3]]
 }

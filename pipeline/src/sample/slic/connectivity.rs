@@ -14,6 +14,7 @@ const UNSET: u32 = u32::MAX;
 /// reaches the same pixels when the whole component is taken; only a component that is
 /// too small or too large, where the order of the search matters, is searched again
 /// breadth-first.
+#[inline(always)]
 pub(super) fn enforce_connectivity(
     labels: &[u32],
     width: usize,
@@ -78,6 +79,7 @@ impl Components<'_> {
     /// Gives label `next` to the unlabelled pixels of `start`'s component (4-connected,
     /// equal SLIC label), span by span, stopping once it has `max_size` pixels; returns
     /// how many it took (listed in `pixels`).
+    #[inline(always)]
     fn fill(&mut self, start: usize, next: u32, max_size: usize) -> usize {
         let (width, label) = (self.width, self.labels[start]);
         let (out, labels) = (&mut self.out, self.labels);
@@ -130,6 +132,7 @@ impl Components<'_> {
     /// scikit-image's breadth-first search from `start` with label `next`, up to
     /// `max_size` pixels (listed in `pixels`): returns how many it took and the last
     /// already-labelled neighbour it met.
+    #[inline(always)]
     fn breadth_first(&mut self, start: usize, next: u32, max_size: usize) -> (usize, Option<u32>) {
         let (width, height, label) = (self.width, self.height, self.labels[start]);
         let (out, labels, queue) = (&mut self.out, self.labels, &mut self.pixels);

@@ -19,6 +19,7 @@ pub(super) struct Lab {
 /// minimum and maximum (`image -= min; image /= max` over all channels; a no-op for
 /// images spanning 0..255), converted to CIELAB, and each Lab plane is smoothed by a
 /// Gaussian of `sigma` pixels (0: not at all).
+#[inline(always)]
 pub(super) fn smoothed_lab(rgb: &[u8], width: usize, height: usize, sigma: f32) -> Lab {
     let n = width * height;
     let lo = rgb.iter().copied().min().unwrap_or(0);
@@ -123,6 +124,7 @@ fn reflect(i: isize, len: usize) -> usize {
 const BLOCK: usize = 16;
 
 /// Convolves every row of `src` with the symmetric `kernel` into `dst`.
+#[inline(always)]
 fn blur_rows(src: &[f32], dst: &mut [f32], width: usize, kernel: &[f32], pad: &mut Vec<f32>) {
     let radius = kernel.len() - 1;
     let index: Vec<usize> = (0..width + 2 * radius)
@@ -150,6 +152,7 @@ fn blur_rows(src: &[f32], dst: &mut [f32], width: usize, kernel: &[f32], pad: &m
 }
 
 /// Convolves every column of `src` with the symmetric `kernel` into `dst`.
+#[inline(always)]
 fn blur_columns(src: &[f32], dst: &mut [f32], width: usize, height: usize, kernel: &[f32]) {
     let row = |y: usize| &src[y * width..(y + 1) * width];
     let mut rows = Vec::with_capacity(kernel.len());
@@ -191,7 +194,11 @@ fn convolve_block<'a>(
 ) {
     let k0 = kernel.first().copied().unwrap_or(1.0);
     let (centre, _) = tap(0);
-    let mut acc: [f32; BLOCK] = std::array::from_fn(|i| k0 * centre[i]);
+    let centre = &centre[..BLOCK];
+    let mut acc = [0f32; BLOCK];
+    for (a, &c) in acc.iter_mut().zip(centre) {
+        *a = k0 * c;
+    }
     for (j, &k) in kernel.iter().enumerate().skip(1) {
         let (a, b) = tap(j);
         let (a, b) = (&a[..BLOCK], &b[..BLOCK]);

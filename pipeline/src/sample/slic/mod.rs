@@ -33,6 +33,7 @@ mod centres;
 mod connectivity;
 mod lab;
 pub mod search;
+mod simd;
 mod tiles;
 
 use crate::invalid::InvalidSetting;
@@ -153,7 +154,28 @@ pub struct Segmentation {
 /// # Panics
 ///
 /// If `rgb.len() != 3 * width * height`.
+#[allow(unsafe_code)]
 pub fn slic(rgb: &[u8], width: usize, height: usize, params: &SlicParams) -> Segmentation {
+    #[cfg(target_arch = "x86_64")]
+    if simd::has_avx2() {
+        // SAFETY: the CPU runs AVX2 (checked just above), the only requirement of calling
+        // a function compiled with it enabled.
+        return unsafe { slic_avx2(rgb, width, height, params) };
+    }
+    slic_inline(rgb, width, height, params)
+}
+
+/// [`slic`] compiled with AVX2 enabled (see `simd`).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn slic_avx2(rgb: &[u8], width: usize, height: usize, params: &SlicParams) -> Segmentation {
+    slic_inline(rgb, width, height, params)
+}
+
+/// [`slic`], inlined into each compiled copy (as are the functions it calls that matter
+/// for speed).
+#[inline(always)]
+fn slic_inline(rgb: &[u8], width: usize, height: usize, params: &SlicParams) -> Segmentation {
     let n = width.checked_mul(height);
     assert!(
         n.and_then(|n| n.checked_mul(3)) == Some(rgb.len()),
@@ -220,8 +242,9 @@ pub fn slic(rgb: &[u8], width: usize, height: usize, params: &SlicParams) -> Seg
         let mut search = Search::new(&lab, &labels, [width, height], window, spatial_weight);
         let mut means = Means::default();
         means.update(&lab, width, (&labels, width), &mut centres);
-        for _ in 1..params.max_iterations {
-            if !search.assign(&centres) {
+        for pass in 2..=params.max_iterations {
+            // The centres after the last pass are not needed.
+            if !search.assign(&centres) || pass == params.max_iterations {
                 break;
             }
             means.update(&lab, width, search.labels(), &mut centres);

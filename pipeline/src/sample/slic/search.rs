@@ -41,6 +41,10 @@ pub(super) struct Search {
     windows: Vec<[usize; 4]>,
     /// The centres in order of their column (then index).
     order: Vec<u32>,
+    /// The centres whose windows meet each band of `TH` rows (in `order`): band `b`'s
+    /// are `members[band_starts[b]..band_starts[b + 1]]`.
+    members: Vec<u32>,
+    band_starts: Vec<usize>,
     /// The centres whose windows meet the current band of tile rows.
     band: Band,
     /// The current tile.
@@ -82,6 +86,7 @@ impl Search {
     /// Scratch for the passes over `lab` (`width × height`, both positive) starting from
     /// `labels` (row-major), with the window half-sizes (rows, columns) and the spatial
     /// weight.
+    #[inline(always)]
     pub(super) fn new(
         lab: &Lab,
         labels: &[u32],
@@ -105,6 +110,8 @@ impl Search {
             weight,
             windows: Vec::new(),
             order: Vec::new(),
+            members: Vec::new(),
+            band_starts: Vec::new(),
             band: Band::default(),
             tile: Tile {
                 rows: 0..0,
@@ -130,6 +137,7 @@ impl Search {
     }
 
     /// One assignment pass (see [`Search`]); returns whether any label changed.
+    #[inline(always)]
     pub(super) fn assign(&mut self, centres: &[Centre]) -> bool {
         let (width, height) = (self.tiles.width, self.tiles.height);
         // scikit-image's window: [max(c - 2S, 0), min(c + 2S + 1, len)), truncated.
@@ -150,18 +158,54 @@ impl Search {
         self.order
             .sort_by(|&i, &j| centres[i as usize].x.total_cmp(&centres[j as usize].x));
         self.measure_drift(centres);
+        self.sort_into_bands(height);
         let mut changed = false;
-        for y0 in (0..height).step_by(TH) {
+        for (b, y0) in (0..height).step_by(TH).enumerate() {
             let rows = y0..(y0 + TH).min(height);
-            let (order, windows) = (&self.order, &self.windows);
+            let members = &self.members[self.band_starts[b]..self.band_starts[b + 1]];
             self.band
-                .gather(centres, windows, order, rows.clone(), self.weight);
+                .gather(centres, &self.windows, members, rows.clone(), self.weight);
             changed |= self.band_pass(rows);
         }
         changed
     }
 
+    /// Lists the centres whose windows meet each band of `TH` rows, in `order`.
+    #[inline(always)]
+    fn sort_into_bands(&mut self, height: usize) {
+        let bands = height.div_ceil(TH);
+        let windows = &self.windows;
+        let band_range = |k: u32| {
+            let [y0, y1, x0, x1] = windows[k as usize];
+            if y0 < y1 && x0 < x1 {
+                y0 / TH..(y1 - 1) / TH + 1
+            } else {
+                0..0
+            }
+        };
+        let starts = &mut self.band_starts;
+        starts.clear();
+        starts.resize(bands + 2, 0);
+        for &k in &self.order {
+            for b in band_range(k) {
+                starts[b + 2] += 1;
+            }
+        }
+        for b in 2..starts.len() {
+            starts[b] += starts[b - 1];
+        }
+        // starts[b + 1] is now where band b's list starts; filling moves it to its end.
+        self.members.resize(starts[bands + 1], 0);
+        for &k in &self.order {
+            for b in band_range(k) {
+                self.members[starts[b + 1]] = k;
+                starts[b + 1] += 1;
+            }
+        }
+    }
+
     /// Records how far each centre moved since the previous pass.
+    #[inline(always)]
     fn measure_drift(&mut self, centres: &[Centre]) {
         self.drift.clear();
         if self.previous.len() == centres.len() {
@@ -180,6 +224,7 @@ impl Search {
     }
 
     /// The tiles of one band of rows, left to right; returns whether a label changed.
+    #[inline(always)]
     fn band_pass(&mut self, rows: Range<usize>) -> bool {
         let width = self.tiles.width;
         let (mut lo, mut hi) = (0, 0);
@@ -206,9 +251,12 @@ impl Search {
                 continue;
             }
             self.tile.start(rows.clone(), x0..x1);
-            self.search_tile(lo..hi);
+            let single = self.search_tile(lo..hi);
             changed |= self.tile.changed;
-            self.stable[t] = self.certificate();
+            self.stable[t] = match single {
+                true => self.certificate(),
+                false => (u32::MAX, f64::INFINITY),
+            };
         }
         changed
     }
@@ -222,6 +270,7 @@ impl Search {
     /// whose square is the distance); when that bound, with a margin for the rounding of
     /// the distances as computed, is below every other centre's lower bound, `k` stays
     /// strictly nearest for all of them.
+    #[inline(always)]
     fn still_stable(
         &mut self,
         t: usize,
@@ -256,6 +305,7 @@ impl Search {
 
     /// The current tile's label and its largest distance if all its pixels have that
     /// label, else `(u32::MAX, ∞)`.
+    #[inline(always)]
     fn certificate(&self) -> (u32, f64) {
         let tile = &self.tile;
         let row = |y: usize| &self.labels[y * self.stride + tile.x0..][..tile.n];
@@ -269,9 +319,13 @@ impl Search {
 
     /// Offers the current tile to the band's centres `active`: first to the centres its
     /// pixels had, then to every other centre whose bound does not exceed the tile's best
-    /// distances.
-    fn search_tile(&mut self, active: Range<usize>) {
-        for k in self.previous_labels() {
+    /// distances. Returns whether the tile may have kept a single label (the ends of its
+    /// rows had one and no label changed).
+    #[inline(always)]
+    fn search_tile(&mut self, active: Range<usize>) -> bool {
+        let previous = self.previous_labels();
+        let single = previous.len() == 1;
+        for k in previous {
             if let Some(&i) = self.band.slot.get(k as usize)
                 && active.contains(&(i as usize))
             {
@@ -297,11 +351,13 @@ impl Search {
                 }
             }
         }
+        single && !self.tile.changed
     }
 
     /// The distinct labels at the ends of the current tile's rows (up to four): usually
     /// all of its labels.
-    fn previous_labels(&self) -> impl Iterator<Item = u32> + use<> {
+    #[inline(always)]
+    fn previous_labels(&self) -> std::iter::Take<std::array::IntoIter<u32, 4>> {
         let mut found = [u32::MAX; 4];
         let mut n = 0;
         let mut last = u32::MAX;
@@ -320,17 +376,19 @@ impl Search {
     }
 
     /// Offers the current tile to the band's centre `i`, row by row.
+    #[inline(always)]
     fn offer(&mut self, i: usize) {
         let (band, tile, weight) = (&self.band, &mut self.tile, self.weight);
         let (k, cx, cy, lab) = (band.k[i], band.cx[i], band.cy[i], band.lab[i]);
         // Columns outside the window get a NaN spatial term: never better.
         let (wx0, wx1, left) = (band.x0[i], band.x1[i], tile.x0 as f32);
-        let dx2: [f32; TW] = std::array::from_fn(|j| {
+        let mut dx2 = [0f32; TW];
+        for (j, d) in dx2.iter_mut().enumerate() {
             let x = left + j as f32;
-            let d = spatial(weight, x - cx);
             let inside = u32::from(x >= wx0 && x < wx1).wrapping_neg();
-            f32::from_bits((d.to_bits() & inside) | (f32::NAN.to_bits() & !inside))
-        });
+            let term = spatial(weight, x - cx).to_bits();
+            *d = f32::from_bits((term & inside) | (f32::NAN.to_bits() & !inside));
+        }
         let (colour, dx_bound) = (band.colour[i], band.dx2[i]);
         let [r0, r1] = band.rows[i];
         let mut changed = 0;
@@ -363,9 +421,12 @@ impl Search {
 impl Tile {
     /// Makes this the tile over `rows` and columns `cols` (at most `TH × TW`), with no
     /// distances yet (the rows' `best` are set by their first offer, see [`offer_row`]).
+    #[inline(always)]
     fn start(&mut self, rows: Range<usize>, cols: Range<usize>) {
         let n = cols.len();
-        self.pad = std::array::from_fn(|j| if j < n { f32::INFINITY } else { 0.0 });
+        for (j, p) in self.pad.iter_mut().enumerate() {
+            *p = if j < n { f32::INFINITY } else { 0.0 };
+        }
         self.row_max = [0.0; TH];
         self.fresh = [false; TH];
         for (r, y) in rows.clone().enumerate() {

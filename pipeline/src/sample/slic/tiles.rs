@@ -29,6 +29,7 @@ pub(super) struct Tiles {
 
 impl Tiles {
     /// Cuts `lab` (`width × height`, both positive) into tiles and bounds them.
+    #[inline(always)]
     pub(super) fn new(lab: &Lab, width: usize, height: usize) -> Self {
         let tiles_x = width.div_ceil(TW);
         let mut cells = vec![[[0f32; TW]; 3]; tiles_x * height];
@@ -83,6 +84,7 @@ impl Tiles {
     }
 
     /// The Lab bounding box of the tile at `(y0, x0)`, multiples of `TH` and `TW`.
+    #[inline(always)]
     pub(super) fn tile_box(&self, y0: usize, x0: usize) -> [f32; 6] {
         self.boxes[y0 / TH * self.tiles_x + x0 / TW]
     }
@@ -127,12 +129,13 @@ impl Band {
         self.k.len()
     }
 
-    /// Collects the centres (visited in `order`) whose windows meet `rows`.
+    /// Collects the centres of `members` (in that order) whose windows meet `rows`.
+    #[inline(always)]
     pub(super) fn gather(
         &mut self,
         centres: &[Centre],
         windows: &[[usize; 4]],
-        order: &[u32],
+        members: &[u32],
         rows: Range<usize>,
         weight: f32,
     ) {
@@ -147,7 +150,7 @@ impl Band {
         self.dy2.clear();
         self.slot.clear();
         self.slot.resize(centres.len(), u32::MAX);
-        for &k in order {
+        for &k in members {
             let [y0, y1, x0, x1] = windows[k as usize];
             if y0 >= rows.end || y1 <= rows.start || x0 >= x1 {
                 continue;
@@ -176,6 +179,7 @@ impl Band {
 
     /// The lower bounds of centres `active` on the tile of columns `cols` with the Lab
     /// bounding box `colour`.
+    #[inline(always)]
     pub(super) fn bounds(
         &mut self,
         active: Range<usize>,
