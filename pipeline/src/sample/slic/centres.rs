@@ -24,33 +24,35 @@ pub(super) struct Means {
 }
 
 impl Means {
+    /// Takes the pixels' colours from `lab` (the image's, for the following updates).
+    #[inline(always)]
+    pub(super) fn prepare(&mut self, lab: &Lab) {
+        self.pixels.clear();
+        self.pixels.extend(
+            lab.l
+                .iter()
+                .zip(&lab.a)
+                .zip(&lab.b)
+                .map(|((&l, &a), &b)| [l, a, b, 0.0]),
+        );
+    }
+
     /// Moves every centre to the mean position and colour of its pixels (a centre without
-    /// pixels stays where it is), given the labels of the `width`-pixel rows of `lab` as
-    /// rows of `stride` labels.
+    /// pixels stays where it is), given the labels of the `width`-pixel rows of the image
+    /// of [`Means::prepare`] as rows of `stride` labels.
     ///
     /// Each run of equal labels along a row is summed in `f32` from left to right, and
     /// the runs are added to the centre's `f64` sums in raster order.
     #[inline(always)]
     pub(super) fn update(
         &mut self,
-        lab: &Lab,
         width: usize,
         (labels, stride): (&[u32], usize),
         centres: &mut [Centre],
     ) {
         self.sums.clear();
         self.sums.resize(centres.len(), [0.0; 6]);
-        if self.pixels.len() != lab.l.len() {
-            self.pixels.clear();
-            self.pixels.extend(
-                lab.l
-                    .iter()
-                    .zip(&lab.a)
-                    .zip(&lab.b)
-                    .map(|((&l, &a), &b)| [l, a, b, 0.0]),
-            );
-        }
-        let height = lab.l.len() / width;
+        let height = self.pixels.len() / width;
         for y0 in (0..height).step_by(ROWS) {
             let rows = y0..(y0 + ROWS).min(height);
             if rows.len() == ROWS {

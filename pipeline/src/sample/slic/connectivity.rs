@@ -17,18 +17,17 @@ const UNSET: u32 = u32::MAX;
 #[inline(always)]
 pub(super) fn enforce_connectivity(
     labels: &[u32],
-    width: usize,
-    height: usize,
-    min_size: usize,
-    max_size: usize,
+    [width, height]: [usize; 2],
+    [min_size, max_size]: [usize; 2],
+    scratch: &mut Scratch,
 ) -> (Vec<u32>, u32) {
     let mut search = Components {
         labels,
         width,
         height,
         out: vec![UNSET; labels.len()],
-        pixels: Vec::new(),
-        seeds: Vec::new(),
+        pixels: std::mem::take(&mut scratch.pixels),
+        seeds: std::mem::take(&mut scratch.seeds),
     };
     let mut next = 0u32;
     for start in 0..labels.len() {
@@ -59,7 +58,15 @@ pub(super) fn enforce_connectivity(
     }
     // All small so far: the pixels hold the not-yet-counted label `next` (= 0).
     let count = if next == 0 { 1 } else { next };
+    (scratch.pixels, scratch.seeds) = (search.pixels, search.seeds);
     (search.out, count)
+}
+
+/// Buffers of the connectivity step, kept from image to image.
+#[derive(Debug, Default)]
+pub(super) struct Scratch {
+    pixels: Vec<usize>,
+    seeds: Vec<usize>,
 }
 
 /// The connectivity search over SLIC's `labels`.

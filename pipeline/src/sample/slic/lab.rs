@@ -5,7 +5,8 @@
 /// Gaussian kernels are truncated at this many standard deviations (SciPy's default).
 const GAUSS_TRUNCATE: f32 = 4.0;
 
-/// CIELAB planes of the (smoothed) image.
+/// CIELAB planes of the (smoothed) image, and scratch for making them.
+#[derive(Debug, Default)]
 pub(super) struct Lab {
     /// Lightness.
     pub l: Vec<f32>,
@@ -13,15 +14,49 @@ pub(super) struct Lab {
     pub a: Vec<f32>,
     /// Blue–yellow.
     pub b: Vec<f32>,
+    /// The planes between the row and the column passes of the smoothing.
+    scratch: Vec<f32>,
+    /// A row of a plane with its reflected borders.
+    pad: Vec<f32>,
 }
 
-/// scikit-image's pre-processing: the image is stretched to `[0, 1]` by its global
-/// minimum and maximum (`image -= min; image /= max` over all channels; a no-op for
-/// images spanning 0..255), converted to CIELAB, and each Lab plane is smoothed by a
-/// Gaussian of `sigma` pixels (0: not at all).
-#[inline(always)]
+/// [`Lab::compute`] into a new `Lab`.
+#[cfg(test)]
 pub(super) fn smoothed_lab(rgb: &[u8], width: usize, height: usize, sigma: f32) -> Lab {
-    let n = width * height;
+    let mut lab = Lab::default();
+    lab.compute(rgb, width, height, sigma);
+    lab
+}
+
+impl Lab {
+    /// scikit-image's pre-processing of the RGB8 image `rgb` (`width × height`): the
+    /// image is stretched to `[0, 1]` by its global minimum and maximum (`image -= min;
+    /// image /= max` over all channels; a no-op for images spanning 0..255), converted
+    /// to CIELAB, and each Lab plane is smoothed by a Gaussian of `sigma` pixels (0: not
+    /// at all).
+    #[inline(always)]
+    pub(super) fn compute(&mut self, rgb: &[u8], width: usize, height: usize, sigma: f32) {
+        let n = width * height;
+        // Every value is written below: no need to clear.
+        for plane in [&mut self.l, &mut self.a, &mut self.b] {
+            plane.resize(n, 0.0);
+        }
+        to_lab(rgb, self);
+        if sigma > 0.0 {
+            let kernel = gaussian_half_kernel(sigma);
+            self.scratch.resize(n, 0.0);
+            let (scratch, pad) = (&mut self.scratch, &mut self.pad);
+            for plane in [&mut self.l, &mut self.a, &mut self.b] {
+                blur_rows(plane, scratch, width, &kernel, pad);
+                blur_columns(scratch, plane, width, height, &kernel);
+            }
+        }
+    }
+}
+
+/// The stretched image `rgb` in CIELAB, into `lab`'s planes (of its size).
+#[inline(always)]
+fn to_lab(rgb: &[u8], lab: &mut Lab) {
     let lo = rgb.iter().copied().min().unwrap_or(0);
     let hi = rgb.iter().copied().max().unwrap_or(0);
     // sRGB-encoded byte → linear, after the stretch.
@@ -39,11 +74,6 @@ pub(super) fn smoothed_lab(rgb: &[u8], width: usize, height: usize, sigma: f32) 
         };
     }
 
-    let mut lab = Lab {
-        l: vec![0f32; n],
-        a: vec![0f32; n],
-        b: vec![0f32; n],
-    };
     // sRGB (D65) → XYZ normalised by the D65 white (0.95047, 1, 1.08883), kept in the
     // planes for the moment.
     for (((px, x), y), z) in rgb
@@ -68,17 +98,6 @@ pub(super) fn smoothed_lab(rgb: &[u8], width: usize, height: usize, sigma: f32) 
         *a = 500.0 * (fx - fy);
         *b = 200.0 * (fy - fz);
     }
-
-    if sigma > 0.0 {
-        let kernel = gaussian_half_kernel(sigma);
-        let mut scratch = vec![0f32; n];
-        let mut pad = Vec::new();
-        for plane in [&mut lab.l, &mut lab.a, &mut lab.b] {
-            blur_rows(plane, &mut scratch, width, &kernel, &mut pad);
-            blur_columns(&scratch, plane, width, height, &kernel);
-        }
-    }
-    lab
 }
 
 /// CIELAB's `f(t)` as scikit-image has it: `∛t` above 0.008856, `7.787 t + 16/116` below

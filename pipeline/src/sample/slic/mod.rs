@@ -39,9 +39,10 @@ mod tiles;
 use crate::invalid::InvalidSetting;
 use centres::Means;
 use connectivity::enforce_connectivity;
-use lab::smoothed_lab;
+use lab::Lab;
 use search::Search;
 use serde::{Deserialize, Serialize};
+use std::cell::RefCell;
 
 /// scikit-image's `max_size_factor`: connected components are grown up to this many times
 /// the mean segment size; larger ones are split.
@@ -182,14 +183,43 @@ fn slic_inline(rgb: &[u8], width: usize, height: usize, params: &SlicParams) -> 
         "slic: rgb has {} bytes, expected 3 * {width} * {height}",
         rgb.len()
     );
-    let n = n.unwrap_or(0);
-    if n == 0 {
+    if n == Some(0) {
         return Segmentation {
             labels: Vec::new(),
             count: 0,
         };
     }
+    let mut scratch = SCRATCH.try_with(RefCell::take).unwrap_or_default();
+    let segmentation = segment(&mut scratch, rgb, [width, height], params);
+    // Only fails while the thread is being torn down, when the buffers are not needed.
+    let _ = SCRATCH.try_with(|kept| kept.replace(scratch));
+    segmentation
+}
 
+/// Buffers kept from call to call on each thread: a 448×224 image needs about 7 MB,
+/// which would otherwise be allocated (and faulted in) anew every time.
+#[derive(Debug, Default)]
+struct Scratch {
+    lab: Lab,
+    labels: Vec<u32>,
+    search: Search,
+    means: Means,
+    components: connectivity::Scratch,
+}
+
+thread_local! {
+    static SCRATCH: RefCell<Scratch> = RefCell::new(Scratch::default());
+}
+
+/// The segmentation of a non-empty image (see [`slic`]).
+#[inline(always)]
+fn segment(
+    scratch: &mut Scratch,
+    rgb: &[u8],
+    [width, height]: [usize; 2],
+    params: &SlicParams,
+) -> Segmentation {
+    let n = width * height;
     let compactness = if params.compactness.is_finite() && params.compactness >= 0.0 {
         params.compactness
     } else {
@@ -206,48 +236,29 @@ fn slic_inline(rgb: &[u8], width: usize, height: usize, params: &SlicParams) -> 
         0.0
     };
 
-    let lab = smoothed_lab(rgb, width, height, sigma);
-
-    // Initial centres on scikit-image's regular grid.
-    let [(start_y, step_y), (start_x, step_x)] =
-        regular_grid(height, width, params.n_segments.max(1));
-    let ys: Vec<usize> = (start_y..height).step_by(step_y).collect();
-    let xs: Vec<usize> = (start_x..width).step_by(step_x).collect();
-    let mut centres: Vec<Centre> = ys
-        .iter()
-        .flat_map(|&y| {
-            xs.iter().map(move |&x| Centre {
-                y: y as f32,
-                x: x as f32,
-                lab: [0.0; 3],
-            })
-        })
-        .collect();
-
-    // First pass: scikit-image starts every centre colour at zero, so its first
-    // assignment is the nearest grid centre; on a regular grid that is separable.
-    let near_y = nearest_on_grid(height, start_y, step_y, ys.len());
-    let near_x = nearest_on_grid(width, start_x, step_x, xs.len());
-    let mut labels = vec![0u32; n];
-    for (row, &ky) in labels.chunks_exact_mut(width).zip(&near_y) {
-        for (label, &kx) in row.iter_mut().zip(&near_x) {
-            *label = ky * xs.len() as u32 + kx;
-        }
-    }
-
+    scratch.lab.compute(rgb, width, height, sigma);
+    let grid = regular_grid(height, width, params.n_segments.max(1));
+    let mut centres = initial_centres(grid, [width, height], &mut scratch.labels);
     if params.max_iterations > 1 {
+        let [(_, step_y), (_, step_x)] = grid;
         let step = step_y.max(step_x) as f32;
-        let spatial_weight = (compactness / step) * (compactness / step);
+        let weight = (compactness / step) * (compactness / step);
         let window = [WINDOW_STEPS * step_y as f32, WINDOW_STEPS * step_x as f32];
-        let mut search = Search::new(&lab, &labels, [width, height], window, spatial_weight);
-        let mut means = Means::default();
-        means.update(&lab, width, (&labels, width), &mut centres);
+        let (lab, labels, search, means) = (
+            &scratch.lab,
+            &mut scratch.labels,
+            &mut scratch.search,
+            &mut scratch.means,
+        );
+        search.prepare(lab, labels, [width, height], window, weight);
+        means.prepare(lab);
+        means.update(width, (labels, width), &mut centres);
         for pass in 2..=params.max_iterations {
             // The centres after the last pass are not needed.
             if !search.assign(&centres) || pass == params.max_iterations {
                 break;
             }
-            means.update(&lab, width, search.labels(), &mut centres);
+            means.update(width, search.labels(), &mut centres);
         }
         let (padded, stride) = search.labels();
         for (row, src) in labels
@@ -262,8 +273,46 @@ fn slic_inline(rgb: &[u8], width: usize, height: usize, params: &SlicParams) -> 
     let segment_size = n as f64 / centres.len() as f64;
     let min_size = (min_size_factor * segment_size) as usize;
     let max_size = ((MAX_SIZE_FACTOR * segment_size) as usize).max(1);
-    let (labels, count) = enforce_connectivity(&labels, width, height, min_size, max_size);
+    let (labels, count) = enforce_connectivity(
+        &scratch.labels,
+        [width, height],
+        [min_size, max_size],
+        &mut scratch.components,
+    );
     Segmentation { labels, count }
+}
+
+/// The centres on scikit-image's regular `grid` (`[(start, step)]` of the rows and the
+/// columns), and the labels of scikit-image's first pass into `labels`: it starts every
+/// centre colour at zero, so its first assignment is the nearest grid centre, which on a
+/// regular grid is separable.
+#[inline(always)]
+fn initial_centres(
+    [(start_y, step_y), (start_x, step_x)]: [(usize, usize); 2],
+    [width, height]: [usize; 2],
+    labels: &mut Vec<u32>,
+) -> Vec<Centre> {
+    let ys: Vec<usize> = (start_y..height).step_by(step_y).collect();
+    let xs: Vec<usize> = (start_x..width).step_by(step_x).collect();
+    let centres = ys
+        .iter()
+        .flat_map(|&y| {
+            xs.iter().map(move |&x| Centre {
+                y: y as f32,
+                x: x as f32,
+                lab: [0.0; 3],
+            })
+        })
+        .collect();
+    let near_y = nearest_on_grid(height, start_y, step_y, ys.len());
+    let near_x = nearest_on_grid(width, start_x, step_x, xs.len());
+    labels.resize(width * height, 0);
+    for (row, &ky) in labels.chunks_exact_mut(width).zip(&near_y) {
+        for (label, &kx) in row.iter_mut().zip(&near_x) {
+            *label = ky * xs.len() as u32 + kx;
+        }
+    }
+    centres
 }
 
 /// A cluster centre: position (row, column) and mean colour (CIELAB).

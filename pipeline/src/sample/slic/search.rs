@@ -26,6 +26,7 @@ use std::ops::Range;
 /// distance as computed (rounding is monotone). A tile whose pixels all had one centre
 /// is skipped whole when that centre provably stays the nearest (see
 /// [`Search::still_stable`]).
+#[derive(Debug, Default)]
 pub(super) struct Search {
     /// The image's tiles and their Lab bounding boxes.
     tiles: Tiles,
@@ -61,6 +62,7 @@ pub(super) struct Search {
 
 /// The state of one tile during a pass: each pixel's best distance so far (its centre is
 /// in the labels).
+#[derive(Debug, Default)]
 struct Tile {
     /// Rows of the image.
     rows: Range<usize>,
@@ -80,54 +82,39 @@ struct Tile {
     pad: [f32; TW],
     /// Whether a label changed.
     changed: bool,
+    /// The Lab bounding box of its pixels.
+    colour: [f32; 6],
 }
 
 impl Search {
-    /// Scratch for the passes over `lab` (`width × height`, both positive) starting from
+    /// Prepares the passes over `lab` (`width × height`, both positive) starting from
     /// `labels` (row-major), with the window half-sizes (rows, columns) and the spatial
     /// weight.
     #[inline(always)]
-    pub(super) fn new(
+    pub(super) fn prepare(
+        &mut self,
         lab: &Lab,
         labels: &[u32],
         [width, height]: [usize; 2],
         window: [f32; 2],
         weight: f32,
-    ) -> Self {
+    ) {
         let stride = width.div_ceil(TW) * TW;
-        let mut padded = vec![u32::MAX; stride * height];
-        for (dst, src) in padded
+        self.labels.clear();
+        self.labels.resize(stride * height, u32::MAX);
+        for (dst, src) in self
+            .labels
             .chunks_exact_mut(stride)
             .zip(labels.chunks_exact(width))
         {
             dst[..width].copy_from_slice(src);
         }
-        Search {
-            tiles: Tiles::new(lab, width, height),
-            labels: padded,
-            stride,
-            window,
-            weight,
-            windows: Vec::new(),
-            order: Vec::new(),
-            members: Vec::new(),
-            band_starts: Vec::new(),
-            band: Band::default(),
-            tile: Tile {
-                rows: 0..0,
-                x0: 0,
-                n: 0,
-                ys: [0.0; TH],
-                best: [[0.0; TW]; TH],
-                row_max: [0.0; TH],
-                fresh: [false; TH],
-                pad: [0.0; TW],
-                changed: false,
-            },
-            previous: Vec::new(),
-            drift: Vec::new(),
-            stable: vec![(u32::MAX, 0.0); stride / TW * height.div_ceil(TH)],
-        }
+        self.tiles.prepare(lab, width, height);
+        (self.stride, self.window, self.weight) = (stride, window, weight);
+        self.previous.clear();
+        self.stable.clear();
+        let tiles = stride / TW * height.div_ceil(TH);
+        self.stable.resize(tiles, (u32::MAX, f64::INFINITY));
     }
 
     /// The labels, row-major with the returned number of columns per row (the image's
@@ -251,6 +238,7 @@ impl Search {
                 continue;
             }
             self.tile.start(rows.clone(), x0..x1);
+            self.tile.colour = colour;
             let single = self.search_tile(lo..hi);
             changed |= self.tile.changed;
             self.stable[t] = match single {
@@ -379,7 +367,8 @@ impl Search {
     #[inline(always)]
     fn offer(&mut self, i: usize) {
         let (band, tile, weight) = (&self.band, &mut self.tile, self.weight);
-        let (k, cx, cy, lab) = (band.k[i], band.cx[i], band.cy[i], band.lab[i]);
+        let (k, cx, cy) = (band.k[i], band.cx[i], band.cy[i]);
+        let lab = [band.lab[0][i], band.lab[1][i], band.lab[2][i]];
         // Columns outside the window get a NaN spatial term: never better.
         let (wx0, wx1, left) = (band.x0[i], band.x1[i], tile.x0 as f32);
         let mut dx2 = [0f32; TW];
@@ -389,9 +378,10 @@ impl Search {
             let term = spatial(weight, x - cx).to_bits();
             *d = f32::from_bits((term & inside) | (f32::NAN.to_bits() & !inside));
         }
-        let (colour, dx_bound) = (band.colour[i], band.dx2[i]);
+        let cols = tile.x0..tile.x0 + tile.n;
+        let (colour, dx_bound) = band.lower_terms(i, cols, tile.colour, weight);
         let [r0, r1] = band.rows[i];
-        let mut changed = 0;
+        let mut changed = [0u32; TW];
         for r in r0 as usize..r1 as usize {
             let dy2 = spatial(weight, cy - tile.ys[r]);
             if colour + (dy2 + dx_bound) > tile.row_max[r] {
@@ -404,17 +394,16 @@ impl Search {
                 continue;
             };
             let best = &mut tile.best[r];
-            let (max, diff) = if tile.fresh[r] {
+            let terms = (&dx2, dy2, lab, k);
+            tile.row_max[r] = if tile.fresh[r] {
                 tile.fresh[r] = false;
                 *best = tile.pad;
-                offer_row::<true>(best, label, cell, &dx2, dy2, lab, k)
+                offer_row::<true>(best, label, cell, terms, &mut changed)
             } else {
-                offer_row::<false>(best, label, cell, &dx2, dy2, lab, k)
+                offer_row::<false>(best, label, cell, terms, &mut changed)
             };
-            tile.row_max[r] = max;
-            changed |= diff;
         }
-        tile.changed |= changed != 0;
+        tile.changed |= changed.iter().fold(0, |a, &d| a | d) != 0;
     }
 }
 
@@ -443,21 +432,18 @@ impl Tile {
 /// `FRESH` row no centre has been offered yet, so any distance but NaN (outside the
 /// window) wins. Branch-free, so that it vectorises; the rows are written whole (no
 /// masked stores, which later loads cannot forward from). Returns the row's largest best
-/// distance and, nonzero if a label changed, the changed bits.
+/// distance; sets bits of `changed` where a label changed.
 #[inline(always)]
 fn offer_row<const FRESH: bool>(
     best: &mut [f32; TW],
     label: &mut [u32; TW],
     [l, a, b]: &[[f32; TW]; 3],
-    dx2: &[f32; TW],
-    dy2: f32,
-    lab: [f32; 3],
-    k: u32,
-) -> (f32, u32) {
+    (dx2, dy2, lab, k): (&[f32; TW], f32, [f32; 3], u32),
+    changed: &mut [u32; TW],
+) -> f32 {
     let (old_best, old_label) = (*best, *label);
     let mut new_best = [0f32; TW];
     let mut new_label = [0u32; TW];
-    let mut diff = 0;
     for i in 0..TW {
         let dist = colour_distance(l[i], a[i], b[i], lab) + (dy2 + dx2[i]);
         let better = if FRESH {
@@ -468,10 +454,10 @@ fn offer_row<const FRESH: bool>(
         let mask = u32::from(better).wrapping_neg();
         new_best[i] = f32::from_bits((old_best[i].to_bits() & !mask) | (dist.to_bits() & mask));
         new_label[i] = (old_label[i] & !mask) | (k & mask);
-        diff |= mask & (k ^ old_label[i]);
+        changed[i] |= mask & (k ^ old_label[i]);
     }
     (*best, *label) = (new_best, new_label);
-    (largest(&new_best), diff)
+    largest(&new_best)
 }
 
 /// The largest of (non-NaN, non-negative) `values`, as a tree of lane-wise maxima.

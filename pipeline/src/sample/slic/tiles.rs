@@ -14,6 +14,7 @@ pub(super) const TH: usize = 8;
 
 /// The Lab image cut into rows of tiles (`TW` pixels of each plane side by side, padded
 /// with zeros at the right edge), and the Lab bounding box of each tile's pixels.
+#[derive(Debug, Default)]
 pub(super) struct Tiles {
     /// Image width, pixels.
     pub width: usize,
@@ -30,9 +31,12 @@ pub(super) struct Tiles {
 impl Tiles {
     /// Cuts `lab` (`width × height`, both positive) into tiles and bounds them.
     #[inline(always)]
-    pub(super) fn new(lab: &Lab, width: usize, height: usize) -> Self {
+    pub(super) fn prepare(&mut self, lab: &Lab, width: usize, height: usize) {
         let tiles_x = width.div_ceil(TW);
-        let mut cells = vec![[[0f32; TW]; 3]; tiles_x * height];
+        (self.width, self.height, self.tiles_x) = (width, height, tiles_x);
+        // Every cell is written below but the padding, which only needs to be finite.
+        let cells = &mut self.cells;
+        cells.resize(tiles_x * height, [[0f32; TW]; 3]);
         for (y, cells) in cells.chunks_exact_mut(tiles_x).enumerate() {
             let row = y * width..(y + 1) * width;
             for (dst, src) in [&lab.l[row.clone()], &lab.a[row.clone()], &lab.b[row]]
@@ -44,7 +48,8 @@ impl Tiles {
                 }
             }
         }
-        let mut boxes = vec![[0f32; 6]; tiles_x * height.div_ceil(TH)];
+        let boxes = &mut self.boxes;
+        boxes.resize(tiles_x * height.div_ceil(TH), [0f32; 6]);
         for (ty, boxes) in boxes.chunks_exact_mut(tiles_x).enumerate() {
             let rows = ty * TH..(ty * TH + TH).min(height);
             for (tx, bx) in boxes.iter_mut().enumerate() {
@@ -68,13 +73,6 @@ impl Tiles {
                 }
             }
         }
-        Tiles {
-            width,
-            height,
-            tiles_x,
-            cells,
-            boxes,
-        }
     }
 
     /// The L, a and b of the `TW` pixels from `(y, x0)`, `x0` a multiple of `TW`.
@@ -92,7 +90,7 @@ impl Tiles {
 
 /// The centres whose windows meet a band of rows, in order of their columns, as arrays;
 /// and, for the current tile, their lower bounds.
-#[derive(Default)]
+#[derive(Debug, Default)]
 pub(super) struct Band {
     /// Centre index.
     pub k: Vec<u32>,
@@ -108,15 +106,10 @@ pub(super) struct Band {
     pub cy: Vec<f32>,
     /// Centre column.
     pub cx: Vec<f32>,
-    /// Centre colour.
-    pub lab: Vec<[f32; 3]>,
+    /// Centre colour: L, a and b.
+    pub lab: [Vec<f32>; 3],
     /// The least row spatial term over the band's rows within the window.
     dy2: Vec<f32>,
-    /// For the current tile: a lower bound of the colour term over its pixels.
-    pub colour: Vec<f32>,
-    /// For the current tile: the least column spatial term over its columns within the
-    /// window.
-    pub dx2: Vec<f32>,
     /// For the current tile: the lower bound of the distance (infinite once tried).
     pub bound: Vec<f32>,
     /// Each centre's position in the band (`u32::MAX`: not in it).
@@ -146,7 +139,7 @@ impl Band {
         self.x1.clear();
         self.cy.clear();
         self.cx.clear();
-        self.lab.clear();
+        self.lab.iter_mut().for_each(Vec::clear);
         self.dy2.clear();
         self.slot.clear();
         self.slot.resize(centres.len(), u32::MAX);
@@ -168,12 +161,12 @@ impl Band {
             self.x1.push(x1 as f32);
             self.cy.push(c.y);
             self.cx.push(c.x);
-            self.lab.push(c.lab);
+            for (plane, &v) in self.lab.iter_mut().zip(&c.lab) {
+                plane.push(v);
+            }
             self.dy2.push(spatial(weight, c.y - near));
         }
         let n = self.k.len();
-        self.colour.resize(n, 0.0);
-        self.dx2.resize(n, 0.0);
         self.bound.resize(n, 0.0);
     }
 
@@ -187,36 +180,49 @@ impl Band {
         colour: [f32; 6],
         weight: f32,
     ) {
-        let (left, right) = (cols.start as f32, (cols.end - 1) as f32);
-        // Distance of a value to an interval (0 inside), as the colour term computes
-        // differences: `pixel - centre`, no smaller in magnitude for any pixel inside.
-        let gap = |lo: f32, hi: f32, v: f32| max(max(lo - v, v - hi), 0.0);
         let n = active.len();
         let (x0, x1, cx) = (
             &self.x0[active.clone()],
             &self.x1[active.clone()][..n],
             &self.cx[active.clone()][..n],
         );
-        let (lab, dy2) = (
-            &self.lab[active.clone()][..n],
-            &self.dy2[active.clone()][..n],
+        let [l, a, b] = &self.lab;
+        let (l, a, b) = (
+            &l[active.clone()][..n],
+            &a[active.clone()][..n],
+            &b[active.clone()][..n],
         );
-        let (out_colour, out_dx2, out_bound) = (
-            &mut self.colour[active.clone()][..n],
-            &mut self.dx2[active.clone()][..n],
-            &mut self.bound[active][..n],
-        );
+        let (dy2, out) = (&self.dy2[active.clone()][..n], &mut self.bound[active][..n]);
         for i in 0..n {
-            let near = min(max(cx[i], max(x0[i], left)), min(x1[i] - 1.0, right));
-            let dx2 = spatial(weight, near - cx[i]);
-            let dl = gap(colour[0], colour[1], lab[i][0]);
-            let da = gap(colour[2], colour[3], lab[i][1]);
-            let db = gap(colour[4], colour[5], lab[i][2]);
-            let colour = dl * dl + da * da + db * db;
-            out_colour[i] = colour;
-            out_dx2[i] = dx2;
-            out_bound[i] = colour + (dy2[i] + dx2);
+            let (colour, dx2) = lower_terms(
+                [x0[i], x1[i], cx[i]],
+                [l[i], a[i], b[i]],
+                cols.clone(),
+                colour,
+                weight,
+            );
+            out[i] = colour + (dy2[i] + dx2);
         }
+    }
+
+    /// For centre `i` on the tile of columns `cols` with the Lab bounding box `colour`:
+    /// lower bounds of the colour term and of the column spatial term.
+    #[inline(always)]
+    pub(super) fn lower_terms(
+        &self,
+        i: usize,
+        cols: Range<usize>,
+        colour: [f32; 6],
+        weight: f32,
+    ) -> (f32, f32) {
+        let [l, a, b] = &self.lab;
+        lower_terms(
+            [self.x0[i], self.x1[i], self.cx[i]],
+            [l[i], a[i], b[i]],
+            cols,
+            colour,
+            weight,
+        )
     }
 }
 
@@ -230,4 +236,27 @@ fn max(a: f32, b: f32) -> f32 {
 #[inline(always)]
 fn min(a: f32, b: f32) -> f32 {
     if a < b { a } else { b }
+}
+
+/// Lower bounds, over the pixels of a tile of columns `cols` with the Lab bounding box
+/// `colour`, of the colour term and of the column spatial term of the distance to a
+/// centre (window columns `x0..x1`, column `cx`, colour `lab`).
+#[inline(always)]
+fn lower_terms(
+    [x0, x1, cx]: [f32; 3],
+    lab: [f32; 3],
+    cols: Range<usize>,
+    colour: [f32; 6],
+    weight: f32,
+) -> (f32, f32) {
+    let (left, right) = (cols.start as f32, (cols.end - 1) as f32);
+    // The window's column in the tile nearest the centre (its own column if inside).
+    let near = min(max(cx, max(x0, left)), min(x1 - 1.0, right));
+    // Distance of a value to an interval (0 inside), as the colour term computes
+    // differences: `pixel - centre`, no smaller in magnitude for any pixel inside.
+    let gap = |lo: f32, hi: f32, v: f32| max(max(lo - v, v - hi), 0.0);
+    let dl = gap(colour[0], colour[1], lab[0]);
+    let da = gap(colour[2], colour[3], lab[1]);
+    let db = gap(colour[4], colour[5], lab[2]);
+    (dl * dl + da * da + db * db, spatial(weight, near - cx))
 }
