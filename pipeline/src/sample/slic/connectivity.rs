@@ -10,10 +10,12 @@ const UNSET: u32 = u32::MAX;
 /// already-labelled neighbour met in the search, any other one gets the next new label.
 /// Returns the dense labels (raster order of first appearance) and their count.
 ///
-/// A component is first filled span by span, which is faster than breadth-first and
-/// reaches the same pixels when the whole component is taken; only a component that is
-/// too small or too large, where the order of the search matters, is searched again
-/// breadth-first.
+/// The components are found first from the runs of equal labels along the rows (runs in
+/// neighbouring rows that overlap are joined); the scan then meets them in the raster
+/// order of their first pixels, and one it takes whole (neither too small nor too large)
+/// just gets the next label. Only a small component, where the order of the search
+/// decides its neighbour, is searched breadth-first; when a component is too large (the
+/// search stops part-way), the whole scan is done pixel by pixel.
 #[inline(always)]
 pub(super) fn enforce_connectivity(
     labels: &[u32],
@@ -29,37 +31,28 @@ pub(super) fn enforce_connectivity(
         pixels: std::mem::take(&mut scratch.pixels),
         seeds: std::mem::take(&mut scratch.seeds),
     };
-    let mut next = 0u32;
-    for start in 0..labels.len() {
-        if search.out[start] != UNSET {
-            continue;
-        }
-        let size = search.fill(start, next, max_size);
-        if min_size <= size && size < max_size {
-            next += 1;
-            continue;
-        }
-        for &p in &search.pixels {
-            search.out[p] = UNSET;
-        }
-        let (size, adjacent) = search.breadth_first(start, next, max_size);
-        if size < min_size {
-            // Only a component holding the first pixel can have no labelled neighbour
-            // (every later one touches the pixel before it in raster order); it keeps
-            // the next label, which the following component then shares and extends.
-            if let Some(adjacent) = adjacent {
-                for &p in &search.pixels {
-                    search.out[p] = adjacent;
+    let runs = &mut scratch.runs;
+    runs.find(labels, width);
+    let count = if runs.sizes.iter().all(|&size| size < max_size) {
+        let mut next = 0u32;
+        for c in 0..runs.sizes.len() {
+            if runs.sizes[c] >= min_size {
+                for &(y, x0, x1) in runs.of_component(c) {
+                    search.out[y * width + x0..y * width + x1].fill(next);
                 }
+                next += 1;
+            } else {
+                let (y, x0, _) = runs.of_component(c)[0];
+                search.small(y * width + x0, next, max_size);
             }
-        } else {
-            next += 1;
         }
-    }
-    // All small so far: the pixels hold the not-yet-counted label `next` (= 0).
-    let count = if next == 0 { 1 } else { next };
+        next
+    } else {
+        search.pixel_by_pixel([min_size, max_size])
+    };
     (scratch.pixels, scratch.seeds) = (search.pixels, search.seeds);
-    (search.out, count)
+    // All small so far: the pixels hold the not-yet-counted label `next` (= 0).
+    (search.out, count.max(1))
 }
 
 /// Buffers of the connectivity step, kept from image to image.
@@ -67,6 +60,124 @@ pub(super) fn enforce_connectivity(
 pub(super) struct Scratch {
     pixels: Vec<usize>,
     seeds: Vec<usize>,
+    runs: Runs,
+}
+
+/// The runs of equal labels along the rows and the components they form.
+#[derive(Debug, Default)]
+struct Runs {
+    /// Each run: row, first column, one past the last column (raster order).
+    runs: Vec<(usize, usize, usize)>,
+    /// Per run: its parent in the union-find forest (then its root).
+    parent: Vec<u32>,
+    /// Per run: its component.
+    component: Vec<u32>,
+    /// Per component (numbered in raster order of their first pixels): pixel count.
+    sizes: Vec<usize>,
+    /// The runs of component `c` are `by_component[starts[c]..starts[c + 1]]`.
+    starts: Vec<usize>,
+    by_component: Vec<(usize, usize, usize)>,
+    /// Scratch for listing them.
+    fill: Vec<usize>,
+}
+
+impl Runs {
+    /// Finds the runs of `labels` (rows of `width`) and their components.
+    #[inline(always)]
+    fn find(&mut self, labels: &[u32], width: usize) {
+        self.runs.clear();
+        self.parent.clear();
+        let mut previous = 0..0;
+        for (y, row) in labels.chunks_exact(width).enumerate() {
+            let first = self.runs.len();
+            let mut x0 = 0;
+            for x in 1..width {
+                if row[x] != row[x - 1] {
+                    self.runs.push((y, x0, x));
+                    x0 = x;
+                }
+            }
+            self.runs.push((y, x0, width));
+            self.parent.extend(first as u32..self.runs.len() as u32);
+            // Runs of equal labels that overlap the row above are joined.
+            let (mut i, mut j) = (previous.start, first);
+            while i < previous.end && j < self.runs.len() {
+                let ((ya, a0, a1), (_, b0, b1)) = (self.runs[i], self.runs[j]);
+                if a0 < b1 && b0 < a1 && labels[ya * width + a0] == row[b0] {
+                    self.union(i, j);
+                }
+                if a1 <= b1 {
+                    i += 1;
+                } else {
+                    j += 1;
+                }
+            }
+            previous = first..self.runs.len();
+        }
+        self.components();
+    }
+
+    /// The root of run `i`'s tree (halving the path on the way).
+    #[inline(always)]
+    fn root(&mut self, mut i: usize) -> usize {
+        while self.parent[i] as usize != i {
+            let up = self.parent[self.parent[i] as usize];
+            self.parent[i] = up;
+            i = up as usize;
+        }
+        i
+    }
+
+    /// Joins the trees of runs `i` and `j` (under the earlier root).
+    #[inline(always)]
+    fn union(&mut self, i: usize, j: usize) {
+        let (a, b) = (self.root(i), self.root(j));
+        let (low, high) = if a < b { (a, b) } else { (b, a) };
+        self.parent[high] = low as u32;
+    }
+
+    /// Numbers the components in raster order of their first pixels (a root is its
+    /// tree's first run) and lists their runs.
+    #[inline(always)]
+    fn components(&mut self) {
+        for i in 0..self.runs.len() {
+            self.parent[i] = self.root(i) as u32;
+        }
+        self.sizes.clear();
+        self.component.clear();
+        for (i, &(_, x0, x1)) in self.runs.iter().enumerate() {
+            let root = self.parent[i] as usize;
+            let c = if root == i {
+                self.sizes.push(0);
+                self.sizes.len() - 1
+            } else {
+                self.component[root] as usize
+            };
+            self.sizes[c] += x1 - x0;
+            self.component.push(c as u32);
+        }
+        self.starts.clear();
+        self.starts.resize(self.sizes.len() + 1, 0);
+        for &c in &self.component {
+            self.starts[c as usize + 1] += 1;
+        }
+        for c in 1..self.starts.len() {
+            self.starts[c] += self.starts[c - 1];
+        }
+        self.by_component.resize(self.runs.len(), (0, 0, 0));
+        self.fill.clear();
+        self.fill.extend_from_slice(&self.starts);
+        for (&c, &run) in self.component.iter().zip(&self.runs) {
+            self.by_component[self.fill[c as usize]] = run;
+            self.fill[c as usize] += 1;
+        }
+    }
+
+    /// The runs of component `c`, the first first.
+    #[inline(always)]
+    fn of_component(&self, c: usize) -> &[(usize, usize, usize)] {
+        &self.by_component[self.starts[c]..self.starts[c + 1]]
+    }
 }
 
 /// The connectivity search over SLIC's `labels`.
@@ -83,6 +194,52 @@ struct Components<'a> {
 }
 
 impl Components<'_> {
+    /// scikit-image's handling of the small component holding `start`: searched
+    /// breadth-first (labelled `next`), it takes the label of the last labelled
+    /// neighbour met, if any.
+    #[inline(always)]
+    fn small(&mut self, start: usize, next: u32, max_size: usize) {
+        let (_, adjacent) = self.breadth_first(start, next, max_size);
+        // Only a component holding the first pixel can have no labelled neighbour (every
+        // later one touches the pixel before it in raster order); it keeps the next
+        // label, which the following component then shares and extends.
+        if let Some(adjacent) = adjacent {
+            for &p in &self.pixels {
+                self.out[p] = adjacent;
+            }
+        }
+    }
+
+    /// scikit-image's raster scan, pixel by pixel (`out` all unset): each component is
+    /// filled span by span, which is faster than breadth-first and reaches the same
+    /// pixels when the whole component is taken; only a component that is too small or
+    /// too large, where the order of the search matters, is searched again
+    /// breadth-first. Returns the number of labels given.
+    #[inline(always)]
+    fn pixel_by_pixel(&mut self, [min_size, max_size]: [usize; 2]) -> u32 {
+        let mut next = 0u32;
+        for start in 0..self.labels.len() {
+            if self.out[start] != UNSET {
+                continue;
+            }
+            let size = self.fill(start, next, max_size);
+            if min_size <= size && size < max_size {
+                next += 1;
+                continue;
+            }
+            for &p in &self.pixels {
+                self.out[p] = UNSET;
+            }
+            if size < min_size {
+                self.small(start, next, max_size);
+            } else {
+                self.breadth_first(start, next, max_size);
+                next += 1;
+            }
+        }
+        next
+    }
+
     /// Gives label `next` to the unlabelled pixels of `start`'s component (4-connected,
     /// equal SLIC label), span by span, stopping once it has `max_size` pixels; returns
     /// how many it took (listed in `pixels`).

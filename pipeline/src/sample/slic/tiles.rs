@@ -10,7 +10,7 @@ use std::ops::Range;
 /// Tile width, pixels: a row of a tile is offered to a centre as a unit.
 pub(super) const TW: usize = 16;
 /// Tile height, rows.
-pub(super) const TH: usize = 8;
+pub(super) const TH: usize = 16;
 
 /// The Lab image cut into rows of tiles (`TW` pixels of each plane side by side, padded
 /// with zeros at the right edge), and the Lab bounding box of each tile's pixels.
