@@ -63,6 +63,31 @@ pub(super) struct Scratch {
     runs: Runs,
 }
 
+/// Calls `f` with each column of `row` whose label differs from the one before, in order.
+#[inline(always)]
+fn for_each_change(row: &[u32], mut f: impl FnMut(usize)) {
+    const LANES: usize = 16;
+    let pairs = row.chunks_exact(LANES).zip(row[1..].chunks_exact(LANES));
+    let mut x = 1;
+    // Sixteen comparisons at a time, as bits.
+    for (a, b) in pairs {
+        let mut bits = 0u32;
+        for i in 0..LANES {
+            bits |= u32::from(a[i] != b[i]) << i;
+        }
+        while bits != 0 {
+            f(x + bits.trailing_zeros() as usize);
+            bits &= bits - 1;
+        }
+        x += LANES;
+    }
+    for x in x..row.len() {
+        if row[x] != row[x - 1] {
+            f(x);
+        }
+    }
+}
+
 /// The runs of equal labels along the rows and the components they form.
 #[derive(Debug, Default)]
 struct Runs {
@@ -91,12 +116,10 @@ impl Runs {
         for (y, row) in labels.chunks_exact(width).enumerate() {
             let first = self.runs.len();
             let mut x0 = 0;
-            for x in 1..width {
-                if row[x] != row[x - 1] {
-                    self.runs.push((y, x0, x));
-                    x0 = x;
-                }
-            }
+            for_each_change(row, |x| {
+                self.runs.push((y, x0, x));
+                x0 = x;
+            });
             self.runs.push((y, x0, width));
             self.parent.extend(first as u32..self.runs.len() as u32);
             // Runs of equal labels that overlap the row above are joined.

@@ -342,15 +342,18 @@ impl Search {
         single && !self.tile.changed
     }
 
-    /// The distinct labels at the ends of the current tile's rows (up to four): usually
-    /// all of its labels.
+    /// The distinct labels at the ends of some of the current tile's rows (up to four):
+    /// usually all of its labels.
     #[inline(always)]
     fn previous_labels(&self) -> std::iter::Take<std::array::IntoIter<u32, 4>> {
         let mut found = [u32::MAX; 4];
         let mut n = 0;
         let mut last = u32::MAX;
         let tile = &self.tile;
-        for y in tile.rows.clone() {
+        // Every third row and the last (enough to catch the labels of most tiles; any
+        // other centre is still tried after them).
+        let rows = tile.rows.clone();
+        for y in rows.clone().step_by(3).chain(rows.end - 1..rows.end) {
             let row = &self.labels[y * self.stride + tile.x0..][..tile.n];
             for k in [row[0], row[tile.n - 1]] {
                 if k != last && n < found.len() && !found[..n].contains(&k) {
@@ -378,6 +381,8 @@ impl Search {
             let term = spatial(weight, x - cx).to_bits();
             *d = f32::from_bits((term & inside) | (f32::NAN.to_bits() & !inside));
         }
+        // Whether the window covers the tile's columns (which are all in the image).
+        let full = tile.n == TW && wx0 <= left && left + TW as f32 <= wx1;
         let cols = tile.x0..tile.x0 + tile.n;
         let (colour, dx_bound) = band.lower_terms(i, cols, tile.colour, weight);
         let [r0, r1] = band.rows[i];
@@ -395,12 +400,15 @@ impl Search {
             };
             let best = &mut tile.best[r];
             let terms = (&dx2, dy2, lab, k);
-            tile.row_max[r] = if tile.fresh[r] {
+            tile.row_max[r] = if !tile.fresh[r] {
+                offer_row::<false, false>(best, label, cell, terms, &mut changed)
+            } else if full {
+                tile.fresh[r] = false;
+                offer_row::<true, true>(best, label, cell, terms, &mut changed)
+            } else {
                 tile.fresh[r] = false;
                 *best = tile.pad;
-                offer_row::<true>(best, label, cell, terms, &mut changed)
-            } else {
-                offer_row::<false>(best, label, cell, terms, &mut changed)
+                offer_row::<true, false>(best, label, cell, terms, &mut changed)
             };
         }
         tile.changed |= changed.iter().fold(0, |a, &d| a | d) != 0;
@@ -430,11 +438,11 @@ impl Tile {
 /// Offers centre `k` (colour `lab`, spatial terms `dy2` and `dx2`) to a row of a tile:
 /// the pixels for which `(distance, k)` is less than their best so far take it. In a
 /// `FRESH` row no centre has been offered yet, so any distance but NaN (outside the
-/// window) wins. Branch-free, so that it vectorises; the rows are written whole (no
+/// window) wins: all of them if the window covers the `FULL` row. Branch-free, so that it vectorises; the rows are written whole (no
 /// masked stores, which later loads cannot forward from). Returns the row's largest best
 /// distance; sets bits of `changed` where a label changed.
 #[inline(always)]
-fn offer_row<const FRESH: bool>(
+fn offer_row<const FRESH: bool, const FULL: bool>(
     best: &mut [f32; TW],
     label: &mut [u32; TW],
     [l, a, b]: &[[f32; TW]; 3],
@@ -446,7 +454,9 @@ fn offer_row<const FRESH: bool>(
     let mut new_label = [0u32; TW];
     for i in 0..TW {
         let dist = colour_distance(l[i], a[i], b[i], lab) + (dy2 + dx2[i]);
-        let better = if FRESH {
+        let better = if FRESH && FULL {
+            true
+        } else if FRESH {
             dist < old_best[i]
         } else {
             (dist < old_best[i]) | ((dist == old_best[i]) & (k < old_label[i]))
