@@ -32,7 +32,7 @@
 mod centres;
 mod connectivity;
 mod lab;
-pub mod search;
+mod search;
 mod simd;
 mod tiles;
 

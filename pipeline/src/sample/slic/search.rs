@@ -4,7 +4,7 @@
 
 use super::Centre;
 use super::lab::Lab;
-use super::tiles::{Band, TH, TW, Tiles};
+use super::tiles::{Band, TH, TW, Tiles, colour_gap};
 use std::ops::Range;
 
 /// The assignment passes, the labels and the scratch.
@@ -384,14 +384,33 @@ impl Search {
         // Whether the window covers the tile's columns (which are all in the image).
         let full = tile.n == TW && wx0 <= left && left + TW as f32 <= wx1;
         let cols = tile.x0..tile.x0 + tile.n;
-        let (colour, dx_bound) = band.lower_terms(i, cols, tile.colour, weight);
+        let (_, dx_bound) = band.lower_terms(i, cols, tile.colour, weight);
         let [r0, r1] = band.rows[i];
+        // The rows the centre may win: its bound on each (from the row's Lab bounding box)
+        // not above the row's best distances; all at once, as bits.
+        let boxes = self.tiles.row_boxes(tile.rows.start, tile.x0);
+        let mut bound = [0f32; TH];
+        for (r, b) in bound.iter_mut().enumerate() {
+            let bx = [
+                boxes[0][r],
+                boxes[1][r],
+                boxes[2][r],
+                boxes[3][r],
+                boxes[4][r],
+                boxes[5][r],
+            ];
+            *b = colour_gap(lab, bx) + (spatial(weight, cy - tile.ys[r]) + dx_bound);
+        }
+        let mut rows = 0u32;
+        for (r, (&b, &m)) in bound.iter().zip(&tile.row_max).enumerate() {
+            rows |= u32::from(b <= m) << r;
+        }
+        rows &= ((1u32 << r1) - 1) & !((1u32 << r0) - 1);
         let mut changed = [0u32; TW];
-        for r in r0 as usize..r1 as usize {
+        while rows != 0 {
+            let r = rows.trailing_zeros() as usize;
+            rows &= rows - 1;
             let dy2 = spatial(weight, cy - tile.ys[r]);
-            if colour + (dy2 + dx_bound) > tile.row_max[r] {
-                continue;
-            }
             let y = tile.rows.start + r;
             let cell = self.tiles.cell(y, tile.x0);
             let labels = &mut self.labels[y * self.stride + tile.x0..][..TW];

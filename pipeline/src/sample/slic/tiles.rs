@@ -26,6 +26,8 @@ pub(super) struct Tiles {
     cells: Vec<[[f32; TW]; 3]>,
     /// Per tile (row-major): `[l_min, l_max, a_min, a_max, b_min, b_max]`.
     boxes: Vec<[f32; 6]>,
+    /// Per tile (row-major): the same per row of the tile.
+    row_boxes: Vec<[[f32; TH]; 6]>,
 }
 
 impl Tiles {
@@ -48,31 +50,46 @@ impl Tiles {
                 }
             }
         }
-        let boxes = &mut self.boxes;
-        boxes.resize(tiles_x * height.div_ceil(TH), [0f32; 6]);
-        for (ty, boxes) in boxes.chunks_exact_mut(tiles_x).enumerate() {
-            let rows = ty * TH..(ty * TH + TH).min(height);
-            for (tx, bx) in boxes.iter_mut().enumerate() {
+        self.bound_rows(width, height);
+    }
+
+    /// The Lab bounding boxes of the rows of each tile, then of each tile.
+    #[inline(always)]
+    fn bound_rows(&mut self, width: usize, height: usize) {
+        let tiles_x = self.tiles_x;
+        let tiles = tiles_x * height.div_ceil(TH);
+        // Rows below the image get empty boxes (infinitely far from any colour).
+        let empty = [[f32::INFINITY; TH], [f32::NEG_INFINITY; TH]];
+        let empty = [empty[0], empty[1], empty[0], empty[1], empty[0], empty[1]];
+        self.row_boxes.clear();
+        self.row_boxes.resize(tiles, empty);
+        for (y, cells) in self.cells.chunks_exact(tiles_x).enumerate() {
+            let boxes = &mut self.row_boxes[y / TH * tiles_x..][..tiles_x];
+            for (tx, (cell, bx)) in cells.iter().zip(boxes).enumerate() {
                 let n = TW.min(width - tx * TW);
-                let first = &cells[rows.start * tiles_x + tx];
-                let mut lo: [[f32; TW]; 3] = *first;
-                let mut hi: [[f32; TW]; 3] = *first;
-                for y in rows.clone().skip(1) {
-                    let cell = &cells[y * tiles_x + tx];
-                    for p in 0..3 {
-                        for j in 0..TW {
-                            let v = cell[p][j];
-                            lo[p][j] = if v < lo[p][j] { v } else { lo[p][j] };
-                            hi[p][j] = if v > hi[p][j] { v } else { hi[p][j] };
-                        }
-                    }
-                }
-                for p in 0..3 {
-                    bx[2 * p] = lo[p][..n].iter().fold(f32::INFINITY, |m, &v| m.min(v));
-                    bx[2 * p + 1] = hi[p][..n].iter().fold(f32::NEG_INFINITY, |m, &v| m.max(v));
+                for (p, plane) in cell.iter().enumerate() {
+                    let plane = &plane[..n];
+                    bx[2 * p][y % TH] = plane.iter().fold(f32::INFINITY, |m, &v| min(m, v));
+                    bx[2 * p + 1][y % TH] = plane.iter().fold(f32::NEG_INFINITY, |m, &v| max(m, v));
                 }
             }
         }
+        self.boxes.clear();
+        self.boxes.extend(self.row_boxes.iter().map(|rows| {
+            let mut bx = [0f32; 6];
+            for (p, b) in bx.iter_mut().enumerate() {
+                let fold = if p % 2 == 0 { min } else { max };
+                *b = rows[p].iter().copied().reduce(fold).unwrap_or(0.0);
+            }
+            bx
+        }));
+    }
+
+    /// The Lab bounding boxes of the rows of the tile at `(y0, x0)` (multiples of `TH`
+    /// and `TW`): `[l_min, l_max, a_min, a_max, b_min, b_max]`, each per row.
+    #[inline(always)]
+    pub(super) fn row_boxes(&self, y0: usize, x0: usize) -> &[[f32; TH]; 6] {
+        &self.row_boxes[y0 / TH * self.tiles_x + x0 / TW]
     }
 
     /// The L, a and b of the `TW` pixels from `(y, x0)`, `x0` a multiple of `TW`.
@@ -238,6 +255,19 @@ fn min(a: f32, b: f32) -> f32 {
     if a < b { a } else { b }
 }
 
+/// A lower bound of the colour term of the distance of a centre of colour `lab` to the
+/// pixels of a Lab bounding box (`[l_min, l_max, a_min, a_max, b_min, b_max]`), computed
+/// as the term is: differences `pixel - centre`, each no larger in magnitude than for any
+/// pixel inside the box (0 inside), squared and added in the same order.
+#[inline(always)]
+pub(super) fn colour_gap(lab: [f32; 3], bx: [f32; 6]) -> f32 {
+    let gap = |lo: f32, hi: f32, v: f32| max(max(lo - v, v - hi), 0.0);
+    let dl = gap(bx[0], bx[1], lab[0]);
+    let da = gap(bx[2], bx[3], lab[1]);
+    let db = gap(bx[4], bx[5], lab[2]);
+    dl * dl + da * da + db * db
+}
+
 /// Lower bounds, over the pixels of a tile of columns `cols` with the Lab bounding box
 /// `colour`, of the colour term and of the column spatial term of the distance to a
 /// centre (window columns `x0..x1`, column `cx`, colour `lab`).
@@ -252,11 +282,5 @@ fn lower_terms(
     let (left, right) = (cols.start as f32, (cols.end - 1) as f32);
     // The window's column in the tile nearest the centre (its own column if inside).
     let near = min(max(cx, max(x0, left)), min(x1 - 1.0, right));
-    // Distance of a value to an interval (0 inside), as the colour term computes
-    // differences: `pixel - centre`, no smaller in magnitude for any pixel inside.
-    let gap = |lo: f32, hi: f32, v: f32| max(max(lo - v, v - hi), 0.0);
-    let dl = gap(colour[0], colour[1], lab[0]);
-    let da = gap(colour[2], colour[3], lab[1]);
-    let db = gap(colour[4], colour[5], lab[2]);
-    (dl * dl + da * da + db * db, spatial(weight, near - cx))
+    (colour_gap(lab, colour), spatial(weight, near - cx))
 }
