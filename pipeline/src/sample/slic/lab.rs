@@ -151,8 +151,11 @@ fn blur_rows(src: &[f32], dst: &mut [f32], width: usize, kernel: &[f32], pad: &m
         .collect();
     pad.resize(index.len(), 0.0);
     for (src, dst) in src.chunks_exact(width).zip(dst.chunks_exact_mut(width)) {
-        for (p, &i) in pad.iter_mut().zip(&index) {
-            *p = src[i];
+        // The row itself, then its reflected borders.
+        pad[radius..radius + width].copy_from_slice(src);
+        let borders = (0..radius).chain(radius + width..width + 2 * radius);
+        for i in borders {
+            pad[i] = src[index[i]];
         }
         // Output x reads pad[x..=x + 2 radius]; tap j pairs pad[x + radius ∓ j].
         let taps = |x: usize, j: usize| (&pad[x + radius - j..], &pad[x + radius + j..]);
