@@ -363,3 +363,90 @@ impl Components<'_> {
         (queue.len(), adjacent)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// scikit-image's algorithm as written: a raster scan growing each unlabelled pixel's
+    /// component breadth-first.
+    fn reference(labels: &[u32], w: usize, h: usize, min: usize, max: usize) -> (Vec<u32>, u32) {
+        let mut out = vec![UNSET; labels.len()];
+        let mut queue = Vec::new();
+        let mut next = 0;
+        for start in 0..labels.len() {
+            if out[start] != UNSET {
+                continue;
+            }
+            out[start] = next;
+            queue.clear();
+            queue.push(start);
+            let (mut visited, mut adjacent) = (0, None);
+            'grow: while queue.len() < max && visited < queue.len() {
+                let p = queue[visited];
+                visited += 1;
+                let (x, y) = (p % w, p / w);
+                let neighbours = [
+                    (x + 1 < w).then(|| p + 1),
+                    (x > 0).then(|| p - 1),
+                    (y + 1 < h).then(|| p + w),
+                    (y > 0).then(|| p - w),
+                ];
+                for q in neighbours.into_iter().flatten() {
+                    if out[q] == UNSET && labels[q] == labels[start] {
+                        out[q] = next;
+                        queue.push(q);
+                        if queue.len() >= max {
+                            break 'grow;
+                        }
+                    } else if out[q] != UNSET && out[q] != next {
+                        adjacent = Some(out[q]);
+                    }
+                }
+            }
+            if queue.len() >= min {
+                next += 1;
+            } else if let Some(adjacent) = adjacent {
+                queue.iter().for_each(|&p| out[p] = adjacent);
+            }
+        }
+        (out, next.max(1))
+    }
+
+    #[test]
+    fn slic_connectivity_matches_the_breadth_first_scan() {
+        let mut state = 0x1234_5678_9abc_def1u64;
+        let mut random = |n: u64| {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state % n) as usize
+        };
+        let mut scratch = Scratch::default();
+        for _ in 0..3000 {
+            let (w, h) = (1 + random(40), 1 + random(40));
+            // Blocks of random labels with some noise: components of all sizes.
+            let (block, labels_count, noise) = (1 + random(6), 1 + random(6), random(4));
+            let blocks: Vec<u32> = (0..(w / block + 1) * (h / block + 1))
+                .map(|_| random(labels_count as u64) as u32)
+                .collect();
+            let labels: Vec<u32> = (0..w * h)
+                .map(|p| {
+                    let (x, y) = (p % w, p / w);
+                    if noise > 0 && random(10 * noise as u64) == 0 {
+                        random(labels_count as u64) as u32
+                    } else {
+                        blocks[y / block * (w / block + 1) + x / block]
+                    }
+                })
+                .collect();
+            let min = random(12);
+            let max = min + 1 + random(60);
+            assert_eq!(
+                enforce_connectivity(&labels, [w, h], [min, max], &mut scratch),
+                reference(&labels, w, h, min, max),
+                "{w}x{h}, sizes {min}..{max}"
+            );
+        }
+    }
+}

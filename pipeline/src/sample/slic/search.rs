@@ -82,8 +82,6 @@ struct Tile {
     pad: [f32; TW],
     /// Whether a label changed.
     changed: bool,
-    /// The Lab bounding box of its pixels.
-    colour: [f32; 6],
 }
 
 impl Search {
@@ -238,7 +236,6 @@ impl Search {
                 continue;
             }
             self.tile.start(rows.clone(), x0..x1);
-            self.tile.colour = colour;
             let single = self.search_tile(lo..hi);
             changed |= self.tile.changed;
             self.stable[t] = match single {
@@ -383,8 +380,7 @@ impl Search {
         }
         // Whether the window covers the tile's columns (which are all in the image).
         let full = tile.n == TW && wx0 <= left && left + TW as f32 <= wx1;
-        let cols = tile.x0..tile.x0 + tile.n;
-        let (_, dx_bound) = band.lower_terms(i, cols, tile.colour, weight);
+        let dx_bound = band.column_term(i, tile.x0..tile.x0 + tile.n, weight);
         let [r0, r1] = band.rows[i];
         // The rows the centre may win: its bound on each (from the row's Lab bounding box)
         // not above the row's best distances; all at once, as bits.

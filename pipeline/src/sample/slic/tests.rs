@@ -250,6 +250,21 @@ fn slic_matches_scikit_image_exactly() {
 }
 
 #[test]
+fn slic_baseline_and_avx2_copies_agree() {
+    // `slic` runs the AVX2 copy where the CPU has it; `slic_inline` is the baseline one.
+    let (_, street) = blocks(3, 2);
+    let mut cases = golden_cases();
+    cases.push(("blocks 3x2", W, H, street, SlicParams::default()));
+    for (name, w, h, rgb, params) in cases {
+        assert_eq!(
+            slic(&rgb, w, h, &params),
+            slic_inline(&rgb, w, h, &params),
+            "{name}"
+        );
+    }
+}
+
+#[test]
 fn slic_follows_edges_of_synthetic_image() {
     let (regions, rgb) = blocks(2, 2);
     let seg = slic(&rgb, W, H, &SlicParams::default());

@@ -211,35 +211,16 @@ impl Band {
         );
         let (dy2, out) = (&self.dy2[active.clone()][..n], &mut self.bound[active][..n]);
         for i in 0..n {
-            let (colour, dx2) = lower_terms(
-                [x0[i], x1[i], cx[i]],
-                [l[i], a[i], b[i]],
-                cols.clone(),
-                colour,
-                weight,
-            );
-            out[i] = colour + (dy2[i] + dx2);
+            let dx2 = column_term([x0[i], x1[i], cx[i]], cols.clone(), weight);
+            out[i] = colour_gap([l[i], a[i], b[i]], colour) + (dy2[i] + dx2);
         }
     }
 
-    /// For centre `i` on the tile of columns `cols` with the Lab bounding box `colour`:
-    /// lower bounds of the colour term and of the column spatial term.
+    /// The least column spatial term of centre `i` over the columns `cols` of a tile
+    /// within its window.
     #[inline(always)]
-    pub(super) fn lower_terms(
-        &self,
-        i: usize,
-        cols: Range<usize>,
-        colour: [f32; 6],
-        weight: f32,
-    ) -> (f32, f32) {
-        let [l, a, b] = &self.lab;
-        lower_terms(
-            [self.x0[i], self.x1[i], self.cx[i]],
-            [l[i], a[i], b[i]],
-            cols,
-            colour,
-            weight,
-        )
+    pub(super) fn column_term(&self, i: usize, cols: Range<usize>, weight: f32) -> f32 {
+        column_term([self.x0[i], self.x1[i], self.cx[i]], cols, weight)
     }
 }
 
@@ -268,19 +249,12 @@ pub(super) fn colour_gap(lab: [f32; 3], bx: [f32; 6]) -> f32 {
     dl * dl + da * da + db * db
 }
 
-/// Lower bounds, over the pixels of a tile of columns `cols` with the Lab bounding box
-/// `colour`, of the colour term and of the column spatial term of the distance to a
-/// centre (window columns `x0..x1`, column `cx`, colour `lab`).
+/// The least column spatial term over the columns `cols` of a tile within the window
+/// (`x0..x1`) of a centre of column `cx`: the term at the window's column nearest the
+/// centre (0 if that is the centre's own).
 #[inline(always)]
-fn lower_terms(
-    [x0, x1, cx]: [f32; 3],
-    lab: [f32; 3],
-    cols: Range<usize>,
-    colour: [f32; 6],
-    weight: f32,
-) -> (f32, f32) {
+fn column_term([x0, x1, cx]: [f32; 3], cols: Range<usize>, weight: f32) -> f32 {
     let (left, right) = (cols.start as f32, (cols.end - 1) as f32);
-    // The window's column in the tile nearest the centre (its own column if inside).
     let near = min(max(cx, max(x0, left)), min(x1 - 1.0, right));
-    (colour_gap(lab, colour), spatial(weight, near - cx))
+    spatial(weight, near - cx)
 }
