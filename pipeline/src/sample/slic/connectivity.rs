@@ -1,6 +1,9 @@
 //! SLIC's last step: connectivity enforced as scikit-image does it, labels made dense
 //! in raster order.
 
+use std::cmp::Reverse;
+use std::collections::BinaryHeap;
+
 /// A pixel without a new label yet.
 const UNSET: u32 = u32::MAX;
 
@@ -13,9 +16,11 @@ const UNSET: u32 = u32::MAX;
 /// The components are found first from the runs of equal labels along the rows (runs in
 /// neighbouring rows that overlap are joined); the scan then meets them in the raster
 /// order of their first pixels, and one it takes whole (neither too small nor too large)
-/// just gets the next label. Only a small component, where the order of the search
-/// decides its neighbour, is searched breadth-first; when a component is too large (the
-/// search stops part-way), the whole scan is done pixel by pixel.
+/// just gets the next label. Only where the order of the search matters is it followed
+/// pixel by pixel: a small component is searched breadth-first (its neighbour depends on
+/// the order), and so is a large one (the search stops part-way); the scan meets the
+/// rest of a large one later, at its first unlabelled pixel, where its part is first
+/// filled span by span (the same pixels as breadth-first when taken whole).
 #[inline(always)]
 pub(super) fn enforce_connectivity(
     labels: &[u32],
@@ -33,23 +38,69 @@ pub(super) fn enforce_connectivity(
     };
     let runs = &mut scratch.runs;
     runs.find(labels, width);
-    let count = if runs.sizes.iter().all(|&size| size < max_size) {
-        let mut next = 0u32;
-        for c in 0..runs.sizes.len() {
-            if runs.sizes[c] >= min_size {
-                for &(y, x0, x1) in runs.of_component(c) {
+    // Parts of components too large to be taken whole, by their first unlabelled pixel.
+    let mut rest = BinaryHeap::new();
+    let (mut next, mut c) = (0u32, 0);
+    loop {
+        let first = |c: usize| {
+            runs.of_component(c)
+                .first()
+                .map(|&(y, x0, _)| y * width + x0)
+        };
+        let whole = if c < runs.sizes.len() { first(c) } else { None };
+        let part = rest.peek().map(|&Reverse(part)| part);
+        let (start, component) = match (whole, part) {
+            (Some(start), Some((p, _))) if start < p => (start, c),
+            (Some(start), None) => (start, c),
+            (_, Some(part)) => {
+                rest.pop();
+                part
+            }
+            (None, None) => break,
+        };
+        let is_whole = Some(start) == whole;
+        let size = if is_whole {
+            c += 1;
+            runs.sizes[component]
+        } else {
+            search.fill(start, next, max_size)
+        };
+        if min_size <= size && size < max_size {
+            if is_whole {
+                for &(y, x0, x1) in runs.of_component(component) {
                     search.out[y * width + x0..y * width + x1].fill(next);
                 }
-                next += 1;
+            }
+            next += 1;
+        } else {
+            if !is_whole {
+                for &p in &search.pixels {
+                    search.out[p] = UNSET;
+                }
+            }
+            if size < min_size {
+                search.small(start, next, max_size);
             } else {
-                let (y, x0, _) = runs.of_component(c)[0];
-                search.small(y * width + x0, next, max_size);
+                search.breadth_first(start, next, max_size);
+                next += 1;
             }
         }
-        next
-    } else {
-        search.pixel_by_pixel([min_size, max_size])
-    };
+        if !is_whole || size >= max_size {
+            // The scan meets the rest of the component at its first unlabelled pixel.
+            let unlabelled = runs
+                .of_component(component)
+                .iter()
+                .find_map(|&(y, x0, x1)| {
+                    let row = y * width;
+                    (row + x0.max(start.saturating_sub(row))..row + x1)
+                        .find(|&p| p > start && search.out[p] == UNSET)
+                });
+            if let Some(p) = unlabelled {
+                rest.push(Reverse((p, component)));
+            }
+        }
+    }
+    let count = next;
     (scratch.pixels, scratch.seeds) = (search.pixels, search.seeds);
     // All small so far: the pixels hold the not-yet-counted label `next` (= 0).
     (search.out, count.max(1))
@@ -231,36 +282,6 @@ impl Components<'_> {
                 self.out[p] = adjacent;
             }
         }
-    }
-
-    /// scikit-image's raster scan, pixel by pixel (`out` all unset): each component is
-    /// filled span by span, which is faster than breadth-first and reaches the same
-    /// pixels when the whole component is taken; only a component that is too small or
-    /// too large, where the order of the search matters, is searched again
-    /// breadth-first. Returns the number of labels given.
-    #[inline(always)]
-    fn pixel_by_pixel(&mut self, [min_size, max_size]: [usize; 2]) -> u32 {
-        let mut next = 0u32;
-        for start in 0..self.labels.len() {
-            if self.out[start] != UNSET {
-                continue;
-            }
-            let size = self.fill(start, next, max_size);
-            if min_size <= size && size < max_size {
-                next += 1;
-                continue;
-            }
-            for &p in &self.pixels {
-                self.out[p] = UNSET;
-            }
-            if size < min_size {
-                self.small(start, next, max_size);
-            } else {
-                self.breadth_first(start, next, max_size);
-                next += 1;
-            }
-        }
-        next
     }
 
     /// Gives label `next` to the unlabelled pixels of `start`'s component (4-connected,

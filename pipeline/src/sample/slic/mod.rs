@@ -25,9 +25,20 @@
 //!    label of the last already-labelled neighbour its search met, and the labels come out
 //!    dense, numbered in raster order of first appearance.
 //!
-//! Everything is single-threaded, `f32` and deterministic. A pass does not try every
-//! centre on its whole window: a bound from each pixel's current centre lets most of the
-//! window be skipped without changing the result (see `Search`).
+//! Everything is single-threaded, `f32` and deterministic, and the labels are those of
+//! the straightforward computation; only the work is cut:
+//!
+//! * a pass goes tile by tile (16 × 16 pixels) and tries a centre on a tile, or on a row
+//!   of it, only when a lower bound of its distance (from the spatial terms and the Lab
+//!   bounding box of the pixels) does not exceed the best distances found so far, the
+//!   tile's previous centres first; a tile whose pixels all had one centre is skipped
+//!   when that centre provably stays the nearest (see `search`);
+//! * the centre sums walk four rows side by side, and the centres after the last pass
+//!   are not computed (see `centres`);
+//! * connectivity is worked out on runs of equal labels, breadth-first only where the
+//!   order of the search matters (see `connectivity`);
+//! * the whole computation is also compiled for AVX2 and that copy runs where the CPU
+//!   has it (see `simd`), and its buffers are kept per thread from call to call.
 
 mod centres;
 mod connectivity;

@@ -17,15 +17,15 @@ use std::ops::Range;
 /// by tile (`TW × TH` pixels), keeping for each pixel the least `(distance, index)` so
 /// far, which ends as scikit-image's winner whatever the order of the centres. A tile is
 /// first offered to the centres its pixels had (whose distances are then a tight bound),
-/// then to each other centre whose windows meets it unless a lower bound of its distance
+/// then to each other centre whose window meets it unless a lower bound of its distance
 /// (from the spatial terms at the tile's nearest row and column, and the Lab bounding box
 /// of the tile's pixels) exceeds every pixel's best distance so far: such a centre can
 /// neither win nor tie. A row of a tile is likewise skipped when the bound on that row
-/// exceeds the row's best distances. The bounds are computed with the same `f32`
-/// operations as the distances, on operands that are no larger, so they never exceed a
-/// distance as computed (rounding is monotone). A tile whose pixels all had one centre
-/// is skipped whole when that centre provably stays the nearest (see
-/// [`Search::still_stable`]).
+/// (from the row's own Lab bounding box) exceeds the row's best distances. The bounds
+/// are computed with the same `f32` operations as the distances, in the same order, on
+/// operands that are no larger, so they never exceed a distance as computed (rounding is
+/// monotone). A tile whose pixels all had one centre is skipped whole when that centre
+/// provably stays the nearest (see [`Search::still_stable`]).
 #[derive(Debug, Default)]
 pub(super) struct Search {
     /// The image's tiles and their Lab bounding boxes.
