@@ -318,9 +318,10 @@ impl Search {
                 self.band.bound[i as usize] = f32::INFINITY;
             }
         }
-        let mut limit = largest(&self.tile.row_max);
-        // The candidates under the bound now, as bits (fewer unpredictable branches);
-        // the bound only shrinks, so each is checked again before its offer.
+        // The candidates under the bound, as bits (fewer unpredictable branches). The
+        // bound only shrinks as centres are offered, but each centre's rows are checked
+        // again against their own best distances.
+        let limit = largest(&self.tile.row_max);
         for base in active.clone().step_by(64) {
             let bounds = &self.band.bound[base..active.end.min(base + 64)];
             let mut bits = bounds
@@ -330,10 +331,7 @@ impl Search {
             while bits != 0 {
                 let i = base + bits.trailing_zeros() as usize;
                 bits &= bits - 1;
-                if self.band.bound[i] <= limit {
-                    self.offer(i);
-                    limit = largest(&self.tile.row_max);
-                }
+                self.offer(i);
             }
         }
         single && !self.tile.changed
