@@ -7,16 +7,9 @@
 //! stays the same IEEE operations in the same order (Rust never contracts `a * b + c`),
 //! so both copies give identical results.
 
-/// Whether the CPU runs AVX2 code (always false off x86-64).
+/// Whether the CPU runs AVX2 code.
+#[cfg(target_arch = "x86_64")]
 #[inline]
 pub(super) fn has_avx2() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    {
-        std::env::var_os("SLIC_NO_AVX2").is_none() && // TEMP
-        std::arch::is_x86_feature_detected!("avx2")
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        false
-    }
+    std::arch::is_x86_feature_detected!("avx2")
 }
