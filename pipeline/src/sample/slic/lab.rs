@@ -5,7 +5,8 @@
 /// Gaussian kernels are truncated at this many standard deviations (SciPy's default).
 const GAUSS_TRUNCATE: f32 = 4.0;
 
-/// CIELAB planes of the (smoothed) image.
+/// CIELAB planes of the (smoothed) image, and scratch for making them.
+#[derive(Debug, Default)]
 pub(super) struct Lab {
     /// Lightness.
     pub l: Vec<f32>,
@@ -13,14 +14,49 @@ pub(super) struct Lab {
     pub a: Vec<f32>,
     /// Blue–yellow.
     pub b: Vec<f32>,
+    /// The planes between the row and the column passes of the smoothing.
+    scratch: Vec<f32>,
+    /// A row of a plane with its reflected borders.
+    pad: Vec<f32>,
 }
 
-/// scikit-image's pre-processing: the image is stretched to `[0, 1]` by its global
-/// minimum and maximum (`image -= min; image /= max` over all channels; a no-op for
-/// images spanning 0..255), converted to CIELAB, and each Lab plane is smoothed by a
-/// Gaussian of `sigma` pixels (0: not at all).
+/// [`Lab::compute`] into a new `Lab`.
+#[cfg(test)]
 pub(super) fn smoothed_lab(rgb: &[u8], width: usize, height: usize, sigma: f32) -> Lab {
-    let n = width * height;
+    let mut lab = Lab::default();
+    lab.compute(rgb, width, height, sigma);
+    lab
+}
+
+impl Lab {
+    /// scikit-image's pre-processing of the RGB8 image `rgb` (`width × height`): the
+    /// image is stretched to `[0, 1]` by its global minimum and maximum (`image -= min;
+    /// image /= max` over all channels; a no-op for images spanning 0..255), converted
+    /// to CIELAB, and each Lab plane is smoothed by a Gaussian of `sigma` pixels (0: not
+    /// at all).
+    #[inline(always)]
+    pub(super) fn compute(&mut self, rgb: &[u8], width: usize, height: usize, sigma: f32) {
+        let n = width * height;
+        // Every value is written below: no need to clear.
+        for plane in [&mut self.l, &mut self.a, &mut self.b] {
+            plane.resize(n, 0.0);
+        }
+        to_lab(rgb, self);
+        if sigma > 0.0 {
+            let kernel = gaussian_half_kernel(sigma);
+            self.scratch.resize(n, 0.0);
+            let (scratch, pad) = (&mut self.scratch, &mut self.pad);
+            for plane in [&mut self.l, &mut self.a, &mut self.b] {
+                blur_rows(plane, scratch, width, &kernel, pad);
+                blur_columns(scratch, plane, width, height, &kernel);
+            }
+        }
+    }
+}
+
+/// The stretched image `rgb` in CIELAB, into `lab`'s planes (of its size).
+#[inline(always)]
+fn to_lab(rgb: &[u8], lab: &mut Lab) {
     let lo = rgb.iter().copied().min().unwrap_or(0);
     let hi = rgb.iter().copied().max().unwrap_or(0);
     // sRGB-encoded byte → linear, after the stretch.
@@ -38,11 +74,6 @@ pub(super) fn smoothed_lab(rgb: &[u8], width: usize, height: usize, sigma: f32) 
         };
     }
 
-    let mut lab = Lab {
-        l: vec![0f32; n],
-        a: vec![0f32; n],
-        b: vec![0f32; n],
-    };
     // sRGB (D65) → XYZ normalised by the D65 white (0.95047, 1, 1.08883), kept in the
     // planes for the moment.
     for (((px, x), y), z) in rgb
@@ -67,17 +98,6 @@ pub(super) fn smoothed_lab(rgb: &[u8], width: usize, height: usize, sigma: f32) 
         *a = 500.0 * (fx - fy);
         *b = 200.0 * (fy - fz);
     }
-
-    if sigma > 0.0 {
-        let kernel = gaussian_half_kernel(sigma);
-        let mut scratch = vec![0f32; n];
-        let mut pad = Vec::new();
-        for plane in [&mut lab.l, &mut lab.a, &mut lab.b] {
-            blur_rows(plane, &mut scratch, width, &kernel, &mut pad);
-            blur_columns(&scratch, plane, width, height, &kernel);
-        }
-    }
-    lab
 }
 
 /// CIELAB's `f(t)` as scikit-image has it: `∛t` above 0.008856, `7.787 t + 16/116` below
@@ -119,46 +139,106 @@ fn reflect(i: isize, len: usize) -> usize {
     (if m < len { m } else { 2 * len - 1 - m }) as usize
 }
 
+/// Outputs of a convolution computed together, kept in registers over the taps.
+const BLOCK: usize = 16;
+
 /// Convolves every row of `src` with the symmetric `kernel` into `dst`.
+#[inline(always)]
 fn blur_rows(src: &[f32], dst: &mut [f32], width: usize, kernel: &[f32], pad: &mut Vec<f32>) {
     let radius = kernel.len() - 1;
-    let k0 = kernel.first().copied().unwrap_or(1.0);
     let index: Vec<usize> = (0..width + 2 * radius)
         .map(|i| reflect(i as isize - radius as isize, width))
         .collect();
     pad.resize(index.len(), 0.0);
     for (src, dst) in src.chunks_exact(width).zip(dst.chunks_exact_mut(width)) {
-        for (p, &i) in pad.iter_mut().zip(&index) {
-            *p = src[i];
+        // The row itself, then its reflected borders.
+        pad[radius..radius + width].copy_from_slice(src);
+        let borders = (0..radius).chain(radius + width..width + 2 * radius);
+        for i in borders {
+            pad[i] = src[index[i]];
         }
-        for (d, &p) in dst.iter_mut().zip(&pad[radius..radius + width]) {
-            *d = k0 * p;
+        // Output x reads pad[x..=x + 2 radius]; tap j pairs pad[x + radius ∓ j].
+        let taps = |x: usize, j: usize| (&pad[x + radius - j..], &pad[x + radius + j..]);
+        let mut blocks = dst.chunks_exact_mut(BLOCK);
+        for (b, out) in (&mut blocks).enumerate() {
+            convolve_block(out, kernel, |j| {
+                let (a, b) = taps(b * BLOCK, j);
+                (&a[..BLOCK], &b[..BLOCK])
+            });
         }
-        for (j, &k) in kernel.iter().enumerate().skip(1) {
-            let left = &pad[radius - j..radius - j + width];
-            let right = &pad[radius + j..radius + j + width];
-            for ((d, &a), &b) in dst.iter_mut().zip(left).zip(right) {
-                *d += k * (a + b);
-            }
+        let done = width - width % BLOCK;
+        for (x, out) in blocks.into_remainder().iter_mut().enumerate() {
+            convolve_one(out, kernel, |j| taps(done + x, j));
         }
     }
 }
 
 /// Convolves every column of `src` with the symmetric `kernel` into `dst`.
+#[inline(always)]
 fn blur_columns(src: &[f32], dst: &mut [f32], width: usize, height: usize, kernel: &[f32]) {
-    let k0 = kernel.first().copied().unwrap_or(1.0);
     let row = |y: usize| &src[y * width..(y + 1) * width];
+    let mut rows = Vec::with_capacity(kernel.len());
     for (y, dst) in dst.chunks_exact_mut(width).enumerate() {
-        for (d, &p) in dst.iter_mut().zip(row(y)) {
-            *d = k0 * p;
+        // Tap j pairs the rows above and below.
+        rows.clear();
+        rows.extend((0..kernel.len()).map(|j| {
+            (
+                row(reflect(y as isize - j as isize, height)),
+                row(reflect((y + j) as isize, height)),
+            )
+        }));
+        let mut blocks = dst.chunks_exact_mut(BLOCK);
+        for (b, out) in (&mut blocks).enumerate() {
+            let x = b * BLOCK;
+            convolve_block(out, kernel, |j| {
+                let (a, b) = rows[j];
+                (&a[x..x + BLOCK], &b[x..x + BLOCK])
+            });
         }
-        for (j, &k) in kernel.iter().enumerate().skip(1) {
-            let above = row(reflect(y as isize - j as isize, height));
-            let below = row(reflect((y + j) as isize, height));
-            for ((d, &a), &b) in dst.iter_mut().zip(above).zip(below) {
-                *d += k * (a + b);
-            }
+        let done = width - width % BLOCK;
+        for (x, out) in blocks.into_remainder().iter_mut().enumerate() {
+            convolve_one(out, kernel, |j| {
+                let (a, b) = rows[j];
+                (&a[done + x..], &b[done + x..])
+            });
         }
+    }
+}
+
+/// One block of outputs of a symmetric convolution, `tap(j)` giving the samples at
+/// `∓ j` (`tap(0)`: the centre): `k0 p + k1 (a1 + b1) + k2 (a2 + b2) + …`, added in
+/// that order.
+#[inline(always)]
+fn convolve_block<'a>(
+    out: &mut [f32],
+    kernel: &[f32],
+    tap: impl Fn(usize) -> (&'a [f32], &'a [f32]),
+) {
+    let k0 = kernel.first().copied().unwrap_or(1.0);
+    let (centre, _) = tap(0);
+    let centre = &centre[..BLOCK];
+    let mut acc = [0f32; BLOCK];
+    for (a, &c) in acc.iter_mut().zip(centre) {
+        *a = k0 * c;
+    }
+    for (j, &k) in kernel.iter().enumerate().skip(1) {
+        let (a, b) = tap(j);
+        let (a, b) = (&a[..BLOCK], &b[..BLOCK]);
+        for i in 0..BLOCK {
+            acc[i] += k * (a[i] + b[i]);
+        }
+    }
+    out.copy_from_slice(&acc);
+}
+
+/// One output of a symmetric convolution, as [`convolve_block`] computes it.
+#[inline(always)]
+fn convolve_one<'a>(out: &mut f32, kernel: &[f32], tap: impl Fn(usize) -> (&'a [f32], &'a [f32])) {
+    let k0 = kernel.first().copied().unwrap_or(1.0);
+    *out = k0 * tap(0).0[0];
+    for (j, &k) in kernel.iter().enumerate().skip(1) {
+        let (a, b) = tap(j);
+        *out += k * (a[0] + b[0]);
     }
 }
 

@@ -25,19 +25,35 @@
 //!    label of the last already-labelled neighbour its search met, and the labels come out
 //!    dense, numbered in raster order of first appearance.
 //!
-//! Everything is single-threaded, `f32` and deterministic. A pass does not try every
-//! centre on its whole window: a bound from each pixel's current centre lets most of the
-//! window be skipped without changing the result (see `Search`).
+//! Everything is single-threaded, `f32` and deterministic, and the labels are those of
+//! the straightforward computation; only the work is cut:
+//!
+//! * a pass goes tile by tile (16 × 16 pixels) and tries a centre on a tile, or on a row
+//!   of it, only when a lower bound of its distance (from the spatial terms and the Lab
+//!   bounding box of the pixels) does not exceed the best distances found so far, the
+//!   tile's previous centres first; a tile whose pixels all had one centre is skipped
+//!   when that centre provably stays the nearest (see `search`);
+//! * the centre sums walk four rows side by side, and the centres after the last pass
+//!   are not computed (see `centres`);
+//! * connectivity is worked out on runs of equal labels, breadth-first only where the
+//!   order of the search matters (see `connectivity`);
+//! * the whole computation is also compiled for AVX2 and that copy runs where the CPU
+//!   has it (see `simd`), and its buffers are kept per thread from call to call.
 
+mod centres;
 mod connectivity;
 mod lab;
 mod search;
+mod simd;
+mod tiles;
 
 use crate::invalid::InvalidSetting;
+use centres::Means;
 use connectivity::enforce_connectivity;
-use lab::smoothed_lab;
-use search::{Search, update_centres};
+use lab::Lab;
+use search::Search;
 use serde::{Deserialize, Serialize};
+use std::cell::RefCell;
 
 /// scikit-image's `max_size_factor`: connected components are grown up to this many times
 /// the mean segment size; larger ones are split.
@@ -150,21 +166,71 @@ pub struct Segmentation {
 /// # Panics
 ///
 /// If `rgb.len() != 3 * width * height`.
+#[allow(unsafe_code)]
 pub fn slic(rgb: &[u8], width: usize, height: usize, params: &SlicParams) -> Segmentation {
+    #[cfg(target_arch = "x86_64")]
+    if simd::has_avx2() {
+        // SAFETY: the CPU runs AVX2 (checked just above), the only requirement of calling
+        // a function compiled with it enabled.
+        return unsafe { slic_avx2(rgb, width, height, params) };
+    }
+    slic_inline(rgb, width, height, params)
+}
+
+/// [`slic`] compiled with AVX2 enabled (see `simd`).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn slic_avx2(rgb: &[u8], width: usize, height: usize, params: &SlicParams) -> Segmentation {
+    slic_inline(rgb, width, height, params)
+}
+
+/// [`slic`], inlined into each compiled copy (as are the functions it calls that matter
+/// for speed).
+#[inline(always)]
+fn slic_inline(rgb: &[u8], width: usize, height: usize, params: &SlicParams) -> Segmentation {
     let n = width.checked_mul(height);
     assert!(
         n.and_then(|n| n.checked_mul(3)) == Some(rgb.len()),
         "slic: rgb has {} bytes, expected 3 * {width} * {height}",
         rgb.len()
     );
-    let n = n.unwrap_or(0);
-    if n == 0 {
+    if n == Some(0) {
         return Segmentation {
             labels: Vec::new(),
             count: 0,
         };
     }
+    let mut scratch = SCRATCH.try_with(RefCell::take).unwrap_or_default();
+    let segmentation = segment(&mut scratch, rgb, [width, height], params);
+    // Only fails while the thread is being torn down, when the buffers are not needed.
+    let _ = SCRATCH.try_with(|kept| kept.replace(scratch));
+    segmentation
+}
 
+/// Buffers kept from call to call on each thread: a 448×224 image needs about 7 MB,
+/// which would otherwise be allocated (and faulted in) anew every time.
+#[derive(Debug, Default)]
+struct Scratch {
+    lab: Lab,
+    labels: Vec<u32>,
+    search: Search,
+    means: Means,
+    components: connectivity::Scratch,
+}
+
+thread_local! {
+    static SCRATCH: RefCell<Scratch> = RefCell::new(Scratch::default());
+}
+
+/// The segmentation of a non-empty image (see [`slic`]).
+#[inline(always)]
+fn segment(
+    scratch: &mut Scratch,
+    rgb: &[u8],
+    [width, height]: [usize; 2],
+    params: &SlicParams,
+) -> Segmentation {
+    let n = width * height;
     let compactness = if params.compactness.is_finite() && params.compactness >= 0.0 {
         params.compactness
     } else {
@@ -181,14 +247,65 @@ pub fn slic(rgb: &[u8], width: usize, height: usize, params: &SlicParams) -> Seg
         0.0
     };
 
-    let lab = smoothed_lab(rgb, width, height, sigma);
+    scratch.lab.compute(rgb, width, height, sigma);
+    let grid = regular_grid(height, width, params.n_segments.max(1));
+    let mut centres = initial_centres(grid, [width, height], &mut scratch.labels);
+    if params.max_iterations > 1 {
+        let [(_, step_y), (_, step_x)] = grid;
+        let step = step_y.max(step_x) as f32;
+        let weight = (compactness / step) * (compactness / step);
+        let window = [WINDOW_STEPS * step_y as f32, WINDOW_STEPS * step_x as f32];
+        let (lab, labels, search, means) = (
+            &scratch.lab,
+            &mut scratch.labels,
+            &mut scratch.search,
+            &mut scratch.means,
+        );
+        search.prepare(lab, labels, [width, height], window, weight);
+        means.prepare(lab);
+        means.update(width, (labels, width), &mut centres);
+        for pass in 2..=params.max_iterations {
+            // The centres after the last pass are not needed.
+            if !search.assign(&centres) || pass == params.max_iterations {
+                break;
+            }
+            means.update(width, search.labels(), &mut centres);
+        }
+        let (padded, stride) = search.labels();
+        for (row, src) in labels
+            .chunks_exact_mut(width)
+            .zip(padded.chunks_exact(stride))
+        {
+            row.copy_from_slice(&src[..width]);
+        }
+    }
 
-    // Initial centres on scikit-image's regular grid.
-    let [(start_y, step_y), (start_x, step_x)] =
-        regular_grid(height, width, params.n_segments.max(1));
+    // scikit-image's sizes, from the number of centres actually placed.
+    let segment_size = n as f64 / centres.len() as f64;
+    let min_size = (min_size_factor * segment_size) as usize;
+    let max_size = ((MAX_SIZE_FACTOR * segment_size) as usize).max(1);
+    let (labels, count) = enforce_connectivity(
+        &scratch.labels,
+        [width, height],
+        [min_size, max_size],
+        &mut scratch.components,
+    );
+    Segmentation { labels, count }
+}
+
+/// The centres on scikit-image's regular `grid` (`[(start, step)]` of the rows and the
+/// columns), and the labels of scikit-image's first pass into `labels`: it starts every
+/// centre colour at zero, so its first assignment is the nearest grid centre, which on a
+/// regular grid is separable.
+#[inline(always)]
+fn initial_centres(
+    [(start_y, step_y), (start_x, step_x)]: [(usize, usize); 2],
+    [width, height]: [usize; 2],
+    labels: &mut Vec<u32>,
+) -> Vec<Centre> {
     let ys: Vec<usize> = (start_y..height).step_by(step_y).collect();
     let xs: Vec<usize> = (start_x..width).step_by(step_x).collect();
-    let mut centres: Vec<Centre> = ys
+    let centres = ys
         .iter()
         .flat_map(|&y| {
             xs.iter().map(move |&x| Centre {
@@ -198,42 +315,15 @@ pub fn slic(rgb: &[u8], width: usize, height: usize, params: &SlicParams) -> Seg
             })
         })
         .collect();
-
-    // First pass: scikit-image starts every centre colour at zero, so its first
-    // assignment is the nearest grid centre; on a regular grid that is separable.
     let near_y = nearest_on_grid(height, start_y, step_y, ys.len());
     let near_x = nearest_on_grid(width, start_x, step_x, xs.len());
-    let mut labels = vec![0u32; n];
+    labels.resize(width * height, 0);
     for (row, &ky) in labels.chunks_exact_mut(width).zip(&near_y) {
         for (label, &kx) in row.iter_mut().zip(&near_x) {
             *label = ky * xs.len() as u32 + kx;
         }
     }
-
-    if params.max_iterations > 1 {
-        let step = step_y.max(step_x) as f32;
-        let spatial_weight = (compactness / step) * (compactness / step);
-        let window = [WINDOW_STEPS * step_y as f32, WINDOW_STEPS * step_x as f32];
-        let mut search = Search::new(width, height, window, spatial_weight);
-        let mut previous = vec![0u32; n];
-        let mut sums = vec![[0f64; 6]; centres.len()];
-        update_centres(&lab, width, &labels, &mut centres, &mut sums);
-        for _ in 1..params.max_iterations {
-            previous.copy_from_slice(&labels);
-            search.assign(&lab, &centres, &mut labels);
-            if labels == previous {
-                break;
-            }
-            update_centres(&lab, width, &labels, &mut centres, &mut sums);
-        }
-    }
-
-    // scikit-image's sizes, from the number of centres actually placed.
-    let segment_size = n as f64 / centres.len() as f64;
-    let min_size = (min_size_factor * segment_size) as usize;
-    let max_size = ((MAX_SIZE_FACTOR * segment_size) as usize).max(1);
-    let (labels, count) = enforce_connectivity(&labels, width, height, min_size, max_size);
-    Segmentation { labels, count }
+    centres
 }
 
 /// A cluster centre: position (row, column) and mean colour (CIELAB).
@@ -299,401 +389,4 @@ fn nearest_on_grid(len: usize, start: usize, step: usize, count: usize) -> Vec<u
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use std::time::Instant;
-
-    const W: usize = 448;
-    const H: usize = 224;
-
-    /// Deterministic hash noise in `-amp..=amp`.
-    fn noise(i: usize, c: usize, amp: i32) -> i32 {
-        let mut h = (i as u64 * 3 + c as u64 + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15);
-        h ^= h >> 29;
-        h = h.wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        h ^= h >> 32;
-        (h % (2 * amp as u64 + 1)) as i32 - amp
-    }
-
-    const COLOURS: [[u8; 3]; 13] = [
-        [220, 40, 40],
-        [40, 200, 60],
-        [40, 60, 220],
-        [230, 220, 50],
-        [200, 60, 200],
-        [50, 200, 210],
-        [250, 250, 250],
-        [20, 20, 20],
-        [240, 140, 30],
-        [120, 60, 20],
-        [130, 130, 130],
-        [110, 180, 120],
-        [150, 100, 250],
-    ];
-
-    /// A W×H image of `cols × rows` flat blocks of distinct colours and a diagonal stripe
-    /// (`|x − 2y| < 24`), with ±8 noise: the true region of each pixel and the RGB8 image.
-    fn blocks(cols: usize, rows: usize) -> (Vec<u32>, Vec<u8>) {
-        let mut regions = vec![0u32; W * H];
-        let mut rgb = vec![0u8; 3 * W * H];
-        for y in 0..H {
-            for x in 0..W {
-                let i = y * W + x;
-                let region = if (x as i64 - 2 * y as i64).abs() < 24 {
-                    12
-                } else {
-                    x * cols / W + cols * (y * rows / H)
-                };
-                regions[i] = region as u32;
-                for c in 0..3 {
-                    let v = i32::from(COLOURS[region][c]) + noise(i, c, 8);
-                    rgb[3 * i + c] = v.clamp(0, 255) as u8;
-                }
-            }
-        }
-        (regions, rgb)
-    }
-
-    /// A `width × height` patchwork of 11×9 cells of pseudo-random colours, ±12 noise.
-    fn patchwork(width: usize, height: usize) -> Vec<u8> {
-        let mut rgb = vec![0u8; 3 * width * height];
-        for y in 0..height {
-            for x in 0..width {
-                let (i, cell) = (y * width + x, (y / 9) * 1000 + x / 11);
-                for c in 0..3 {
-                    let base = 128 + noise(cell + 7, c, 110);
-                    rgb[3 * i + c] = (base + noise(i, c, 12)).clamp(0, 255) as u8;
-                }
-            }
-        }
-        rgb
-    }
-
-    /// FNV-1a over the labels' little-endian bytes.
-    fn fnv(labels: &[u32]) -> u64 {
-        let mut h = 0xcbf2_9ce4_8422_2325u64;
-        for b in labels.iter().flat_map(|l| l.to_le_bytes()) {
-            h = (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3);
-        }
-        h
-    }
-
-    /// Pixels whose right or lower neighbour has another value.
-    fn boundaries(map: &[u32], width: usize, height: usize) -> Vec<bool> {
-        let mut out = vec![false; map.len()];
-        for y in 0..height {
-            for x in 0..width {
-                let i = y * width + x;
-                out[i] = (x + 1 < width && map[i + 1] != map[i])
-                    || (y + 1 < height && map[i + width] != map[i]);
-            }
-        }
-        out
-    }
-
-    /// Asserts dense labels in raster order of first appearance and 4-connected segments.
-    fn check_dense_and_connected(seg: &Segmentation, width: usize, height: usize) {
-        assert_eq!(seg.labels.len(), width * height);
-        let count = seg.count as usize;
-        let mut next = 0;
-        let mut size = vec![0usize; count];
-        for &l in &seg.labels {
-            let l = l as usize;
-            assert!(l < count, "label {l} >= count {count}");
-            if size[l] == 0 {
-                assert_eq!(l, next, "labels not in raster order of first appearance");
-                next += 1;
-            }
-            size[l] += 1;
-        }
-        assert_eq!(next, count, "labels are not dense");
-        // A flood fill from each segment's first pixel reaches all of it.
-        let mut reached = vec![false; seg.labels.len()];
-        let mut stack = Vec::new();
-        for start in 0..seg.labels.len() {
-            if reached[start] {
-                continue;
-            }
-            let l = seg.labels[start];
-            let mut filled = 0;
-            reached[start] = true;
-            stack.push(start);
-            while let Some(p) = stack.pop() {
-                filled += 1;
-                let (y, x) = (p / width, p % width);
-                let neighbours = [
-                    (x + 1 < width).then(|| p + 1),
-                    (x > 0).then(|| p - 1),
-                    (y + 1 < height).then(|| p + width),
-                    (y > 0).then(|| p - width),
-                ];
-                for q in neighbours.into_iter().flatten() {
-                    if !reached[q] && seg.labels[q] == l {
-                        reached[q] = true;
-                        stack.push(q);
-                    }
-                }
-            }
-            assert_eq!(filled, size[l as usize], "segment {l} is not 4-connected");
-        }
-    }
-
-    #[test]
-    fn slic_params_default_validate_and_deserialize() {
-        let p = SlicParams::default();
-        assert_eq!(
-            (p.n_segments, p.compactness, p.sigma, p.max_iterations),
-            (150, 6.0, 3.0, 10)
-        );
-        assert_eq!(p.min_size_factor, 0.5);
-        p.validate().unwrap();
-        for bad in [
-            SlicParams { n_segments: 0, ..p },
-            SlicParams {
-                max_iterations: 0,
-                ..p
-            },
-            SlicParams {
-                compactness: 0.0,
-                ..p
-            },
-            SlicParams {
-                compactness: f32::NAN,
-                ..p
-            },
-            SlicParams { sigma: -1.0, ..p },
-            SlicParams {
-                sigma: f32::INFINITY,
-                ..p
-            },
-            SlicParams {
-                min_size_factor: 3.0,
-                ..p
-            },
-        ] {
-            assert!(bad.validate().is_err(), "{bad:?}");
-        }
-        let q: SlicParams = serde_json::from_str(r#"{"n_segments": 100}"#).unwrap();
-        assert_eq!(
-            q,
-            SlicParams {
-                n_segments: 100,
-                ..p
-            }
-        );
-        assert!(serde_json::from_str::<SlicParams>(r#"{"segments": 100}"#).is_err());
-    }
-
-    #[test]
-    fn slic_regular_grid_matches_scikit_image() {
-        // 224×448, 150 segments: step √(100352/150) = 25.87 → start 12, step 26.
-        assert_eq!(regular_grid(224, 448, 150), [(12, 26), (12, 26)]);
-        assert_eq!(regular_grid(448, 224, 150), [(12, 26), (12, 26)]);
-        // Fewer pixels than points: every pixel is a centre.
-        assert_eq!(regular_grid(1, 1, 150), [(0, 1), (0, 1)]);
-        assert_eq!(regular_grid(10, 10, 150), [(0, 1), (0, 1)]);
-        // A thin strip: one row of centres.
-        assert_eq!(regular_grid(3, 500, 150), [(1, 3), (1, 3)]);
-        assert_eq!(regular_grid(500, 3, 150), [(1, 3), (1, 3)]);
-        assert_eq!(nearest_on_grid(10, 1, 3, 3), [0, 0, 0, 1, 1, 1, 2, 2, 2, 2]);
-        assert_eq!(nearest_on_grid(7, 1, 4, 2), [0, 0, 0, 0, 1, 1, 1]);
-    }
-    /// The golden cases: name, width, height, image, parameters.
-    fn golden_cases() -> Vec<(&'static str, usize, usize, Vec<u8>, SlicParams)> {
-        let p = SlicParams::default();
-        vec![
-            ("blocks 4x3", W, H, blocks(4, 3).1, p),
-            ("blocks 2x2", W, H, blocks(2, 2).1, p),
-            ("constant", W, H, vec![90; 3 * W * H], p),
-            (
-                "patchwork 97x61",
-                97,
-                61,
-                patchwork(97, 61),
-                SlicParams {
-                    n_segments: 40,
-                    compactness: 10.0,
-                    sigma: 1.5,
-                    max_iterations: 10,
-                    min_size_factor: 0.3,
-                },
-            ),
-            ("patchwork 61x97", 61, 97, patchwork(61, 97), p),
-            ("patchwork 3x500", 500, 3, patchwork(500, 3), p),
-        ]
-    }
-
-    /// scikit-image 0.26's labels for [`golden_cases`] (count, FNV-1a of the labels),
-    /// from `skimage.segmentation.slic(rgb, n_segments, compactness, sigma,
-    /// max_num_iter=max_iterations, min_size_factor=…, start_label=0)` (its defaults
-    /// otherwise) on the same images written out as raw RGB8.
-    const GOLDEN: [(u32, u64); 6] = [
-        (85, 0x3a43_2130_7660_46fd),
-        (103, 0x6f2b_5db1_c22c_cc6b),
-        (153, 0x49f8_cef2_27ce_afc9),
-        (55, 0x93a7_4440_2c1d_9330),
-        (153, 0x942a_0b97_4fc6_34d5),
-        (167, 0xe19c_116c_0b8b_7b18),
-    ];
-
-    #[test]
-    fn slic_matches_scikit_image_exactly() {
-        for ((name, w, h, rgb, params), (count, hash)) in golden_cases().into_iter().zip(GOLDEN) {
-            let seg = slic(&rgb, w, h, &params);
-            check_dense_and_connected(&seg, w, h);
-            assert_eq!(
-                (seg.count, fnv(&seg.labels)),
-                (count, hash),
-                "{name}: labels differ from scikit-image's"
-            );
-        }
-    }
-
-    #[test]
-    fn slic_follows_edges_of_synthetic_image() {
-        let (regions, rgb) = blocks(2, 2);
-        let seg = slic(&rgb, W, H, &SlicParams::default());
-        check_dense_and_connected(&seg, W, H);
-        let count = seg.count;
-        println!("slic: {count} segments on 2x2 blocks + stripe, {W}x{H} (asked 150)");
-        assert!(
-            (98..=202).contains(&count),
-            "{count} segments, not within 35 % of 150"
-        );
-
-        // Boundary recall: true edge pixels with a segment boundary within `tol` px.
-        let truth = boundaries(&regions, W, H);
-        let found = boundaries(&seg.labels, W, H);
-        let recall = |tol: usize| {
-            let (mut edges, mut recalled) = (0usize, 0usize);
-            for y in 0..H {
-                for x in 0..W {
-                    if truth[y * W + x] {
-                        edges += 1;
-                        let near = (y.saturating_sub(tol)..(y + tol + 1).min(H)).any(|yy| {
-                            (x.saturating_sub(tol)..(x + tol + 1).min(W))
-                                .any(|xx| found[yy * W + xx])
-                        });
-                        recalled += usize::from(near);
-                    }
-                }
-            }
-            recalled as f64 / edges as f64
-        };
-        // Undersegmentation: the share of each segment's pixels in its majority region.
-        let mut hist = vec![[0usize; 13]; count as usize];
-        for (&l, &r) in seg.labels.iter().zip(&regions) {
-            hist[l as usize][r as usize] += 1;
-        }
-        let purity = hist
-            .iter()
-            .map(|h| *h.iter().max().unwrap() as f64 / h.iter().sum::<usize>() as f64)
-            .sum::<f64>()
-            / f64::from(count);
-        let (r2, r3) = (recall(2), recall(3));
-        println!(
-            "slic: boundary recall {r2:.3} within 2 px, {r3:.3} within 3 px; purity {purity:.4}"
-        );
-        // scikit-image gives the same numbers: σ = 3 smoothing and compactness 6 leave thin
-        // segments along the edges that the connectivity step merges into one side, so
-        // boundaries sit up to 3 px off the true edges.
-        assert!(r3 >= 0.90, "boundary recall {r3} within 3 px");
-        assert!(purity >= 0.95, "purity {purity}");
-    }
-
-    #[test]
-    fn slic_is_deterministic_and_timed() {
-        let (_, rgb) = blocks(4, 3);
-        let params = SlicParams::default();
-        let first = slic(&rgb, W, H, &params);
-        check_dense_and_connected(&first, W, H);
-        let runs = if cfg!(debug_assertions) { 2 } else { 20 };
-        let t = Instant::now();
-        for _ in 0..runs {
-            assert_eq!(slic(&rgb, W, H, &params), first);
-        }
-        let ms = t.elapsed().as_secs_f64() * 1e3 / f64::from(runs);
-        println!(
-            "slic: {ms:.2} ms per {W}x{H} image ({} segments; 4x3 blocks + stripe)",
-            first.count
-        );
-    }
-
-    #[test]
-    fn slic_constant_image_is_a_grid() {
-        let seg = slic(&vec![90u8; 3 * W * H], W, H, &SlicParams::default());
-        check_dense_and_connected(&seg, W, H);
-        // The 9 × 17 cells of scikit-image's regular_grid, each about a 26-px square.
-        assert_eq!(seg.count, 153);
-        let mut boxes = vec![[usize::MAX, usize::MAX, 0, 0]; seg.count as usize];
-        let mut sizes = vec![0usize; seg.count as usize];
-        for y in 0..H {
-            for x in 0..W {
-                let l = seg.labels[y * W + x] as usize;
-                let b = &mut boxes[l];
-                *b = [b[0].min(y), b[1].min(x), b[2].max(y), b[3].max(x)];
-                sizes[l] += 1;
-            }
-        }
-        for (b, &size) in boxes.iter().zip(&sizes) {
-            let (h, w) = (b[2] - b[0] + 1, b[3] - b[1] + 1);
-            assert!(h <= 32 && w <= 32, "box {h}x{w}");
-            assert!(size * 10 >= h * w * 9, "size {size} in a {h}x{w} box");
-        }
-    }
-
-    #[test]
-    fn slic_degenerate_sizes_do_not_panic() {
-        let p = SlicParams::default();
-        let empty = slic(&[], 0, 0, &p);
-        assert_eq!((empty.labels.len(), empty.count), (0, 0));
-        assert_eq!(slic(&[], 0, 10, &p).count, 0);
-        assert_eq!(slic(&[], 10, 0, &p).count, 0);
-        let one = slic(&[1, 2, 3], 1, 1, &p);
-        assert_eq!(
-            one,
-            Segmentation {
-                labels: vec![0],
-                count: 1
-            }
-        );
-        let sizes = [
-            (3, 500),
-            (500, 3),
-            (1, 700),
-            (700, 1),
-            (2, 2),
-            (13, 9),
-            (20, 20),
-        ];
-        for (w, h) in sizes {
-            let rgb = patchwork(w, h);
-            for params in [
-                p,
-                SlicParams { n_segments: 1, ..p },
-                SlicParams {
-                    n_segments: u32::MAX,
-                    max_iterations: 2,
-                    ..p
-                },
-                SlicParams {
-                    n_segments: 0,
-                    compactness: f32::NAN,
-                    sigma: f32::INFINITY,
-                    max_iterations: 0,
-                    min_size_factor: f32::NAN,
-                },
-                SlicParams {
-                    compactness: 0.0,
-                    sigma: 0.0,
-                    min_size_factor: 2.9,
-                    ..p
-                },
-            ] {
-                let seg = slic(&rgb, w, h, &params);
-                assert!(seg.count >= 1, "{w}x{h} {params:?}");
-                check_dense_and_connected(&seg, w, h);
-            }
-        }
-    }
-}
+mod tests;
