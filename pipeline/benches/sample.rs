@@ -40,19 +40,13 @@ fn main() -> anyhow::Result<()> {
             };
             let builder = SampleBuilder::new(&dataset, config)?;
             let (one, all, times) = sample::one_and_all(&builder, n, cores)?;
-            let ms = |ns: u64| ns as f64 / 1e6 / n as f64;
             println!(
-                "| {name} | {} | {one:.1} | {all:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} |",
+                "| {name} | {} | {one:.1} | {all:.1} | {} |",
                 match source {
                     SuperpixelSource::Slic => "SLIC",
                     _ => "class map",
                 },
-                ms(times.decode),
-                ms(times.sweeps),
-                ms(times.images),
-                ms(times.projection),
-                ms(times.superpixels),
-                ms(times.voxels),
+                sample::stage_cells(&times, n),
             );
         }
     }

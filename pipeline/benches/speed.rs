@@ -20,7 +20,7 @@ mod common;
 mod sample;
 
 use common::{arg_count, arg_value, cores, flag, load_average};
-use sample::throughput;
+use sample::{one_and_all, stage_cells};
 use std::path::PathBuf;
 use std::time::Instant;
 use superflow_pipeline::batch::{BatchPlan, BatchShape};
@@ -134,25 +134,16 @@ fn main() -> anyhow::Result<()> {
                 ..SampleConfig::default()
             };
             let builder = SampleBuilder::new(&dataset, config)?;
-            // A warm-up epoch (page cache, allocator, decoder handles).
-            throughput(&builder, builder.plan().keyframes.len(), cores)?;
-            let (one, times) = throughput(&builder, count, 1)?;
-            let (all, _) = throughput(&builder, count, cores)?;
-            let ms = |ns: u64| ns as f64 / 1e6 / count as f64;
+            let (one, all, times) = one_and_all(&builder, count, cores)?;
             println!(
-                "| {w}×{h} | {} | {:.1} | {one:.1} | {all:.1} | {:.2}× | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} | {:.1} |",
+                "| {w}×{h} | {} | {:.1} | {one:.1} | {all:.1} | {:.2}× | {} |",
                 match source {
                     SuperpixelSource::Slic => "SLIC",
                     _ => "class map (PNG)",
                 },
                 1e3 / one,
                 all / one,
-                ms(times.decode),
-                ms(times.sweeps),
-                ms(times.images),
-                ms(times.projection),
-                ms(times.superpixels),
-                ms(times.voxels),
+                stage_cells(&times, count),
             );
             if source == SuperpixelSource::Channel {
                 let samples = (0..BATCH as u64)

@@ -239,13 +239,10 @@ pub fn write(sim: &Simulation) -> Result<GeneratedDrive> {
     );
 
     let (mcap, channels) = out.finish("", Some(mcap::Compression::Lz4))?;
-    let (sidecar, sidecar_channels) = match sidecar {
-        Some(side) => {
-            let (bytes, channels) = side.finish("", Some(mcap::Compression::Lz4))?;
-            (Some(bytes), Some(channels))
-        }
-        None => (None, None),
-    };
+    let (sidecar, sidecar_channels) = sidecar
+        .map(|side| side.finish("", Some(mcap::Compression::Lz4)))
+        .transpose()?
+        .unzip();
     let truth = sim.ground_truth(WrittenDrive {
         dialect: Dialect::Foxglove,
         profile: "",

@@ -11,7 +11,7 @@ use crate::error::{GenerateError, Result};
 use crate::options::ClassMapStorage;
 use crate::out::McapOut;
 use crate::sim::{CameraFrame, CameraRig, Return, body_from_optical};
-use crate::truth::{CameraTruth, ChannelTruth, FramesTruth, PoseTruth, SweepTruth};
+use crate::truth::{CameraTruth, FramesTruth, PoseTruth, SweepTruth};
 use crate::{Dialect, GeneratedDrive, Simulation, WrittenDrive};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 use std::collections::BTreeMap;
@@ -165,13 +165,10 @@ pub fn write(sim: &Simulation) -> Result<GeneratedDrive> {
     );
     out.metadata("rosbag2", &[("serialized_metadata", &metadata)]);
     let (mcap, channels) = out.finish("ros2", Some(mcap::Compression::Zstd))?;
-    let (sidecar, sidecar_channels): (Option<Vec<u8>>, Option<Vec<ChannelTruth>>) = match sidecar {
-        Some(side) => {
-            let (bytes, channels) = side.finish("ros2", Some(mcap::Compression::Zstd))?;
-            (Some(bytes), Some(channels))
-        }
-        None => (None, None),
-    };
+    let (sidecar, sidecar_channels) = sidecar
+        .map(|side| side.finish("ros2", Some(mcap::Compression::Zstd)))
+        .transpose()?
+        .unzip();
     let truth = sim.ground_truth(WrittenDrive {
         dialect: Dialect::Ros2,
         profile: "ros2",

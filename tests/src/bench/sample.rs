@@ -51,3 +51,19 @@ pub fn one_and_all(
     let (all, _) = throughput(builder, n, cores)?;
     Ok((one, all, times))
 }
+
+/// The stage columns of a bench table: ms per sample of decode, sweeps, images,
+/// projection, superpixels and voxels+maps, for `times` summed over `n` samples.
+pub fn stage_cells(times: &StageTimes, n: usize) -> String {
+    let ms = |ns: u64| format!("{:.1}", ns as f64 / 1e6 / n as f64);
+    [
+        times.decode,
+        times.sweeps,
+        times.images,
+        times.projection,
+        times.superpixels,
+        times.voxels,
+    ]
+    .map(ms)
+    .join(" | ")
+}
