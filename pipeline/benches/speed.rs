@@ -51,7 +51,7 @@ fn drive(width: u32, height: u32, regenerate: bool) -> anyhow::Result<PathBuf> {
     let started = Instant::now();
     let generated = generate_with(dialect, &options)?;
     if let (Some(name), Some(bytes)) = (options.sidecar_name(dialect), &generated.sidecar) {
-        std::fs::write(dir.join(format!("{name}.mcap")), bytes)?;
+        std::fs::write(dir.join(name), bytes)?;
     }
     std::fs::write(&path, &generated.mcap)?;
     eprintln!(

@@ -81,7 +81,17 @@ pub(crate) fn sort_cells(cells: &[[i32; 3]]) -> (Vec<u32>, Option<(CellKeys, Vec
         return (order, None);
     };
     let index_bits = bits_for(cells.len() as u64);
-    let (order, sorted): (Vec<u32>, Vec<u64>) = if keys.bits() + index_bits <= 64 {
+    let (order, sorted): (Vec<u32>, Vec<u64>) = if keys.bits() <= 32 {
+        // 32-bit keys beside their index: a stable radix sort of the key bytes only
+        // (four passes at most, where key and index packed together would take six).
+        let mut pairs: Vec<(u32, u32)> = cells
+            .iter()
+            .enumerate()
+            .map(|(i, c)| (keys.key(*c) as u32, i as u32))
+            .collect();
+        radsort::sort_by_key(&mut pairs, |p| p.0);
+        pairs.iter().map(|&(k, i)| (i, u64::from(k))).unzip()
+    } else if keys.bits() + index_bits <= 64 {
         // Key and index in one u64: an integer radix sort; the index breaks ties.
         let mut packed: Vec<u64> = cells
             .iter()
@@ -145,7 +155,8 @@ mod tests {
 
     #[test]
     fn both_packings_sort_the_same() {
-        // Key + index over 64 bits: the (key, index) pair sort; fewer: the packed sort.
+        // Key + index over 64 bits: the (key, index) pair sort; fewer: the packed sort
+        // (or, keys of 32 bits at most, the stable sort of keys beside indices).
         let wide: Vec<[i32; 3]> = (0..200)
             .map(|i| {
                 let x = (i * 7919) % 3_000_001 - 1500;
@@ -156,11 +167,20 @@ mod tests {
             .iter()
             .map(|c| [c[0] % 7, c[1] % 5, c[2] % 3])
             .collect();
-        for (cells, pair_sort) in [(wide, true), (narrow, false)] {
+        let middle: Vec<[i32; 3]> = wide
+            .iter()
+            .map(|c| [c[0] % 3000, c[1] % 4001, c[2] / 20_000])
+            .collect();
+        for (cells, bits) in [(wide, 33..=64), (middle, 33..=56), (narrow, 0..=32)] {
             let (order, keys) = sort_cells(&cells);
             let (packing, sorted) = keys.unwrap();
             let index_bits = bits_for(cells.len() as u64);
-            assert_eq!(packing.bits() + index_bits > 64, pair_sort);
+            assert!(bits.contains(&packing.bits()), "{}", packing.bits());
+            assert_eq!(
+                packing.bits() + index_bits > 64,
+                *bits.end() == 64,
+                "pair sort expected for the wide cells only"
+            );
             let mut expected: Vec<u32> = (0..cells.len() as u32).collect();
             expected.sort_by_key(|&i| (cells[i as usize], i));
             assert_eq!(order, expected);

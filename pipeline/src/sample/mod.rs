@@ -28,6 +28,7 @@ pub mod augment;
 pub mod builder;
 mod cellkey;
 mod cloud;
+mod cylinder;
 mod error;
 pub mod export;
 pub mod image_ops;
