@@ -17,7 +17,9 @@
 //! * [`slic`]: SLIC superpixels when the recording has no class maps;
 //! * [`augment`]: the 3D augmentation (flip, rotation about z, scale) of a cloud;
 //! * [`voxel`]: cylindrical (ρ 0.1 m, φ 1°, z 0.1 m) or cartesian voxelization — unique
-//!   cells, a representative point per cell, the point→voxel map;
+//!   cells, a representative point per cell, the point→voxel map (`cylinder.rs`: the
+//!   cylindrical cells of a whole cloud, fast and identical to the per-point formula;
+//!   `cellkey.rs`: cells packed into sortable `u64` keys);
 //! * [`sparse`]: the sparse-convolution maps of every UNet level — 3×3×3 neighbour maps,
 //!   stride-2 down-sampling maps and their transposes for up-sampling;
 //! * [`rng`]: the keyed random streams that make a sample a function of
