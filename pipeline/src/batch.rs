@@ -228,7 +228,26 @@ fn write_images(
     }
     let out = w.take_section::<u16>(Section::Superpixels)?;
     for (dst, img) in out.chunks_exact_mut(h * wd).zip(images()) {
-        fill(dst, img.superpixels.iter().map(|&id| id as u16));
+        // The section is u16: an id beyond it is an error, never a silent wrap.
+        let mut all_bits = 0u32;
+        fill(
+            dst,
+            img.superpixels.iter().map(|&id| {
+                all_bits |= id;
+                id as u16
+            }),
+        );
+        if all_bits > u32::from(u16::MAX) {
+            let worst = img.superpixels.iter().max().copied().unwrap_or_default();
+            return Err(err(
+                &Section::Superpixels.name(),
+                format!(
+                    "superpixel id {worst} of {} at {} does not fit 16 bits",
+                    img.camera,
+                    img.stamp.nanos()
+                ),
+            ));
+        }
     }
     fill(
         w.take_section::<u32>(Section::NumSuperpixels)?,

@@ -135,6 +135,17 @@ mod tests {
                 .to_string()
                 .contains("scale_min")
         );
+        // SLIC ids of a frame's images share 16 bits.
+        bad.sample.augment.scale_min = 0.95;
+        assert!(bad.validate().is_ok());
+        bad.sample.slic.n_segments = 20_000;
+        let e = bad.validate().unwrap_err().to_string();
+        assert!(
+            e.contains("slic.n_segments") && e.contains("cameras"),
+            "{e}"
+        );
+        bad.sample.cameras = 1;
+        assert!(bad.validate().is_ok());
     }
 
     #[test]

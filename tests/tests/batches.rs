@@ -177,3 +177,21 @@ fn a_batch_holds_its_samples_with_global_rows() {
         layout.payload_len() as f64 / 1e6
     );
 }
+
+#[test]
+fn a_superpixel_id_beyond_16_bits_is_an_error_not_a_wrap() {
+    let ds = sample_dataset(&sample_drive(Dialect::Foxglove).unwrap()).unwrap();
+    let config = SampleConfig::default();
+    let builder = SampleBuilder::new(&ds, config.clone()).unwrap();
+    let mut samples = vec![builder.build(0, 0).unwrap()];
+    let shape = BatchShape::of(&config);
+    let plan = BatchPlan::new(&samples, shape).unwrap();
+    let mut payload = vec![0u8; plan.layout().payload_len()];
+    plan.write(&samples, &mut payload).unwrap();
+    let image = &mut samples[0].frames[1].images[0];
+    image.superpixels[17] = 65_536 + 3;
+    let camera = image.camera.clone();
+    let e = plan.write(&samples, &mut payload).unwrap_err().to_string();
+    assert!(e.contains("superpixels"), "{e}");
+    assert!(e.contains("65539") && e.contains(&camera), "{e}");
+}

@@ -223,6 +223,19 @@ impl SampleConfig {
         probability("image_flip_probability", self.image_flip_probability)?;
         within("num_classes", self.num_classes, 1..=65_536)?;
         self.slic.validate().map_err(in_sample)?;
+        // SLIC ids are offset per image of a frame, and a batch stores 16-bit ids.
+        let frame_segments = u64::from(self.slic.n_segments) * u64::from(self.cameras);
+        if frame_segments > u64::from(crate::sample::slic::MAX_SEGMENTS) {
+            return Err(InvalidSetting::new(
+                "sample.slic.n_segments",
+                self.slic.n_segments,
+                format!(
+                    "times sample.cameras ({}) must be at most {} (16-bit ids per frame)",
+                    self.cameras,
+                    crate::sample::slic::MAX_SEGMENTS
+                ),
+            ));
+        }
         let a = &self.augment;
         probability("augment.flip_x_probability", a.flip_x_probability)?;
         probability("augment.flip_y_probability", a.flip_y_probability)?;

@@ -65,6 +65,10 @@ const WINDOW_STEPS: f32 = 2.0;
 /// Largest accepted `sigma`, pixels (the kernel and its cost grow with it).
 const MAX_SIGMA: f32 = 100.0;
 
+/// Largest `n_segments`: half the 16-bit ids a batch stores, so that the segments split
+/// off while enforcing connectivity still fit.
+pub const MAX_SEGMENTS: u32 = 32_768;
+
 /// SLIC parameters (defaults = the paper's: 150 segments, compactness 6, sigma 3).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -102,11 +106,13 @@ impl SlicParams {
     /// The error names the parameter as `slic.<field>` (the caller adds its own prefix,
     /// e.g. `sample.`).
     pub fn validate(&self) -> Result<(), InvalidSetting> {
-        if self.n_segments == 0 {
+        if !(1..=MAX_SEGMENTS).contains(&self.n_segments) {
             return Err(InvalidSetting::new(
                 "slic.n_segments",
                 self.n_segments,
-                "must be at least 1",
+                format!(
+                    "must be in 1..={MAX_SEGMENTS} (batches store 16-bit ids, and enforcing connectivity can split segments)"
+                ),
             ));
         }
         if self.max_iterations == 0 {

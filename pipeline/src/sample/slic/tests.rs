@@ -147,8 +147,18 @@ fn slic_params_default_validate_and_deserialize() {
     );
     assert_eq!(p.min_size_factor, 0.5);
     p.validate().unwrap();
+    SlicParams {
+        n_segments: super::MAX_SEGMENTS,
+        ..p
+    }
+    .validate()
+    .unwrap();
     for bad in [
         SlicParams { n_segments: 0, ..p },
+        SlicParams {
+            n_segments: super::MAX_SEGMENTS + 1,
+            ..p
+        },
         SlicParams {
             max_iterations: 0,
             ..p
