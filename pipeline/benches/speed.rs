@@ -5,6 +5,10 @@
 //! `cargo bench -p superflow-pipeline --bench speed` (options: `-- --samples N` (48),
 //! `--slic-samples N` (12), `--sizes 800x450,1600x900`, `--regenerate`).
 //!
+//! SLIC is measured twice: computed per sample, and read from the `<drive>.slic.mcap`
+//! sidecar that `superflow-pipeline superpixels` writes (written once into
+//! `target/bench-drives/…/slic/`, beside a link to the drive).
+//!
 //! The drives come from the generator (`superflow-recordings --preset nuscenes`): the
 //! nuscenes2mcap layout (Foxglove protobuf), a 32-beam LiDAR at 20 Hz (~33 k returns a
 //! sweep), six JPEG cameras at ~12 Hz triggered as the beam passes them, class maps as
@@ -26,6 +30,7 @@ use std::time::Instant;
 use superflow_pipeline::batch::{BatchPlan, BatchShape};
 use superflow_pipeline::drive::{Dataset, IngestConfig};
 use superflow_pipeline::sample::recipe::SuperpixelSource;
+use superflow_pipeline::sample::sidecar;
 use superflow_pipeline::sample::{Sample, SampleBuilder, SampleConfig};
 use superflow_recordings::{Dialect, DriveOptions, GENERATOR_VERSION, generate_with};
 
@@ -61,6 +66,37 @@ fn drive(width: u32, height: u32, regenerate: bool) -> anyhow::Result<PathBuf> {
         started.elapsed().as_secs_f64()
     );
     Ok(path)
+}
+
+/// The drive at `path` beside a SLIC sidecar written by `superflow-pipeline
+/// superpixels` (in a `slic/` directory next to it, through a link, so that the plain
+/// drive keeps running SLIC per sample), opened.
+fn slic_sidecar_drive(path: &std::path::Path, regenerate: bool) -> anyhow::Result<Dataset> {
+    let dir = path.with_file_name("slic");
+    std::fs::create_dir_all(&dir)?;
+    let link = dir.join(path.file_name().unwrap_or_default());
+    if !link.exists() {
+        std::os::unix::fs::symlink(path, &link)?;
+    }
+    let dataset = Dataset::open(std::slice::from_ref(&link), &IngestConfig::default())?;
+    let config = SampleConfig::default();
+    if regenerate || !sidecar::sidecar_matches(&dataset.drives[0], &config) {
+        let out = sidecar::sidecar_path(&dataset.drives[0])
+            .ok_or_else(|| anyhow::anyhow!("no sidecar path for {}", link.display()))?;
+        let started = Instant::now();
+        let written = sidecar::write_sidecar(&dataset.drives[0], &config, &out, &|| {})?;
+        eprintln!(
+            "wrote {} ({} label maps) in {:.1} s",
+            out.display(),
+            written.images,
+            started.elapsed().as_secs_f64()
+        );
+        return Ok(Dataset::open(
+            std::slice::from_ref(&link),
+            &IngestConfig::default(),
+        )?);
+    }
+    Ok(dataset)
 }
 
 /// Median milliseconds of `runs` calls of `f`.
@@ -125,19 +161,23 @@ fn main() -> anyhow::Result<()> {
             .ok_or_else(|| anyhow::anyhow!("--sizes {size}: expected WIDTHxHEIGHT"))?;
         let path = drive(w, h, regenerate)?;
         let dataset = Dataset::open(std::slice::from_ref(&path), &IngestConfig::default())?;
-        for (source, count) in [
-            (SuperpixelSource::Channel, n),
-            (SuperpixelSource::Slic, n_slic),
+        let slic_dataset = slic_sidecar_drive(&path, regenerate)?;
+        for (source, count, data) in [
+            (SuperpixelSource::Channel, n, &dataset),
+            (SuperpixelSource::Slic, n_slic, &dataset),
+            (SuperpixelSource::Slic, n, &slic_dataset),
         ] {
             let config = SampleConfig {
                 superpixels: source,
                 ..SampleConfig::default()
             };
-            let builder = SampleBuilder::new(&dataset, config)?;
+            let builder = SampleBuilder::new(data, config)?;
             let (one, all, times) = one_and_all(&builder, count, cores)?;
             println!(
                 "| {w}×{h} | {} | {:.1} | {one:.1} | {all:.1} | {:.2}× | {} |",
                 match source {
+                    SuperpixelSource::Slic if std::ptr::eq(data, &slic_dataset) =>
+                        "SLIC from its sidecar",
                     SuperpixelSource::Slic => "SLIC",
                     _ => "class map (PNG)",
                 },

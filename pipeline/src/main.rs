@@ -101,6 +101,16 @@ enum Command {
         #[arg(long)]
         no_augment: bool,
     },
+    /// Runs SLIC once on every camera image of each drive, with the configuration's
+    /// recipe, and writes the labels to `<drive>.slic.mcap` beside it; samples then
+    /// read them instead of running SLIC per image and epoch (drives with class maps
+    /// do not need this).
+    Superpixels {
+        /// Rewrite a sidecar that exists (else one written with the same settings is
+        /// kept, and one with other settings is an error).
+        #[arg(long)]
+        force: bool,
+    },
     /// Builds one batch (keyframes `index..index + batch-size` of the plan) and writes it
     /// to a file exactly as it goes on the wire: the `BatchHeader` bytes, then the
     /// payload (`schemas/BATCH_FORMAT.md`). Benchmarks and offline tools read it.
@@ -146,6 +156,48 @@ fn open(args: &Args) -> anyhow::Result<Dataset> {
     Ok(dataset?)
 }
 
+/// The `superpixels` command: a SLIC sidecar for every drive that lacks a current one.
+fn write_slic_sidecars(
+    dataset: &Dataset,
+    config: &superflow_pipeline::sample::SampleConfig,
+    force: bool,
+) -> anyhow::Result<()> {
+    use superflow_pipeline::sample::sidecar;
+    for drive in &dataset.drives {
+        let path = sidecar::sidecar_path(drive)
+            .with_context(|| format!("{}: no file to put a sidecar beside", drive.file_list()))?;
+        if path.exists() && !force {
+            if sidecar::sidecar_matches(drive, config) {
+                println!("{}: up to date", path.display());
+                continue;
+            }
+            bail!(
+                "{} exists with other settings (or other cameras); rerun with --force to rewrite it",
+                path.display()
+            );
+        }
+        let images: usize = drive.cameras.iter().map(|c| c.frames.len()).sum();
+        let bar = indicatif::ProgressBar::new(images as u64).with_style(
+            indicatif::ProgressStyle::with_template(
+                "SLIC {bar:40} {pos}/{len} images ({per_sec}, {eta} left)",
+            )
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+        );
+        let started = std::time::Instant::now();
+        let summary = sidecar::write_sidecar(drive, config, &path, &|| bar.inc(1))?;
+        bar.finish_and_clear();
+        let secs = started.elapsed().as_secs_f64();
+        println!(
+            "{}: {} label maps ({:.1} MB) in {secs:.1} s ({:.1} ms an image)",
+            summary.path.display(),
+            summary.images,
+            summary.bytes as f64 / 1e6,
+            1e3 * secs / summary.images.max(1) as f64
+        );
+    }
+    Ok(())
+}
+
 fn run(args: &Args) -> anyhow::Result<()> {
     match &args.command {
         Some(Command::Inspect { json }) => {
@@ -157,6 +209,11 @@ fn run(args: &Args) -> anyhow::Result<()> {
                 print!("{}", report.to_text());
             }
             Ok(())
+        }
+        Some(Command::Superpixels { force }) => {
+            let config = load_config(args)?.sample;
+            let dataset = open(args)?;
+            write_slic_sidecars(&dataset, &config, *force)
         }
         Some(Command::Sample {
             index,

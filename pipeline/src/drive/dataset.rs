@@ -70,6 +70,19 @@ pub struct CameraStream {
     pub superpixel_kind: Option<SchemaKind>,
     /// Every class map, sorted by stamp.
     pub superpixels: Vec<FrameRef>,
+    /// SLIC superpixels precomputed by `superflow-pipeline superpixels`, if found.
+    pub slic: Option<SlicStream>,
+}
+
+/// A camera's precomputed SLIC superpixels (a `<drive>.slic.mcap` sidecar).
+#[derive(Debug, Clone)]
+pub struct SlicStream {
+    /// Topic.
+    pub topic: String,
+    /// The settings they were computed with (see `superpixels::settings_key`).
+    pub settings: String,
+    /// Every label map, sorted by stamp.
+    pub frames: Vec<FrameRef>,
 }
 
 impl CameraStream {

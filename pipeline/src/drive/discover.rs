@@ -53,6 +53,9 @@ pub enum Role {
     Calibration,
     /// A camera's per-pixel class map (superpixels).
     Superpixels,
+    /// A camera's SLIC superpixels precomputed by `superflow-pipeline superpixels`
+    /// (channel metadata [`SLIC_SETTINGS_KEY`]).
+    SlicSuperpixels,
     /// Time-varying transforms (`/tf`).
     Transforms,
     /// Static transforms (`/tf_static`).
@@ -69,6 +72,7 @@ impl Role {
             Role::Image => "image",
             Role::Calibration => "calibration",
             Role::Superpixels => "superpixels",
+            Role::SlicSuperpixels => "slic_superpixels",
             Role::Transforms => "transforms",
             Role::StaticTransforms => "static_transforms",
             Role::Ignored(_) => "ignored",
@@ -106,6 +110,11 @@ pub fn camera_namespace(topic: &str) -> &str {
     }
     ns
 }
+
+/// Channel metadata of a precomputed SLIC channel: the settings it was computed with.
+pub const SLIC_SETTINGS_KEY: &str = "superflow.slic.settings";
+/// Channel metadata of a precomputed SLIC channel: the image topic it segments.
+pub const SLIC_IMAGE_TOPIC_KEY: &str = "superflow.slic.image_topic";
 
 /// Whether an image topic carries class ids rather than colour.
 pub fn is_class_map_topic(topic: &str) -> bool {
@@ -152,7 +161,9 @@ pub fn assign_roles(
                     }
                 }
                 Some((SchemaKind::CompressedImage | SchemaKind::RawImage, _)) => {
-                    if is_class_map_topic(&c.topic) {
+                    if c.metadata.contains_key(SLIC_SETTINGS_KEY) {
+                        Role::SlicSuperpixels
+                    } else if is_class_map_topic(&c.topic) {
                         Role::Superpixels
                     } else if c.topic.to_ascii_lowercase().contains("depth") {
                         Role::Ignored("a depth image".into())

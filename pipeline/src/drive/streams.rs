@@ -2,7 +2,7 @@
 //! summaries, the LiDAR, the cameras (with their calibration and class maps) and the ego
 //! and map frames.
 
-use super::dataset::{CameraStream, ChannelSummary, LidarStream};
+use super::dataset::{CameraStream, ChannelSummary, LidarStream, SlicStream};
 use super::discover::{self, IngestConfig, Role};
 use super::index::TopicData;
 use super::tf::TransformTree;
@@ -148,6 +148,9 @@ impl Roles<'_> {
             })
         });
         let superpixels = self.with(Role::Superpixels).find(in_namespace);
+        let slic = self.with(Role::SlicSuperpixels).find(|s| {
+            s.channel.metadata.get(discover::SLIC_IMAGE_TOPIC_KEY) == Some(&t.channel.topic)
+        });
         Some(CameraStream {
             name: namespace
                 .rsplit('/')
@@ -166,6 +169,16 @@ impl Roles<'_> {
             superpixel_topic: superpixels.map(|s| s.channel.topic.clone()),
             superpixel_kind: superpixels.and_then(|s| s.kind.map(|k| k.0)),
             superpixels: superpixels.map(|s| s.frames.clone()).unwrap_or_default(),
+            slic: slic.map(|s| SlicStream {
+                topic: s.channel.topic.clone(),
+                settings: s
+                    .channel
+                    .metadata
+                    .get(discover::SLIC_SETTINGS_KEY)
+                    .cloned()
+                    .unwrap_or_default(),
+                frames: s.frames.clone(),
+            }),
         })
     }
 }

@@ -23,6 +23,7 @@ pub struct SampleBuilder<'d> {
     config: SampleConfig,
     plan: Plan,
     class_superpixels: Vec<bool>,
+    slic_sidecar: Vec<bool>,
 }
 
 /// Whether `drive`'s superpixels come from its class maps under `source`.
@@ -47,22 +48,47 @@ fn class_superpixels(drive: &Drive, source: SuperpixelSource) -> Result<bool, Sa
     })
 }
 
+/// Whether the SLIC superpixels of `drive` come from its `.slic.mcap` sidecar: when every
+/// camera has one computed with `config`'s settings. A sidecar for other settings is
+/// left unused, and said so.
+fn slic_sidecar(drive: &Drive, config: &SampleConfig) -> bool {
+    if super::sidecar::sidecar_matches(drive, config) {
+        return true;
+    }
+    if drive.cameras.iter().any(|c| c.slic.is_some()) {
+        tracing::warn!(
+            "{}: the SLIC sidecar was written for other settings (image size, SLIC \
+             parameters or reduced decoding) or lacks cameras; SLIC runs per sample. \
+             Rewrite it: superflow-pipeline superpixels --force",
+            drive.file_list()
+        );
+    }
+    false
+}
+
 impl<'d> SampleBuilder<'d> {
     /// Checks the recipe against the dataset and plans its keyframes.
     pub fn new(dataset: &'d Dataset, config: SampleConfig) -> Result<Self, SampleError> {
         config.validate()?;
         dataset.check_sensors()?;
-        let class_superpixels = dataset
+        let class_superpixels: Vec<bool> = dataset
             .drives
             .iter()
             .map(|drive| class_superpixels(drive, config.superpixels))
             .collect::<Result<_, _>>()?;
+        let slic_sidecar = dataset
+            .drives
+            .iter()
+            .zip(&class_superpixels)
+            .map(|(drive, &classes)| !classes && slic_sidecar(drive, &config))
+            .collect();
         let plan = Plan::new(dataset, &config);
         Ok(Self {
             dataset,
             config,
             plan,
             class_superpixels,
+            slic_sidecar,
         })
     }
 
@@ -121,6 +147,7 @@ impl<'d> SampleBuilder<'d> {
             drive,
             id,
             class_superpixels: self.class_superpixels[key.drive as usize],
+            slic_sidecar: self.slic_sidecar[key.drive as usize],
             chosen: &chosen,
             scan: &self.plan.scans[key.drive as usize],
         };

@@ -9,9 +9,10 @@ use super::load::{SampleContext, elapsed, with_cache};
 use super::plan::camera_frame_for;
 use super::project::camera_from_lidar;
 use super::rng::{Purpose, SampleRng};
+use super::sidecar;
 use super::slic::slic;
 use super::types::{SampleImage, StageTimes};
-use crate::decode::image::{Scale, ScaledImage, Target};
+use crate::decode::image::{ScaledImage, Target};
 use crate::drive::dataset::{CameraStream, FrameRef, nearest};
 use nalgebra::Isometry3;
 use std::time::Instant;
@@ -65,6 +66,21 @@ impl SampleContext<'_> {
             class_decode = decode;
             times.decode += decode;
             (map, cfg.num_classes)
+        } else if let Some(stream) = camera.slic.as_ref().filter(|_| self.slic_sidecar) {
+            let size = (cfg.image_width, cfg.image_height);
+            let read = with_cache(|cache| {
+                sidecar::read_labels(self.drive, stream, raw.frame.stamp, size, cache)
+            });
+            let (mut labels, count) = read.map_err(|reason| SampleError::Superpixels {
+                files: self.drive.file_list(),
+                topic: stream.topic.clone(),
+                stamp: raw.frame.stamp,
+                reason,
+            })?;
+            if flipped {
+                image_ops::flip_horizontal(&mut labels, cfg.image_width as usize, 1);
+            }
+            (labels, count)
         } else {
             let seg = slic(
                 &rgb,
@@ -129,15 +145,7 @@ impl SampleContext<'_> {
                 self.image_error(camera, frame.stamp, reason)
             })?
             .clone();
-        let cfg = self.config;
-        let scale = if cfg.image_reduced_decode {
-            Scale::AtLeast {
-                width: cfg.image_width,
-                height: cfg.image_height,
-            }
-        } else {
-            Scale::Full
-        };
+        let scale = self.config.decode_scale();
         let t = Instant::now();
         let ScaledImage { image, native } =
             with_cache(|cache| drive.read_image_scaled(camera, frame, Target::Rgb, scale, cache))?;

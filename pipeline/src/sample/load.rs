@@ -50,6 +50,8 @@ pub(super) struct SampleContext<'a> {
     pub id: SampleId,
     /// Superpixels come from the drive's class maps (else SLIC).
     pub class_superpixels: bool,
+    /// SLIC superpixels come from the drive's `.slic.mcap` sidecar (else computed).
+    pub slic_sidecar: bool,
     /// The chosen cameras' indices in the drive, slot order.
     pub chosen: &'a [usize],
     /// When the drive's LiDAR scans each camera.

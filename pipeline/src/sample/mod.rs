@@ -15,6 +15,8 @@
 //!   the lens distortion and strict bounds, and per-point de-skew of raw sweeps;
 //! * [`image_ops`]: bilinear / nearest resize, flips, raw → resized pixel;
 //! * [`slic`]: SLIC superpixels when the recording has no class maps;
+//! * [`sidecar`]: SLIC computed once per drive into a `<drive>.slic.mcap` sidecar
+//!   (`superflow-pipeline superpixels`), read back by samples;
 //! * [`augment`]: the 3D augmentation (flip, rotation about z, scale) of a cloud;
 //! * [`voxel`]: cylindrical (ρ 0.1 m, φ 1°, z 0.1 m) or cartesian voxelization — unique
 //!   cells, a representative point per cell, the point→voxel map (`cylinder.rs`: the
@@ -40,6 +42,7 @@ pub mod plan;
 pub mod project;
 pub mod recipe;
 pub mod rng;
+pub mod sidecar;
 pub mod slic;
 pub mod sparse;
 pub mod timing;

@@ -3,6 +3,7 @@
 
 use super::slic::SlicParams;
 use super::voxel::VoxelGrid;
+use crate::decode::image::Scale;
 use crate::invalid::InvalidSetting;
 use serde::{Deserialize, Serialize};
 
@@ -50,7 +51,8 @@ pub enum SuperpixelSource {
     Auto,
     /// The recording's class-map channels (an error if a camera has none).
     Channel,
-    /// SLIC computed by the pipeline on each resized image.
+    /// SLIC on each resized image: read from the drive's `.slic.mcap` sidecar when one
+    /// was written with this recipe (`superflow-pipeline superpixels`), else computed.
     Slic,
 }
 
@@ -169,6 +171,19 @@ impl Default for SampleConfig {
 }
 
 impl SampleConfig {
+    /// How small a camera image may decode: at least the recipe's size when
+    /// `image_reduced_decode` is on, else full size.
+    pub fn decode_scale(&self) -> Scale {
+        if self.image_reduced_decode {
+            Scale::AtLeast {
+                width: self.image_width,
+                height: self.image_height,
+            }
+        } else {
+            Scale::Full
+        }
+    }
+
     /// Checks ranges; the error names the setting (`sample.…`).
     pub fn validate(&self) -> Result<(), InvalidSetting> {
         let positive = |name: &str, v: f64| {
