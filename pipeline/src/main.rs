@@ -194,6 +194,13 @@ fn write_slic_sidecars(
             summary.bytes as f64 / 1e6,
             1e3 * secs / summary.images.max(1) as f64
         );
+        if let Some(first) = summary.skipped.first() {
+            println!(
+                "  {} images skipped (they do not decode; a sample that needs one fails as it \
+                 would without the sidecar); first: {first}",
+                summary.skipped.len()
+            );
+        }
     }
     Ok(())
 }

@@ -453,6 +453,21 @@ fn lower_case_nuscenes_converter_topics_are_discovered() {
     // Poses: the stamp of the message is used, never its log time (images here are logged
     // at the LiDAR time, 10 ms before their stamp).
     assert_eq!(camera.frames[0].stamp, Stamp::from_nanos(T0 + 10_000_000));
+    // Its JPEGs are cut short: a SLIC sidecar skips every one, counted and named.
+    use superflow_pipeline::sample::sidecar::{sidecar_path, write_sidecar};
+    let sidecar = sidecar_path(&dataset).unwrap();
+    let config = superflow_pipeline::sample::SampleConfig::default();
+    let summary = write_sidecar(&dataset, &config, &sidecar, &|| {}).unwrap();
+    assert_eq!(
+        (summary.images, summary.skipped.len()),
+        (0, camera.frames.len())
+    );
+    let first = &summary.skipped[0];
+    assert!(
+        first.contains("/cam_front/image_rect_compressed"),
+        "{first}"
+    );
+    std::fs::remove_file(&sidecar).unwrap();
 }
 
 /// rosbag2 splits long recordings into several files in one directory next to its

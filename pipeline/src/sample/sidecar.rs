@@ -104,8 +104,12 @@ pub fn sidecar_matches(drive: &Drive, config: &SampleConfig) -> bool {
 pub struct SidecarSummary {
     /// The file.
     pub path: PathBuf,
-    /// Label maps written (one per camera image).
+    /// Label maps written (one per camera image that decoded).
     pub images: usize,
+    /// Images that could not be read or decoded (a sample needing one fails on the
+    /// image itself, with or without the sidecar): each error, naming file, topic and
+    /// stamp.
+    pub skipped: Vec<String>,
     /// Bytes of the file.
     pub bytes: u64,
 }
@@ -219,7 +223,6 @@ pub fn write_sidecar(
         path: path.to_path_buf(),
         reason,
     };
-    let (width, height) = (config.image_width, config.image_height);
     // Every image of every camera, in time order.
     let mut work: Vec<(usize, FrameRef)> = drive
         .cameras
@@ -257,45 +260,28 @@ pub fn write_sidecar(
         );
     }
     let mut sequences = vec![0u32; channels.len()];
+    let mut skipped = Vec::new();
     for batch in work.chunks(BATCH) {
         let encoded = batch
             .par_iter()
             .map_init(
                 || ChunkCache::new(2),
                 |cache, (c, frame)| {
-                    let cam = &drive.cameras[*c];
-                    let rgb = resized_image(drive, cam, frame, config, cache)?;
-                    let seg = slic(&rgb, width as usize, height as usize, &config.slic);
-                    let png = encode_labels(&seg.labels, width, height).map_err(|reason| {
-                        SuperpixelsError::Image {
-                            file: drive.file_list(),
-                            topic: cam.image_topic.clone(),
-                            stamp_ns: frame.stamp.nanos(),
-                            reason,
-                        }
-                    })?;
+                    let labelled = labelled_image(drive, &drive.cameras[*c], frame, config, cache);
                     progress();
-                    let (sec, nsec) = frame.stamp.to_sec_nanosec();
-                    let timestamp = u32::try_from(sec)
-                        .ok()
-                        .and_then(|sec| Timestamp::new_checked(sec, nsec))
-                        .ok_or_else(|| SuperpixelsError::Image {
-                            file: drive.file_list(),
-                            topic: cam.image_topic.clone(),
-                            stamp_ns: frame.stamp.nanos(),
-                            reason: "stamp before 1970 or after 2106".into(),
-                        })?;
-                    Ok(CompressedImage {
-                        timestamp: Some(timestamp),
-                        frame_id: cam.frame_id.clone(),
-                        data: png.into(),
-                        format: "png".into(),
-                    }
-                    .encode_to_vec())
+                    labelled
                 },
             )
             .collect::<Result<Vec<_>, SuperpixelsError>>()?;
         for ((c, frame), data) in batch.iter().zip(encoded) {
+            let data = match data {
+                Ok(data) => data,
+                Err(e) => {
+                    tracing::warn!("no SLIC labels for an image that does not decode: {e}");
+                    skipped.push(e);
+                    continue;
+                }
+            };
             sequences[*c] += 1;
             let time = u64::try_from(frame.stamp.nanos()).unwrap_or_default();
             writer
@@ -317,9 +303,46 @@ pub fn write_sidecar(
     let bytes = std::fs::metadata(path).map_or(0, |m| m.len());
     Ok(SidecarSummary {
         path: path.to_path_buf(),
-        images: work.len(),
+        images: work.len() - skipped.len(),
+        skipped,
         bytes,
     })
+}
+
+/// The encoded `foxglove.CompressedImage` of the SLIC labels of image `frame` of
+/// `camera`; `Ok(Err(why))` when the image does not read or decode (skipped).
+fn labelled_image(
+    drive: &Drive,
+    camera: &CameraStream,
+    frame: &FrameRef,
+    config: &SampleConfig,
+    cache: &mut ChunkCache,
+) -> Result<Result<Vec<u8>, String>, SuperpixelsError> {
+    let rgb = match resized_image(drive, camera, frame, config, cache) {
+        Ok(rgb) => rgb,
+        Err(e) => return Ok(Err(e.to_string())),
+    };
+    let (width, height) = (config.image_width, config.image_height);
+    let image_error = |reason: String| SuperpixelsError::Image {
+        file: drive.file_list(),
+        topic: camera.image_topic.clone(),
+        stamp_ns: frame.stamp.nanos(),
+        reason,
+    };
+    let seg = slic(&rgb, width as usize, height as usize, &config.slic);
+    let png = encode_labels(&seg.labels, width, height).map_err(image_error)?;
+    let (sec, nsec) = frame.stamp.to_sec_nanosec();
+    let timestamp = u32::try_from(sec)
+        .ok()
+        .and_then(|sec| Timestamp::new_checked(sec, nsec))
+        .ok_or_else(|| image_error("stamp before 1970 or after 2106".into()))?;
+    Ok(Ok(CompressedImage {
+        timestamp: Some(timestamp),
+        frame_id: camera.frame_id.clone(),
+        data: png.into(),
+        format: "png".into(),
+    }
+    .encode_to_vec()))
 }
 
 #[cfg(test)]
