@@ -154,6 +154,9 @@ fn encode_labels(labels: &[u32], width: u32, height: u32) -> Result<Vec<u8>, Str
     let mut encoder = png::Encoder::new(Cursor::new(&mut out), width, height);
     encoder.set_color(png::ColorType::Grayscale);
     encoder.set_depth(png::BitDepth::Sixteen);
+    // "Up" rows (mostly zeros for label maps) unfilter as one vector add; the adaptive
+    // choice picks Paeth, whose unfiltering is sequential and cost ~0.4 ms a map.
+    encoder.set_filter(png::Filter::Up);
     let mut writer = encoder.write_header().map_err(|e| e.to_string())?;
     writer
         .write_image_data(&samples)
@@ -182,12 +185,14 @@ fn decode_labels(png_bytes: &[u8], width: u32, height: u32) -> Result<(Vec<u32>,
     }
     let mut samples = vec![0u8; 2 * width as usize * height as usize];
     reader.next_frame(&mut samples).map_err(|e| e.to_string())?;
-    let labels: Vec<u32> = samples
-        .chunks_exact(2)
-        .map(|b| u32::from(u16::from_be_bytes([b[0], b[1]])))
-        .collect();
-    let count = labels.iter().max().map_or(0, |m| m + 1);
-    Ok((labels, count))
+    let mut labels = Vec::with_capacity(samples.len() / 2);
+    let mut largest = None;
+    for b in samples.chunks_exact(2) {
+        let label = u16::from_be_bytes([b[0], b[1]]);
+        largest = largest.max(Some(label));
+        labels.push(u32::from(label));
+    }
+    Ok((labels, largest.map_or(0, |m| u32::from(m) + 1)))
 }
 
 /// Reads the labels of the image stamped `stamp` from `stream` (sized `width × height`,
@@ -237,7 +242,9 @@ pub fn write_sidecar(
     let mut writer = mcap::WriteOptions::new()
         .profile("")
         .library(format!("superflow-pipeline/{}", env!("CARGO_PKG_VERSION")))
-        .compression(Some(mcap::Compression::Zstd))
+        // PNG is compressed already: chunks stay plain, so reading one label map reads
+        // its bytes instead of decompressing a chunk of a hundred.
+        .compression(None)
         .create(BufWriter::new(file))
         .map_err(|e| write_error(e.to_string()))?;
     let schema = CompressedImage::get_schema()
