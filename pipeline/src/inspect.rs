@@ -40,6 +40,9 @@ pub struct CameraReport {
     pub calibration_topic: Option<String>,
     /// Class-map topic, if recorded.
     pub superpixel_topic: Option<String>,
+    /// Topic of the SLIC superpixels precomputed by `superflow-pipeline superpixels`.
+    #[serde(default)]
+    pub slic_topic: Option<String>,
     /// Optical frame.
     pub frame_id: String,
     /// Images.
@@ -238,6 +241,7 @@ impl DriveReport {
                         image_topic: c.image_topic.clone(),
                         calibration_topic: c.calibration_topic.clone(),
                         superpixel_topic: c.superpixel_topic.clone(),
+                        slic_topic: c.slic.as_ref().map(|s| s.topic.clone()),
                         frame_id: c.frame_id.clone(),
                         images: c.frames.len(),
                         width: calibration.map(|k| k.width),
@@ -331,6 +335,9 @@ impl DriveReport {
                 c.calibration_topic.as_deref().unwrap_or("-"),
                 c.superpixel_topic.as_deref().unwrap_or("-"),
             );
+            if let Some(slic) = &c.slic_topic {
+                let _ = writeln!(out, "  {:<16} SLIC superpixels {slic}", "");
+            }
         }
         let _ = writeln!(
             out,

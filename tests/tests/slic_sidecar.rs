@@ -80,6 +80,13 @@ fn samples_read_slic_from_the_sidecar_as_slic_would_give_it() {
     write_sidecar(&dataset.drives[0], &config, &sidecar, &|| {}).unwrap();
     let dataset = Dataset::open(std::slice::from_ref(&path), &IngestConfig::default()).unwrap();
     assert!(sidecar_matches(&dataset.drives[0], &config));
+    // `inspect` names each camera's SLIC channel.
+    let report = superflow_pipeline::inspect::InspectReport::new(&dataset);
+    for camera in &report.drives[0].cameras {
+        let expected = format!("{}/superflow_slic", camera.image_topic);
+        assert_eq!(camera.slic_topic.as_deref(), Some(expected.as_str()));
+    }
+    assert!(report.to_text().contains("SLIC superpixels /CAM_FRONT/"));
     let from_sidecar = samples(&dataset, &config, 6);
     let (w, h) = (config.image_width as usize, config.image_height as usize);
     let (mut flipped, mut unflipped) = (0, 0);
