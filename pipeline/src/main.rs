@@ -162,6 +162,7 @@ fn write_slic_sidecars(
     config: &superflow_pipeline::sample::SampleConfig,
     force: bool,
 ) -> anyhow::Result<()> {
+    use superflow_pipeline::sample::recipe::SuperpixelSource;
     use superflow_pipeline::sample::sidecar;
     for drive in &dataset.drives {
         let path = sidecar::sidecar_path(drive)
@@ -174,6 +175,15 @@ fn write_slic_sidecars(
             bail!(
                 "{} exists with other settings (or other cameras); rerun with --force to rewrite it",
                 path.display()
+            );
+        }
+        let has_class_maps = drive.cameras.iter().all(|c| !c.superpixels.is_empty());
+        if has_class_maps && config.superpixels != SuperpixelSource::Slic {
+            println!(
+                "{}: note: every camera has class maps, which samples use under superpixels = {}; \
+                 the SLIC sidecar serves superpixels = \"slic\"",
+                drive.file_list(),
+                serde_json::to_string(&config.superpixels)?
             );
         }
         let images: usize = drive.cameras.iter().map(|c| c.frames.len()).sum();
