@@ -4,29 +4,13 @@
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
 
 use serde_json::Value;
-use std::path::PathBuf;
-use std::process::Command;
 use superflow_pipeline::inspect::{INSPECT_FORMAT, InspectReport};
 
-fn root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .unwrap()
-        .to_path_buf()
-}
+mod cli;
+use cli::root;
 
 fn inspect(args: &[&str]) -> (bool, String, String) {
-    let out = Command::new(env!("CARGO_BIN_EXE_superflow-pipeline"))
-        .arg("inspect")
-        .args(args)
-        .current_dir(root())
-        .output()
-        .unwrap();
-    (
-        out.status.success(),
-        String::from_utf8_lossy(&out.stdout).into_owned(),
-        String::from_utf8_lossy(&out.stderr).into_owned(),
-    )
+    cli::pipeline("inspect", args)
 }
 
 #[test]

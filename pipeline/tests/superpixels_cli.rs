@@ -3,25 +3,17 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
 
-use std::path::{Path, PathBuf};
-use std::process::Command;
+use std::path::Path;
+
+mod cli;
 
 fn superpixels(args: &[&str]) -> (bool, String, String) {
-    let out = Command::new(env!("CARGO_BIN_EXE_superflow-pipeline"))
-        .arg("superpixels")
-        .args(args)
-        .output()
-        .unwrap();
-    (
-        out.status.success(),
-        String::from_utf8_lossy(&out.stdout).into_owned(),
-        String::from_utf8_lossy(&out.stderr).into_owned(),
-    )
+    cli::pipeline("superpixels", args)
 }
 
 #[test]
 fn writes_keeps_and_rewrites_the_sidecar() {
-    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..");
+    let root = cli::root();
     let dir = std::env::temp_dir().join(format!("superflow-sp-cli-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let drive = dir.join("street_ros2.mcap");
