@@ -79,7 +79,7 @@ pub struct CameraStream {
 pub struct SlicStream {
     /// Topic.
     pub topic: String,
-    /// The settings they were computed with (see `superpixels::settings_key`).
+    /// The settings they were computed with (see `sample::sidecar::settings_key`).
     pub settings: String,
     /// Every label map, sorted by stamp.
     pub frames: Vec<FrameRef>,

@@ -186,9 +186,7 @@ impl SampleContext<'_> {
     /// `frame_pos`, slot `slot` says so; also whether it was.
     fn resize_and_flip(&self, image: &Image, frame_pos: u32, slot: usize) -> (Vec<u8>, bool) {
         let cfg = self.config;
-        let (out_w, out_h) = (cfg.image_width as usize, cfg.image_height as usize);
-        let (w, h) = (image.width as usize, image.height as usize);
-        let mut rgb = image_ops::resize_bilinear(&image.data, w, h, 3, out_w, out_h);
+        let mut rgb = cfg.resized_rgb(image);
         let flipped = SampleRng::new(
             cfg.seed,
             self.id.epoch,
@@ -200,7 +198,7 @@ impl SampleContext<'_> {
         )
         .bernoulli(cfg.image_flip_probability);
         if flipped {
-            image_ops::flip_horizontal(&mut rgb, out_w, 3);
+            image_ops::flip_horizontal(&mut rgb, cfg.image_width as usize, 3);
         }
         (rgb, flipped)
     }

@@ -1,11 +1,13 @@
 //! `[sample]` of `pipeline.toml`: the sample recipe. Every default is the paper's (or its
 //! official code's where the two differ; see `pipeline/docs/RECIPE.md`).
 
+use super::image_ops::resize_bilinear;
 use super::slic::SlicParams;
 use super::voxel::VoxelGrid;
 use crate::decode::image::Scale;
 use crate::invalid::InvalidSetting;
 use serde::{Deserialize, Serialize};
+use superflow_schemas::sensor::Image;
 
 /// What to do with a keyframe whose t−Δt or t+Δt frame falls outside the drive.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
@@ -171,6 +173,19 @@ impl Default for SampleConfig {
 }
 
 impl SampleConfig {
+    /// A decoded `Rgb8` camera image resized (bilinear) to the recipe's size, unflipped:
+    /// what samples show and segment.
+    pub fn resized_rgb(&self, image: &Image) -> Vec<u8> {
+        resize_bilinear(
+            &image.data,
+            image.width as usize,
+            image.height as usize,
+            3,
+            self.image_width as usize,
+            self.image_height as usize,
+        )
+    }
+
     /// How small a camera image may decode: at least the recipe's size when
     /// `image_reduced_decode` is on, else full size.
     pub fn decode_scale(&self) -> Scale {

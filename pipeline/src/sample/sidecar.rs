@@ -15,7 +15,6 @@
 //! mirror-symmetric); unflipped images get exactly the labels SLIC gives.
 
 use super::SampleConfig;
-use super::image_ops::resize_bilinear;
 use super::slic::slic;
 use crate::decode::foxglove::{CompressedImage, Timestamp, decode};
 use crate::decode::image::Target;
@@ -133,14 +132,7 @@ fn resized_image(
             reason: "not decoded as RGB".into(),
         });
     }
-    Ok(resize_bilinear(
-        &image.data,
-        image.width as usize,
-        image.height as usize,
-        3,
-        config.image_width as usize,
-        config.image_height as usize,
-    ))
+    Ok(config.resized_rgb(&image))
 }
 
 /// `labels` (`width × height`, each below 2¹⁶) as a 16-bit grey PNG.
