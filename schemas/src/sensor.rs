@@ -285,6 +285,7 @@ impl Distortion {
     }
 
     /// Maps an ideal normalized image point `(x/z, y/z)` to its distorted position.
+    #[inline]
     pub fn distort(&self, ideal: Vector2<f64>) -> Vector2<f64> {
         let (x, y) = (ideal.x, ideal.y);
         let r2 = x * x + y * y;
@@ -400,6 +401,7 @@ impl CameraCalibration {
     /// Projects a point in the camera's optical frame to a pixel of the raw image.
     /// Returns `None` for points at or behind the image plane (`z <= 0`); bounds are
     /// not checked (see [`CameraCalibration::contains_strict`]).
+    #[inline]
     pub fn project(&self, point_in_camera: &Point3<f64>) -> Option<Point2<f64>> {
         if point_in_camera.z <= 0.0 {
             return None;
@@ -426,6 +428,7 @@ impl CameraCalibration {
     }
 
     /// The paper's strict bounds: `0 < u < W − 1` and `0 < v < H − 1`.
+    #[inline]
     pub fn contains_strict(&self, pixel: &Point2<f64>) -> bool {
         pixel.x > 0.0
             && pixel.x < f64::from(self.width) - 1.0

@@ -19,6 +19,12 @@ fn linear_taps(n_in: usize, n_out: usize) -> Vec<(usize, usize, f32)> {
 
 /// Bilinear resize of an interleaved `channels`-channel u8 image (`data.len() ==
 /// channels·width·height`) to `out_width × out_height`, rounding to nearest.
+///
+/// Each output row blends its two source rows in `f32` (`a + (b − a)·wy`), then each
+/// pixel blends its two source columns the same way (`+ 0.5`, truncated). Colour pixels
+/// blend as four lanes at once (the fourth is the next pixel's first channel, ignored),
+/// and the whole resize also exists compiled with AVX2, chosen at run time: the same IEEE
+/// operations in the same order, so every copy gives the same bytes.
 pub fn resize_bilinear(
     data: &[u8],
     width: usize,
@@ -27,49 +33,97 @@ pub fn resize_bilinear(
     out_width: usize,
     out_height: usize,
 ) -> Vec<u8> {
+    let size = [width, height, out_width, out_height];
     match channels {
-        1 => resize_bilinear_n::<1>(data, width, height, out_width, out_height),
-        3 => resize_bilinear_n::<3>(data, width, height, out_width, out_height),
-        4 => resize_bilinear_n::<4>(data, width, height, out_width, out_height),
+        1 => resize_bilinear_dispatch::<1>(data, size),
+        3 => resize_bilinear_dispatch::<3>(data, size),
+        4 => resize_bilinear_dispatch::<4>(data, size),
         _ => vec![0u8; out_width * out_height * channels],
     }
 }
 
-fn resize_bilinear_n<const C: usize>(
-    data: &[u8],
-    width: usize,
-    height: usize,
-    out_width: usize,
-    out_height: usize,
-) -> Vec<u8> {
+#[allow(unsafe_code)]
+fn resize_bilinear_dispatch<const C: usize>(data: &[u8], size: [usize; 4]) -> Vec<u8> {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU runs AVX2 (checked just above), the only requirement of calling
+        // a function compiled with it enabled.
+        return unsafe { resize_bilinear_avx2::<C>(data, size) };
+    }
+    resize_bilinear_n::<C>(data, size)
+}
+
+/// [`resize_bilinear_n`] compiled with AVX2 enabled (not FMA: no contraction).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+fn resize_bilinear_avx2<const C: usize>(data: &[u8], size: [usize; 4]) -> Vec<u8> {
+    resize_bilinear_n::<C>(data, size)
+}
+
+#[inline(always)]
+fn resize_bilinear_n<const C: usize>(data: &[u8], size: [usize; 4]) -> Vec<u8> {
+    let [width, height, out_width, out_height] = size;
     let mut out = vec![0u8; out_width * out_height * C];
-    if width == 0 || height == 0 || data.len() < width * height * C {
+    if width == 0 || height == 0 || out_width == 0 || data.len() < width * height * C {
         return out;
     }
     let xs = linear_taps(width, out_width);
     let ys = linear_taps(height, out_height);
-    // Vertical blend of the two source rows into f32, then horizontal taps.
-    let mut blended = vec![0f32; width * C];
     let stride = width * C;
+    // Vertical blend of the two source rows into f32, then horizontal taps. Four spare
+    // lanes let every pixel read four floats.
+    let mut blended = vec![0f32; stride + 4];
     for (y, &(y0, y1, wy)) in ys.iter().enumerate() {
         let (r0, r1) = (
             &data[y0 * stride..][..stride],
             &data[y1 * stride..][..stride],
         );
-        for ((b, a), c) in blended.iter_mut().zip(r0).zip(r1) {
+        for ((b, a), c) in blended[..stride].iter_mut().zip(r0).zip(r1) {
             let a = f32::from(*a);
             *b = a + (f32::from(*c) - a) * wy;
         }
         let row = &mut out[y * out_width * C..][..out_width * C];
-        for (px, &(x0, x1, wx)) in row.chunks_exact_mut(C).zip(&xs) {
-            let p0: &[f32; C] = blended[x0 * C..][..C].try_into().unwrap_or(&[0.0; C]);
-            let p1: &[f32; C] = blended[x1 * C..][..C].try_into().unwrap_or(&[0.0; C]);
-            for k in 0..C {
-                px[k] = (p0[k] + (p1[k] - p0[k]) * wx + 0.5) as u8;
+        if C == 1 {
+            for (px, &(x0, x1, wx)) in row.iter_mut().zip(&xs) {
+                let (p0, p1) = (blended[x0], blended[x1]);
+                *px = (p0 + (p1 - p0) * wx + 0.5) as u8;
             }
+            continue;
         }
+        // Every pixel but the last stores all four lanes (the fourth byte is the next
+        // pixel's, which overwrites it), so the four lanes stay one vector.
+        let blend4 = |&(x0, x1, wx): &(usize, usize, f32)| {
+            let p0: [f32; 4] = blended[x0 * C..][..4].try_into().unwrap_or([0.0; 4]);
+            let p1: [f32; 4] = blended[x1 * C..][..4].try_into().unwrap_or([0.0; 4]);
+            let mut v = [0u8; 4];
+            for k in 0..4 {
+                v[k] = truncate_to_u8(p0[k] + (p1[k] - p0[k]) * wx + 0.5);
+            }
+            v
+        };
+        let (body, last) = xs.split_at(xs.len() - 1);
+        for (x, tap) in body.iter().enumerate() {
+            row[x * C..][..4].copy_from_slice(&blend4(tap));
+        }
+        row[body.len() * C..].copy_from_slice(&blend4(&last[0])[..C]);
     }
     out
+}
+
+/// `t as u8` for `t` in `0.0..=255.5` (a blend of bytes plus one half), in plain float
+/// arithmetic that stays in vector lanes (`as` saturates lane by lane): `t + 2²³` is `t`
+/// rounded to an integer (the spacing of floats there is 1) plus 2²³, one less if that
+/// rounded up, and its low mantissa byte is the integer.
+#[inline(always)]
+fn truncate_to_u8(t: f32) -> u8 {
+    const TWO_23: f32 = 8_388_608.0;
+    let shifted = t + TWO_23;
+    let floor = if shifted - TWO_23 > t {
+        shifted - 1.0
+    } else {
+        shifted
+    };
+    floor.to_bits() as u8
 }
 
 /// The input index nearest to the centre of output index `i` (`n_in → n_out`).
@@ -190,6 +244,85 @@ mod tests {
         // Downscaling 2x of a 2-px checker averages.
         let checker = [0u8, 200, 0, 200];
         assert_eq!(resize_bilinear(&checker, 4, 1, 1, 2, 1), [100, 100]);
+    }
+
+    /// The resize as first written (one channel at a time, one pixel at a time): the
+    /// vectorized copies must give exactly its bytes.
+    fn scalar_resize(data: &[u8], size: [usize; 4], channels: usize) -> Vec<u8> {
+        let [w, h, ow, oh] = size;
+        let (xs, ys) = (linear_taps(w, ow), linear_taps(h, oh));
+        let mut out = Vec::new();
+        for &(y0, y1, wy) in &ys {
+            let blend = |x: usize, k: usize| {
+                let a = f32::from(data[(y0 * w + x) * channels + k]);
+                a + (f32::from(data[(y1 * w + x) * channels + k]) - a) * wy
+            };
+            for &(x0, x1, wx) in &xs {
+                for k in 0..channels {
+                    let (p0, p1) = (blend(x0, k), blend(x1, k));
+                    out.push((p0 + (p1 - p0) * wx + 0.5) as u8);
+                }
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn truncation_in_lanes_is_as_u8_over_its_whole_range() {
+        // Every float from 2^-10 to 255.5 (151 million), and a few below.
+        let (lo, hi) = (2f32.powi(-10).to_bits(), 255.5f32.to_bits());
+        for bits in lo..=hi {
+            let t = f32::from_bits(bits);
+            assert_eq!(truncate_to_u8(t), t as u8, "{t}");
+        }
+        for t in [
+            0.0f32,
+            -0.0,
+            1e-30,
+            0.5,
+            0.999_999_94,
+            1.0,
+            254.999_98,
+            255.0,
+            255.5,
+        ] {
+            assert_eq!(truncate_to_u8(t), t as u8, "{t}");
+        }
+    }
+
+    #[test]
+    fn every_compiled_copy_gives_the_scalar_bytes() {
+        let mut state = 0x9e37_79b9_7f4a_7c15u64;
+        let mut byte = move || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            (state >> 24) as u8
+        };
+        for (size, channels) in [
+            ([800, 450, 448, 224], 3),
+            ([1600, 900, 448, 224], 3),
+            ([37, 23, 74, 46], 3),
+            ([37, 23, 16, 9], 4),
+            ([5, 3, 1, 1], 3),
+            ([1, 1, 3, 2], 3),
+            ([61, 17, 29, 40], 1),
+        ] {
+            let [w, h, ow, oh] = size;
+            let data: Vec<u8> = (0..w * h * channels).map(|_| byte()).collect();
+            let want = scalar_resize(&data, size, channels);
+            assert_eq!(
+                resize_bilinear(&data, w, h, channels, ow, oh),
+                want,
+                "{size:?}"
+            );
+            let inline = match channels {
+                1 => resize_bilinear_n::<1>(&data, size),
+                3 => resize_bilinear_n::<3>(&data, size),
+                _ => resize_bilinear_n::<4>(&data, size),
+            };
+            assert_eq!(inline, want, "{size:?}, baseline copy");
+        }
     }
 
     #[test]
