@@ -98,9 +98,10 @@ pub fn neighbour_map(coords: &[[i32; 3]]) -> KernelMap {
         return hashed_neighbour_map(coords);
     };
     let n = coords.len();
-    let mut per_offset: Vec<Vec<[u32; 2]>> = vec![Vec::new(); offsets.len()];
-    per_offset[cube_index([0, 0, 0])] = (0..n as u32).map(|i| [i, i]).collect();
-    // The offsets after the centre, by column (dx, dy): one pass finds every dz.
+    let centre = cube_index([0, 0, 0]);
+    // The pairs of the 13 offsets after the centre, by column (dx, dy): one pass finds
+    // every dz.
+    let mut after: Vec<Vec<[u32; 2]>> = vec![Vec::new(); offsets.len()];
     for (dx, dy) in [(0, 0), (0, 1), (1, -1), (1, 0), (1, 1)] {
         let dz_first = if (dx, dy) == (0, 0) { 1 } else { -1 };
         let found = merge_column(
@@ -108,48 +109,49 @@ pub fn neighbour_map(coords: &[[i32; 3]]) -> KernelMap {
             keys.delta([dx, dy, dz_first]),
             (2 - dz_first) as u64,
         );
-        for (j, (forward, backward)) in found.into_iter().enumerate() {
-            let dz = dz_first + j as i32;
-            per_offset[cube_index([dx, dy, dz])] = forward;
-            per_offset[cube_index([-dx, -dy, -dz])] = backward;
+        for (j, pairs) in found.into_iter().enumerate() {
+            after[cube_index([dx, dy, dz_first + j as i32])] = pairs;
         }
+    }
+    let total = n + 2 * after.iter().map(Vec::len).sum::<usize>();
+    let mut map = KernelMap {
+        offsets,
+        pairs: Vec::with_capacity(total),
+        starts: Vec::with_capacity(28),
+    };
+    map.starts.push(0);
+    for k in 0..map.offsets.len() {
+        match k.cmp(&centre) {
+            // The opposite of an offset after the centre: the same pairs, input and
+            // output swapped, in the same sequence (which is also output order).
+            std::cmp::Ordering::Less => map
+                .pairs
+                .extend(after[2 * centre - k].iter().map(|&[c, a]| [a, c])),
+            std::cmp::Ordering::Equal => map.pairs.extend((0..n as u32).map(|i| [i, i])),
+            std::cmp::Ordering::Greater => map.pairs.extend_from_slice(&after[k]),
+        }
+        map.starts.push(map.pairs.len() as u32);
     }
     if let Some(order) = order {
         // Sorted positions back to rows, each offset's pairs back in output-row order.
-        for pairs in &mut per_offset {
+        for k in 0..map.offsets.len() {
+            let (from, to) = (map.starts[k] as usize, map.starts[k + 1] as usize);
+            let pairs = &mut map.pairs[from..to];
             for p in pairs.iter_mut() {
                 *p = [order[p[0] as usize], order[p[1] as usize]];
             }
             pairs.sort_unstable_by_key(|p| p[1]);
         }
     }
-    let mut map = KernelMap {
-        offsets,
-        pairs: Vec::with_capacity(per_offset.iter().map(Vec::len).sum()),
-        starts: vec![0],
-    };
-    for pairs in per_offset {
-        map.pairs.extend_from_slice(&pairs);
-        map.starts.push(map.pairs.len() as u32);
-    }
     map
 }
 
-/// Pairs found by one merge pass per offset, as `[b, a]` lists (output `a` gathers
-/// input `b`, in `a` order) and `[a, b]` lists (the opposite offset: output `b`
-/// gathers input `a`, in `b` order).
-type MergedPairs = (Vec<[u32; 2]>, Vec<[u32; 2]>);
-
-/// For sorted unique keys, the pairs `key[b] = key[a] + delta + j` for `j` in
-/// `0..count` (`delta > 0`: offsets of one column, consecutive in z), per `j`.
-fn merge_column(sorted: &[u64], delta: u64, count: u64) -> Vec<MergedPairs> {
-    let mut out: Vec<MergedPairs> = (0..count)
-        .map(|_| {
-            (
-                Vec::with_capacity(sorted.len() / 2),
-                Vec::with_capacity(sorted.len() / 2),
-            )
-        })
+/// For sorted unique keys, the pairs `[b, a]` with `key[b] = key[a] + delta + j`, for
+/// each `j` in `0..count` (`delta > 0`: offsets of one column, consecutive in z), in `a`
+/// order, which is also `b` order (for a given `j`, `b` grows with `a`).
+fn merge_column(sorted: &[u64], delta: u64, count: u64) -> Vec<Vec<[u32; 2]>> {
+    let mut out: Vec<Vec<[u32; 2]>> = (0..count)
+        .map(|_| Vec::with_capacity(sorted.len() / 2))
         .collect();
     let mut b = 0;
     for (a, key) in sorted.iter().enumerate() {
@@ -159,9 +161,7 @@ fn merge_column(sorted: &[u64], delta: u64, count: u64) -> Vec<MergedPairs> {
         }
         let mut c = b;
         while c < sorted.len() && sorted[c] - first < count {
-            let (forward, backward) = &mut out[(sorted[c] - first) as usize];
-            forward.push([c as u32, a as u32]);
-            backward.push([a as u32, c as u32]);
+            out[(sorted[c] - first) as usize].push([c as u32, a as u32]);
             c += 1;
         }
         if b == sorted.len() {
