@@ -133,12 +133,11 @@ impl SampleContext<'_> {
         let mut pairings = Vec::new();
         for (slot, image) in images.iter().enumerate() {
             let view = CameraView::new(&image.calibration, image.camera_from_lidar);
-            for p in pair_points(&cloud.xyz, &view) {
+            let first = pairings.len();
+            pairings.extend(pair_points(&cloud.xyz, &view).into_iter().map(|p| {
                 let (row, col) =
                     image_ops::resized_pixel(p.u, p.v, image.native_size, out_size, image.flipped);
-                let superpixel =
-                    image.superpixels[row as usize * cfg.image_width as usize + col as usize];
-                pairings.push(Pair {
+                Pair {
                     point: p.point,
                     camera: slot as u8,
                     u: p.u,
@@ -146,8 +145,14 @@ impl SampleContext<'_> {
                     depth: p.depth,
                     row,
                     col,
-                    superpixel,
-                });
+                    superpixel: 0,
+                }
+            }));
+            // The superpixel ids in a loop of their own: its loads (scattered over a map
+            // that is mostly out of cache by now) do not wait on each other.
+            for pair in &mut pairings[first..] {
+                let pixel = pair.row as usize * cfg.image_width as usize + pair.col as usize;
+                pair.superpixel = image.superpixels[pixel];
             }
         }
         pairings
