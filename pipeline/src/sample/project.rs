@@ -274,13 +274,8 @@ mod tests {
         let rotation = UnitQuaternion::from_euler_angles(-1.55, 0.03, 0.02);
         let camera_from_lidar = Isometry3::from_parts(Translation3::new(0.1, 1.5, -0.7), rotation);
         let view = CameraView::new(&calibration, camera_from_lidar);
-        let mut state = 0x2545_f491_4f6c_dd1du64;
-        let mut uniform = move || {
-            state ^= state << 13;
-            state ^= state >> 7;
-            state ^= state << 17;
-            (state >> 11) as f64 / (1u64 << 53) as f64
-        };
+        let mut rng = crate::test_rng::TestRng(0x2545_f491_4f6c_dd1d);
+        let mut uniform = move || rng.uniform();
         let mut xyz: Vec<[f32; 3]> = (0..50_000)
             .map(|_| {
                 let range = 0.5 + 80.0 * uniform();

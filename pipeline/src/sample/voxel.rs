@@ -83,7 +83,7 @@ impl VoxelGrid {
                 rho_m,
                 phi_deg,
                 z_m,
-            } => super::cylinder::cylindrical_cells(xyz, [rho_m, phi_deg, z_m], |p| self.cell(p)),
+            } => super::cylinder::cylindrical_cells(xyz, [rho_m, phi_deg, z_m], &|p| self.cell(p)),
             VoxelGrid::Cartesian { .. } => xyz.iter().map(|p| self.cell(*p)).collect(),
         }
     }
