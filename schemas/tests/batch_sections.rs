@@ -49,11 +49,12 @@ fn batch_format_md_shows_the_rust_section_table() {
     );
 }
 
-/// The section names a Python file uses as keys of its arrays (`arrays["points"]`,
-/// `arrays.get('l0_nbr')`, `arrays[f"l{l}_nbr"]` with the level read as 0).
+/// The section names a Python file uses as keys of its arrays or batches
+/// (`arrays["points"]`, `arrays.get('l0_nbr')`, `arrays[f"l{l}_nbr"]` with the level
+/// read as 0, `batch["images"]`).
 fn names_used(python: &str) -> Vec<String> {
     let mut names = Vec::new();
-    for opener in ["arrays[", "arrays.get("] {
+    for opener in ["arrays[", "arrays.get(", "batch["] {
         for (at, _) in python.match_indices(opener) {
             let rest = python[at + opener.len()..].trim_start();
             let rest = rest.strip_prefix('f').unwrap_or(rest);
@@ -85,8 +86,13 @@ fn names_used(python: &str) -> Vec<String> {
 #[test]
 fn python_readers_name_only_sections_of_the_table() {
     let mut used = Vec::new();
-    for file in ["read_batch.py", "subscribe.py"] {
-        let path = repo_file("../tests/python").join(file);
+    for file in [
+        "../tests/python/read_batch.py",
+        "../trainer/python/superflow/format.py",
+        "../trainer/python/superflow/stream.py",
+        "../trainer/python/tests/check_stream.py",
+    ] {
+        let path = repo_file(file);
         let text =
             std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
         for name in names_used(&text) {
@@ -99,10 +105,48 @@ fn python_readers_name_only_sections_of_the_table() {
     }
     assert!(
         used.iter().any(|n| n == "points"),
-        "subscribe.py's example reads `points`: {used:?}"
+        "the readers use `points`: {used:?}"
     );
     assert_eq!(
-        names_used(r#"a = arrays["pairing_uv"]; b = arrays.get(f'l{l}_nbr'); c = arrays[name]"#),
-        ["pairing_uv", "l0_nbr"]
+        names_used(
+            r#"a = arrays["pairing_uv"]; b = arrays.get(f'l{l}_nbr'); c = arrays[name]; d = batch["images"]"#
+        ),
+        ["pairing_uv", "l0_nbr", "images"]
     );
+}
+
+/// `"name": "<u4",` lines of a table of trainer/python/superflow/sections.py.
+fn python_table(text: &str, table: &str) -> Vec<(String, String)> {
+    let start = text
+        .find(&format!("{table}: dict[str, str] = {{"))
+        .unwrap_or_else(|| panic!("sections.py has no {table}"));
+    let body = &text[start..];
+    let body = &body[body.find('{').unwrap() + 1..body.find('}').unwrap()];
+    body.lines()
+        .filter_map(|line| {
+            let (name, dtype) = line.trim().trim_end_matches(',').split_once(": ")?;
+            Some((
+                name.trim_matches('"').to_string(),
+                dtype.trim_matches('"').to_string(),
+            ))
+        })
+        .filter(|(name, _)| !name.contains(' '))
+        .collect()
+}
+
+#[test]
+fn the_python_package_section_table_is_the_rust_one() {
+    let path = repo_file("../trainer/python/superflow/sections.py");
+    let text = std::fs::read_to_string(&path).unwrap();
+    let spelled = |s: Section| s.spec().dtype.numpy().to_string();
+    let batch: Vec<(String, String)> = Section::BATCH
+        .iter()
+        .map(|s| (s.name().into_owned(), spelled(*s)))
+        .collect();
+    assert_eq!(python_table(&text, "BATCH_SECTIONS"), batch);
+    let level: Vec<(String, String)> = Section::of_level(0)
+        .iter()
+        .map(|s| (s.name().trim_start_matches("l0_").to_string(), spelled(*s)))
+        .collect();
+    assert_eq!(python_table(&text, "LEVEL_SECTIONS"), level);
 }

@@ -103,3 +103,80 @@ pub fn no_shared_memory_left(prefix: &str) {
 pub fn spawn(command: &mut Command) -> Proc {
     Proc(Some(command.spawn().unwrap()))
 }
+
+/// `superflow-pipeline --mcap drive --run run args…` under the iceoryx2 prefix `prefix`,
+/// from the workspace root, its stderr piped; `probe` is the test's
+/// `env!("CARGO_BIN_EXE_superflow-probe")` (the pipeline binary lies beside it).
+pub fn pipeline(probe: &str, drive: &str, prefix: &str, run: &str, args: &[&str]) -> Proc {
+    spawn(
+        Command::new(crate::pipeline_binary(probe))
+            .args(["--mcap", drive, "--run", run])
+            .args(args)
+            .env("SUPERFLOW_IOX_PREFIX", prefix)
+            .env("RUST_LOG", "info")
+            .current_dir(crate::workspace_root())
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::piped()),
+    )
+}
+
+/// `superflow-probe --run run args…` under the iceoryx2 prefix `prefix`, its output piped.
+pub fn probe(probe: &str, prefix: &str, run: &str, args: &[&str]) -> Proc {
+    spawn(
+        Command::new(probe)
+            .args(["--run", run])
+            .args(args)
+            .env("SUPERFLOW_IOX_PREFIX", prefix)
+            .current_dir(crate::workspace_root())
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped()),
+    )
+}
+
+/// Fails unless, in each of `epochs`, the ranks' `(epoch, keyframe)` samples cover every
+/// one of `keyframes` exactly once, each rank taking an equal share.
+pub fn assert_shards_cover(per_rank: &[Vec<(u64, u64)>], epochs: u64, keyframes: u64) {
+    let share = keyframes as usize / per_rank.len();
+    for epoch in 0..epochs {
+        let mut seen = std::collections::BTreeMap::<u64, usize>::new();
+        for (rank, keys) in per_rank.iter().enumerate() {
+            let mine: Vec<u64> = keys.iter().filter(|k| k.0 == epoch).map(|k| k.1).collect();
+            assert_eq!(mine.len(), share, "rank {rank} epoch {epoch}: {mine:?}");
+            for k in mine {
+                *seen.entry(k).or_default() += 1;
+            }
+        }
+        assert_eq!(seen.len() as u64, keyframes, "epoch {epoch}: {seen:?}");
+        assert!(seen.values().all(|n| *n == 1), "epoch {epoch}: {seen:?}");
+    }
+}
+
+/// SIGKILLs `first` (a pipeline) once `reader` printed `lines` lines, starts `restart()`
+/// in its place, then waits for the reader (which must succeed) and the restarted
+/// pipeline; every line the reader printed.
+pub fn kill_and_restart(
+    mut reader: Proc,
+    mut first: Proc,
+    lines: usize,
+    restart: impl FnOnce() -> Proc,
+    limit: Duration,
+) -> String {
+    let rx = lines_of(reader.stdout.take().expect("the reader's stdout is piped"));
+    let mut out = String::new();
+    for _ in 0..lines {
+        out.push_str(&rx.recv_timeout(limit).expect("lines before the kill"));
+        out.push('\n');
+    }
+    first.kill().unwrap(); // SIGKILL
+    let _ = first.wait();
+    let second = restart();
+    let (ok, _, err) = finish(reader, limit);
+    assert!(ok, "{err}\n{out}");
+    while let Ok(line) = rx.recv_timeout(Duration::from_secs(5)) {
+        out.push_str(&line);
+        out.push('\n');
+    }
+    let (ok, _, err) = finish(second, limit);
+    assert!(ok, "{err}");
+    out
+}

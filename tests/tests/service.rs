@@ -6,43 +6,29 @@
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
 
 use serde_json::Value;
-use std::collections::BTreeMap;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 use superflow_tests::process::{
-    Proc, finish, lines_of, no_shared_memory_left, prefix, send_signal,
+    self, Proc, finish, lines_of, no_shared_memory_left, prefix, send_signal,
 };
-use superflow_tests::{pipeline_binary, workspace_root};
+use superflow_tests::workspace_root;
 
 const DRIVE: &str = "recordings/drives/street_ros2.mcap";
 /// Keyframes of the sample drive (its plan; `samples.rs` checks it).
 const KEYFRAMES: u64 = 6;
 
 fn pipeline(prefix: &str, run: &str, args: &[&str]) -> Proc {
-    Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-probe")))
-        .args(["--mcap", DRIVE, "--run", run])
-        .args(args)
-        .env("SUPERFLOW_IOX_PREFIX", prefix)
-        .env("RUST_LOG", "info")
-        .current_dir(workspace_root())
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped())
-        .spawn()
-        .map(|c| Proc(Some(c)))
-        .unwrap()
+    process::pipeline(
+        env!("CARGO_BIN_EXE_superflow-probe"),
+        DRIVE,
+        prefix,
+        run,
+        args,
+    )
 }
 
 fn probe(prefix: &str, run: &str, args: &[&str]) -> Proc {
-    Command::new(env!("CARGO_BIN_EXE_superflow-probe"))
-        .args(["--run", run])
-        .args(args)
-        .env("SUPERFLOW_IOX_PREFIX", prefix)
-        .current_dir(workspace_root())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .map(|c| Proc(Some(c)))
-        .unwrap()
+    process::probe(env!("CARGO_BIN_EXE_superflow-probe"), prefix, run, args)
 }
 
 /// The batches a probe printed.
@@ -85,18 +71,7 @@ fn two_shards_receive_every_keyframe_once_per_epoch() {
     }
     let (ok, _, err) = finish(pipe, LIMIT);
     assert!(ok, "{err}");
-    for epoch in 0..2 {
-        let mut seen: BTreeMap<u64, usize> = BTreeMap::new();
-        for (rank, keys) in per_rank.iter().enumerate() {
-            let mine: Vec<u64> = keys.iter().filter(|k| k.0 == epoch).map(|k| k.1).collect();
-            assert_eq!(mine.len(), 3, "rank {rank} epoch {epoch}: {mine:?}");
-            for k in mine {
-                *seen.entry(k).or_default() += 1;
-            }
-        }
-        assert_eq!(seen.len() as u64, KEYFRAMES, "epoch {epoch}: {seen:?}");
-        assert!(seen.values().all(|n| *n == 1), "epoch {epoch}: {seen:?}");
-    }
+    process::assert_shards_cover(&per_rank, 2, KEYFRAMES);
     no_shared_memory_left(&p);
 }
 
@@ -305,65 +280,6 @@ fn resuming_at_a_position_replays_exactly_the_following_batches() {
     no_shared_memory_left(&p2);
 }
 
-/// The Python subscriber (`tests/python/subscribe.py`: the iceoryx2 package and numpy,
-/// zero-copy views into the shared memory) reads the same batches as the Rust reader,
-/// section by section.
-#[test]
-fn python_reads_batches_as_the_rust_reader_does() {
-    let p = prefix("py");
-    let python = Command::new("python3")
-        .args([
-            "tests/python/subscribe.py",
-            "--run",
-            "py",
-            "--count",
-            "2",
-            "--prefix",
-            &p,
-        ])
-        .current_dir(workspace_root())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .map(|c| Proc(Some(c)))
-        .expect("python3 runs (pip install -r tests/python/requirements.txt)");
-    let rust = probe(&p, "py", &["--count", "2", "--sections"]);
-    let pipe = pipeline(
-        &p,
-        "py",
-        &["--batch-size", "3", "--epochs", "1", "--subscribers", "2"],
-    );
-    let (ok, py_out, err) = finish(python, LIMIT);
-    assert!(ok, "{err}");
-    let (ok, rust_out, err) = finish(rust, LIMIT);
-    assert!(ok, "{err}");
-    let (ok, _, err) = finish(pipe, LIMIT);
-    assert!(ok, "{err}");
-    let py: Vec<Value> = py_out
-        .lines()
-        .map(|l| serde_json::from_str(l).unwrap())
-        .collect();
-    let rs = batches(&rust_out);
-    assert_eq!(py.len(), 2);
-    for (a, b) in py.iter().zip(&rs) {
-        assert_eq!(a["sequence"], b["sequence"]);
-        assert_eq!(
-            a["zero_copy"], true,
-            "numpy arrays lie inside the shared memory"
-        );
-        let (sa, sb) = (
-            a["sections"].as_object().unwrap(),
-            b["sections"].as_object().unwrap(),
-        );
-        assert_eq!(sa.len(), sb.len());
-        assert!(sa.len() >= 40, "{} sections", sa.len());
-        for (name, section) in sb {
-            assert_eq!(&sa[name], section, "section {name}");
-        }
-    }
-    no_shared_memory_left(&p);
-}
-
 /// A pipeline killed with SIGKILL mid-epoch: the subscriber waits; a new pipeline comes
 /// up, the subscriber asks for its position and receives exactly the rest of the epoch.
 #[test]
@@ -390,27 +306,12 @@ fn a_restarted_pipeline_continues_where_the_subscriber_is() {
             "2",
         ],
     );
-    let mut reader = reader;
-    let rx = lines_of(reader.stdout.take().unwrap());
-    let mut first = pipeline(&p, "restart", &["--batch-size", "1", "--epochs", "1"]);
+    let args = ["--batch-size", "1", "--epochs", "1"];
+    let first = pipeline(&p, "restart", &args);
     // Kill the first pipeline once the subscriber has its first 2 batches (it then
     // pauses before asking for its position).
-    let mut out = String::new();
-    for _ in 0..2 {
-        out.push_str(&rx.recv_timeout(LIMIT).expect("batches before the kill"));
-        out.push('\n');
-    }
-    first.kill().unwrap(); // SIGKILL
-    let _ = first.wait();
-    let second = pipeline(&p, "restart", &["--batch-size", "1", "--epochs", "1"]);
-    let (ok, _, err) = finish(reader, LIMIT);
-    assert!(ok, "{err}\n{out}");
-    while let Ok(line) = rx.recv_timeout(Duration::from_secs(5)) {
-        out.push_str(&line);
-        out.push('\n');
-    }
-    let (ok, _, err) = finish(second, LIMIT);
-    assert!(ok, "{err}");
+    let restart = || pipeline(&p, "restart", &args);
+    let out = process::kill_and_restart(reader, first, 2, restart, LIMIT);
     assert!(out.contains("\"resume\":[0,2],\"accepted\":1"), "{out}");
     let got = batches(&out);
     let steps: Vec<u64> = got.iter().map(|b| b["step"].as_u64().unwrap()).collect();

@@ -16,7 +16,7 @@ Usage (needs PyTorch, numpy and safetensors; CI does not run it)::
 
 ``FILE`` is a superflow batch saved by the Rust side: the 11 400-byte ``BatchHeader``
 then the payload (``schemas/BATCH_FORMAT.md``); it is read and validated with
-``tests/python/read_batch.py``. Prints the median milliseconds per step and
+the reader of the ``superflow`` package (``tests/python/read_batch.py``). Prints the median milliseconds per step and
 ``steps/s = 1000 / median ms``; with ``--json`` the human-readable lines go to stderr
 and stdout gets one line ``{"preset", "ms_per_step_median", "steps_per_s", "threads",
 "pixel_stride", "sampled_pixels", "params", "prep_ms", "phases_ms": {"vit", "forward",

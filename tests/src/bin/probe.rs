@@ -40,7 +40,7 @@ struct Args {
     /// See `resume_after`.
     #[arg(long, num_args = 2)]
     resume_to: Option<Vec<u64>>,
-    /// Print each section's dtype, shape and checksum (as `tests/python/subscribe.py`).
+    /// Print each section's dtype, shape and checksum (as `trainer/python/tests/check_stream.py`).
     #[arg(long)]
     sections: bool,
     /// iceoryx2 isolation prefix.
@@ -48,7 +48,7 @@ struct Args {
     iox_prefix: Option<String>,
 }
 
-/// `sum_i (b_i + 1) * (i * K + 1) mod 2^64`, the checksum `subscribe.py` computes with
+/// `sum_i (b_i + 1) * (i * K + 1) mod 2^64`, the checksum `check_stream.py` computes with
 /// numpy.
 fn checksum(bytes: &[u8]) -> u64 {
     bytes.iter().enumerate().fold(0u64, |acc, (i, b)| {

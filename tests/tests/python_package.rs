@@ -1,0 +1,395 @@
+//! The `superflow` Python package (trainer/python), installed into a virtual environment
+//! as a user installs it, against the real `superflow-pipeline`: the same sections as the
+//! Rust reader, inside the shared memory; shards over `RANK`/`WORLD_SIZE`; resume; use
+//! after release; a killed and restarted pipeline; no pipeline; malformed batches. The
+//! scenarios are `trainer/python/tests/check_stream.py`.
+//!
+//! With torch: `batch.torch()` shares the memory, `TorchIterable` feeds a `DataLoader`,
+//! and `torchrun` trains the example (trainer/python/examples/train_torch.py) on two
+//! shards with DistributedDataParallel (gloo): the same parameters on both ranks, the loss
+//! falling.
+//!
+//! The environment is `SUPERFLOW_PYTHON` (`.ci/run` makes a fresh one), else one made
+//! here under the target directory (`python3 -m venv`, `pip install
+//! "./trainer/python[torch]" safetensors`: PyPI's torch brings its CUDA libraries, ~5 GB).
+
+#![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
+
+use serde_json::Value;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+use std::sync::OnceLock;
+use std::time::Duration;
+use superflow_tests::process::{self, Proc, finish, no_shared_memory_left, prefix, send_signal};
+use superflow_tests::workspace_root;
+
+const DRIVE: &str = "recordings/drives/street_ros2.mcap";
+/// Keyframes of the sample drive (its plan; `samples.rs` checks it).
+const KEYFRAMES: u64 = 6;
+const LIMIT: Duration = Duration::from_secs(180);
+const SCENARIOS: &str = "trainer/python/tests/check_stream.py";
+
+/// Runs `command` to completion; panics with its output when it fails.
+fn run(command: &mut Command) {
+    let out = command.output().unwrap();
+    assert!(
+        out.status.success(),
+        "{command:?}: {}\n{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// The Python of a virtual environment holding the package (see the module docs).
+fn package_python() -> PathBuf {
+    static PYTHON: OnceLock<PathBuf> = OnceLock::new();
+    PYTHON
+        .get_or_init(|| {
+            if let Some(python) = std::env::var_os("SUPERFLOW_PYTHON") {
+                return python.into();
+            }
+            let venv = Path::new(env!("CARGO_TARGET_TMPDIR")).join("superflow-venv");
+            let python = venv.join("bin").join("python");
+            let fresh = !python.exists();
+            if fresh {
+                run(Command::new("python3").args(["-m", "venv"]).arg(&venv));
+            }
+            // Reinstalled every run so that the tests see the package's current sources.
+            let mut pip = Command::new(&python);
+            pip.args(["-m", "pip", "install", "-q", "--disable-pip-version-check"]);
+            if fresh {
+                pip.args(["./trainer/python[torch]", "safetensors"]);
+            } else {
+                pip.args(["--force-reinstall", "--no-deps", "./trainer/python"]);
+            }
+            run(pip.current_dir(workspace_root()));
+            python
+        })
+        .clone()
+}
+
+/// A scenario of `check_stream.py` in the package's environment, outside the repository's
+/// Python directory (so `import superflow` is the installed package).
+fn scenario(prefix: &str, args: &[&str], env: &[(&str, &str)]) -> Proc {
+    let script = workspace_root().join(SCENARIOS);
+    Command::new(package_python())
+        .arg(script)
+        .args(args)
+        .env("SUPERFLOW_IOX_PREFIX", prefix)
+        .envs(env.iter().copied())
+        .current_dir(env!("CARGO_TARGET_TMPDIR"))
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .map(|c| Proc(Some(c)))
+        .unwrap()
+}
+
+fn pipeline(prefix: &str, run: &str, args: &[&str]) -> Proc {
+    process::pipeline(
+        env!("CARGO_BIN_EXE_superflow-probe"),
+        DRIVE,
+        prefix,
+        run,
+        args,
+    )
+}
+
+/// Stops a pipeline as an operator does (SIGTERM: it removes its shared memory).
+fn stop(pipe: Proc) {
+    send_signal(&pipe, "-TERM");
+    let (ok, _, err) = finish(pipe, LIMIT);
+    assert!(ok, "{err}");
+}
+
+/// The JSON lines a process printed.
+fn json_lines(stdout: &str) -> Vec<Value> {
+    stdout
+        .lines()
+        .map(|l| serde_json::from_str(l).unwrap_or_else(|e| panic!("{e}: {l}")))
+        .collect()
+}
+
+/// Finishes a scenario that must succeed; its JSON lines.
+fn succeeded(proc: Proc) -> Vec<Value> {
+    let (ok, out, err) = finish(proc, LIMIT);
+    assert!(ok, "{err}\n{out}");
+    json_lines(&out)
+}
+
+#[test]
+fn python_sections_equal_the_rust_reader_and_lie_in_shared_memory() {
+    let p = prefix("pyread");
+    let python = scenario(&p, &["read", "--run", "pyread", "--count", "2"], &[]);
+    let probe_exe = env!("CARGO_BIN_EXE_superflow-probe");
+    let rust = process::probe(probe_exe, &p, "pyread", &["--count", "2", "--sections"]);
+    let pipe = pipeline(
+        &p,
+        "pyread",
+        &["--batch-size", "3", "--epochs", "1", "--subscribers", "2"],
+    );
+    let py = succeeded(python);
+    let (ok, rust_out, err) = finish(rust, LIMIT);
+    assert!(ok, "{err}");
+    let (ok, _, err) = finish(pipe, LIMIT);
+    assert!(ok, "{err}");
+    let rs: Vec<Value> = json_lines(&rust_out)
+        .into_iter()
+        .filter(|v| v.get("sequence").is_some())
+        .collect();
+    assert_eq!(py.len(), 2);
+    for (a, b) in py.iter().zip(&rs) {
+        assert_eq!(a["sequence"], b["sequence"]);
+        assert_eq!((&a["epoch"], &a["step"]), (&b["epoch"], &b["step"]));
+        assert_eq!(a["zero_copy"], true, "arrays lie inside the shared memory");
+        let (sa, sb) = (
+            a["sections"].as_object().unwrap(),
+            b["sections"].as_object().unwrap(),
+        );
+        assert_eq!(sa.len(), sb.len());
+        assert!(sa.len() >= 40, "{} sections", sa.len());
+        for (name, section) in sb {
+            assert_eq!(&sa[name], section, "section {name}");
+        }
+        // sample_ids: the index in the epoch and the keyframe of each sample.
+        let samples = b["samples"].as_array().unwrap();
+        let index: Vec<&Value> = samples.iter().map(|s| &s[1]).collect();
+        let keyframe: Vec<&Value> = samples.iter().map(|s| &s[2]).collect();
+        assert_eq!(
+            a["sample_ids"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .collect::<Vec<_>>(),
+            index
+        );
+        assert_eq!(
+            a["keyframes"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .collect::<Vec<_>>(),
+            keyframe
+        );
+    }
+    no_shared_memory_left(&p);
+}
+
+#[test]
+fn python_shards_from_rank_and_world_size_cover_every_keyframe_once_per_epoch() {
+    let p = prefix("pyshard");
+    // 6 keyframes, 2 ranks, batches of 1: 3 batches per rank per epoch; 2 epochs.
+    let readers: Vec<Proc> = (0..2)
+        .map(|r| {
+            let rank = r.to_string();
+            let env = [("RANK", rank.as_str()), ("WORLD_SIZE", "2")];
+            scenario(&p, &["read", "--run", "pyshard", "--count", "6"], &env)
+        })
+        .collect();
+    let pipe = pipeline(
+        &p,
+        "pyshard",
+        &["--world-size", "2", "--batch-size", "1", "--epochs", "2"],
+    );
+    let per_rank: Vec<Vec<Value>> = readers.into_iter().map(succeeded).collect();
+    let (ok, _, err) = finish(pipe, LIMIT);
+    assert!(ok, "{err}");
+    let keys: Vec<Vec<(u64, u64)>> = per_rank
+        .iter()
+        .map(|batches| {
+            batches
+                .iter()
+                .flat_map(|b| {
+                    let epoch = b["epoch"].as_u64().unwrap();
+                    let frames = b["keyframes"].as_array().unwrap().clone();
+                    frames
+                        .into_iter()
+                        .map(move |k| (epoch, k.as_u64().unwrap()))
+                })
+                .collect()
+        })
+        .collect();
+    process::assert_shards_cover(&keys, 2, KEYFRAMES);
+    no_shared_memory_left(&p);
+}
+
+#[test]
+fn python_resume_replays_the_following_batches_bit_identically() {
+    let p = prefix("pyresume");
+    let python = scenario(&p, &["resume", "--run", "pyresume"], &[]);
+    let pipe = pipeline(&p, "pyresume", &["--batch-size", "1", "--epochs", "1"]);
+    let out = succeeded(python);
+    assert_eq!(out[0]["resume"], "identical", "{out:?}");
+    assert_eq!(
+        out[0]["positions"],
+        serde_json::json!([[0, 1], [0, 2], [0, 3]])
+    );
+    assert_eq!(out[1]["refused"], true, "{out:?}");
+    assert!(
+        out[1]["message"]
+            .as_str()
+            .unwrap()
+            .contains("past the end of the configured epochs"),
+        "{out:?}"
+    );
+    stop(pipe);
+    no_shared_memory_left(&p);
+}
+
+#[test]
+fn python_views_of_a_released_batch_raise() {
+    let p = prefix("pyrelease");
+    let python = scenario(&p, &["released", "--run", "pyrelease"], &[]);
+    let pipe = pipeline(&p, "pyrelease", &["--batch-size", "1", "--epochs", "1"]);
+    let out = succeeded(python);
+    let raised = out[0]["raised"].as_object().unwrap();
+    assert!(raised.len() >= 10, "{raised:?}");
+    assert!(raised.values().all(|v| v == true), "{raised:?}");
+    assert!(out[0]["repr"].as_str().unwrap().contains("was released"));
+    stop(pipe);
+    no_shared_memory_left(&p);
+}
+
+/// SIGKILL the pipeline after 2 batches: the Python iterator waits, and when a new
+/// pipeline comes up it asks for the position after the last batch it got, so the steps
+/// go on without a gap or a repeat and every keyframe comes once.
+#[test]
+fn python_iteration_continues_across_a_restarted_pipeline() {
+    let p = prefix("pyrestart");
+    let reader = scenario(
+        &p,
+        &[
+            "read",
+            "--run",
+            "pyrestart",
+            "--count",
+            "6",
+            "--timeout",
+            "120",
+        ],
+        &[],
+    );
+    let args = ["--batch-size", "1", "--epochs", "1"];
+    let first = pipeline(&p, "pyrestart", &args);
+    let restart = || {
+        std::thread::sleep(Duration::from_secs(2));
+        pipeline(&p, "pyrestart", &args)
+    };
+    let lines = process::kill_and_restart(reader, first, 2, restart, LIMIT);
+    let got = json_lines(&lines);
+    let steps: Vec<u64> = got.iter().map(|b| b["step"].as_u64().unwrap()).collect();
+    assert_eq!(steps, [0, 1, 2, 3, 4, 5], "{lines}");
+    let mut keyframes: Vec<u64> = got
+        .iter()
+        .flat_map(|b| b["keyframes"].as_array().unwrap().clone())
+        .map(|k| k.as_u64().unwrap())
+        .collect();
+    keyframes.sort_unstable();
+    assert_eq!(keyframes, (0..KEYFRAMES).collect::<Vec<_>>());
+    no_shared_memory_left(&p);
+}
+
+#[test]
+fn python_without_a_pipeline_times_out_naming_run_and_service() {
+    let p = prefix("pynone");
+    let out = succeeded(scenario(
+        &p,
+        &["timeout", "--run", "pynone", "--timeout", "1"],
+        &[],
+    ));
+    assert_eq!(out[0]["timeout"], true);
+    assert_eq!(out[0]["run"], "pynone");
+    assert_eq!(out[0]["service"], "superflow/pynone/batches");
+    assert!(
+        out[0]["message"]
+            .as_str()
+            .unwrap()
+            .contains("no pipeline publishes on it"),
+        "{out:?}"
+    );
+    no_shared_memory_left(&p);
+}
+
+#[test]
+fn python_malformed_batches_raise_typed_errors_and_the_stream_goes_on() {
+    let p = prefix("pybad");
+    let out = succeeded(scenario(&p, &["malformed", "--run", "pybad"], &[]));
+    assert_eq!(out[0]["version 2"], "FormatVersionMismatch", "{out:?}");
+    assert_eq!(out[0]["overlapping sections"], "MalformedBatch", "{out:?}");
+    assert_eq!(
+        out[0]["dtype against the table"], "MalformedBatch",
+        "{out:?}"
+    );
+    assert_eq!(out[0]["unknown section"], "MalformedBatch", "{out:?}");
+    no_shared_memory_left(&p);
+}
+
+#[test]
+fn python_torch_tensors_share_the_shared_memory_and_feed_a_data_loader() {
+    let p = prefix("pytorch");
+    let python = scenario(&p, &["torch_views", "--run", "pytorch"], &[]);
+    let pipe = pipeline(&p, "pytorch", &["--batch-size", "1", "--epochs", "1"]);
+    let out = succeeded(python);
+    assert_eq!(out[0]["shared"], true, "{out:?}");
+    assert_eq!(out[0]["inside"], true, "{out:?}");
+    assert_eq!(out[0]["equal"], true, "{out:?}");
+    assert!(out[0]["sections"].as_u64().unwrap() >= 40, "{out:?}");
+    assert_eq!(out[0]["loader_sample_ids"], serde_json::json!([1, 2, 3]));
+    assert_eq!(out[0]["loader_types"], serde_json::json!(["Tensor"]));
+    stop(pipe);
+    no_shared_memory_left(&p);
+}
+
+/// `torchrun --nproc-per-node 2` of the example on a pipeline with 2 shards: each rank
+/// trains on its own keyframes, DDP keeps the parameters equal, and the loss falls.
+#[test]
+fn torchrun_trains_the_example_with_ddp_on_two_shards() {
+    let p = prefix("pyddp");
+    let example = workspace_root().join("trainer/python/examples/train_torch.py");
+    let steps = "6";
+    let trainer = superflow_tests::process::spawn(
+        Command::new(package_python())
+            .args(["-m", "torch.distributed.run", "--nproc-per-node", "2", "--"])
+            .arg(example)
+            .args(["--run", "pyddp", "--steps", steps, "--timeout", "120"])
+            .env("SUPERFLOW_IOX_PREFIX", &p)
+            .env("OMP_NUM_THREADS", "1")
+            .current_dir(env!("CARGO_TARGET_TMPDIR"))
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped()),
+    );
+    let pipe = pipeline(
+        &p,
+        "pyddp",
+        &["--world-size", "2", "--batch-size", "1", "--epochs", "3"],
+    );
+    let out = succeeded(trainer);
+    stop(pipe);
+    let (ends, steps): (Vec<&Value>, Vec<&Value>) =
+        out.iter().partition(|l| l.get("params_hash").is_some());
+    assert_eq!(ends.len(), 2, "{out:?}");
+    assert_eq!(ends[0]["params_hash"], ends[1]["params_hash"], "{ends:?}");
+    assert_eq!(steps.len(), 12, "{out:?}");
+    // Every keyframe once per epoch over the two ranks (3 steps of 1 sample an epoch each).
+    for epoch in 0..2u64 {
+        let mut seen: Vec<u64> = steps
+            .iter()
+            .filter(|l| l["epoch"] == epoch)
+            .flat_map(|l| l["sample_ids"].as_array().unwrap().clone())
+            .map(|k| k.as_u64().unwrap())
+            .collect();
+        seen.sort_unstable();
+        assert_eq!(seen, (0..KEYFRAMES).collect::<Vec<_>>(), "epoch {epoch}");
+    }
+    let mean_loss = |range: std::ops::Range<u64>| {
+        let losses: Vec<f64> = steps
+            .iter()
+            .filter(|l| range.contains(&l["step"].as_u64().unwrap()))
+            .map(|l| l["total"].as_f64().unwrap())
+            .collect();
+        losses.iter().sum::<f64>() / losses.len() as f64
+    };
+    let (first, last) = (mean_loss(0..2), mean_loss(4..6));
+    assert!(last < first, "loss {first} -> {last}: {out:?}");
+    no_shared_memory_left(&p);
+}

@@ -1,0 +1,124 @@
+"""SuperFlow pretraining in PyTorch on a superflow stream: the model and losses of the Rust
+trainer (MinkUNet on the batch's own kernel maps, a frozen ViT, the 2D/3D heads and the
+spatial, temporal and dense-to-sparse contrastive losses, from trainer/reference/), fed by
+`superflow.Stream`, with DistributedDataParallel across ranks.
+
+    superflow-pipeline --mcap recordings/drives --run exp1 --world-size 2 --batch-size 1 &
+    torchrun --nproc-per-node 2 -- trainer/python/examples/train_torch.py --run exp1 --steps 20
+
+(the `--` keeps torchrun from taking `--run` for an abbreviation of its `--run-path`).
+
+Each rank reads its own shard (``RANK``/``WORLD_SIZE`` from torchrun); gradients are
+averaged by DDP (gloo on CPU, nccl on GPU). One process without torchrun reads the
+broadcast stream. Prints one JSON line per step and rank: losses, the samples, and at the
+end a hash of the parameters (equal on every rank when DDP keeps them in step) and the
+steps per second.
+
+Run from the repository: the model code is trainer/reference/bench_torch.py. Needs
+``pip install ./trainer/python[torch] safetensors`` (the tiny ViT's weights are a
+safetensors fixture).
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.distributed as dist
+import torch.nn.functional as Fn
+from torch import nn
+
+import superflow
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "reference"))
+import bench_torch as ref  # noqa: E402  (the PyTorch model and losses of the Rust trainer)
+
+
+class SuperFlowNet(nn.Module):
+    """The trainable part: the 3D network, its head and the 2D head (the ViT is frozen)."""
+
+    def __init__(self, unet: nn.Module, head3d: nn.Module, head2d: nn.Module):
+        super().__init__()
+        self.unet, self.head3d, self.head2d = unet, head3d, head2d
+
+    def forward(self, tokens: torch.Tensor, batch: dict) -> dict:
+        pixel = self.head2d(tokens, batch["sampler"])
+        vox = Fn.normalize(self.head3d(self.unet(batch["voxel_features"], batch["maps"])), dim=1)
+        return ref.superflow_losses(vox[batch["pairing_voxel"]], pixel, batch["ix"])
+
+
+def params_hash(module: nn.Module) -> str:
+    """A hash of every parameter (not the batch-norm statistics, which each rank keeps
+    from its own last batch)."""
+    digest = hashlib.sha256()
+    for name, p in sorted(module.named_parameters()):
+        digest.update(name.encode())
+        digest.update(p.detach().cpu().contiguous().numpy().tobytes())
+    return digest.hexdigest()[:16]
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--run", required=True)
+    parser.add_argument("--steps", type=int, default=20)
+    parser.add_argument("--preset", default="tiny", choices=sorted(ref.PRESETS))
+    parser.add_argument("--lr", type=float, default=1e-3)
+    parser.add_argument("--pixel-stride", type=int, default=4)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--prefix", help="iceoryx2 prefix (default SUPERFLOW_IOX_PREFIX)")
+    parser.add_argument("--timeout", type=float, default=None, help="seconds to wait for a batch")
+    args = parser.parse_args()
+
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    if world > 1:
+        dist.init_process_group("nccl" if torch.cuda.is_available() else "gloo")
+    device = (torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+              if torch.cuda.is_available() else torch.device("cpu"))
+    torch.set_num_threads(max(1, (os.cpu_count() or 1) // world))
+
+    # The same seed on every rank; DDP also broadcasts rank 0's parameters at wrap time.
+    vit, unet, head3d, head2d = ref.build(args.preset, args.seed)
+    net = SuperFlowNet(unet, head3d, head2d).to(device)
+    model = nn.parallel.DistributedDataParallel(net) if world > 1 else net
+    opt = torch.optim.AdamW(net.parameters(), lr=args.lr)
+    mean = torch.tensor(ref.MEAN).view(1, 3, 1, 1)
+    std = torch.tensor(ref.STD).view(1, 3, 1, 1)
+
+    stream = superflow.Stream(args.run, prefix=args.prefix, timeout_s=args.timeout)
+    started = time.perf_counter()
+    for step in range(args.steps):
+        with next(stream) as batch:
+            arrays = {name: np.asarray(batch[name]) for name in batch.names()}
+            inputs = ref.prepare(arrays, args.pixel_stride)  # copies out of the shared memory
+            position = (batch.epoch, batch.step, batch.sample_ids)
+        with torch.no_grad():
+            x = inputs["images"].permute(0, 3, 1, 2).float() / 255.0
+            tokens = vit((x - mean) / std).to(device)
+        losses = model(tokens, inputs)
+        opt.zero_grad(set_to_none=True)
+        losses["total"].backward()
+        opt.step()
+        print(json.dumps({"rank": rank, "step": step, "epoch": position[0],
+                          "stream_step": position[1], "sample_ids": position[2],
+                          **{k: losses[k].item() for k in ("total", "l_sc", "l_tc", "l_d2s")}}),
+              flush=True)
+    elapsed = time.perf_counter() - started
+    print(json.dumps({"rank": rank, "world_size": world, "steps": args.steps,
+                      "steps_per_s": args.steps / elapsed, "params_hash": params_hash(net)}),
+          flush=True)
+    stream.close()
+    if world > 1:
+        dist.destroy_process_group()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,47 @@
+"""superflow: SuperFlow training batches from a running ``superflow-pipeline``, zero-copy.
+
+    import superflow
+    stream = superflow.Stream(run="exp1")          # RANK / WORLD_SIZE select a shard
+    for batch in stream:
+        points = batch["points"]                   # numpy view into shared memory
+        tensors = batch.torch()                    # torch.Tensor views (torch optional)
+
+The sections and their meaning: schemas/BATCH_FORMAT.md in the superflow repository
+(``superflow.sections`` has the names and dtypes).
+"""
+
+from .format import BatchFormatError, FormatVersionError, read_batch
+from .sections import BATCH_SECTIONS, LEVEL_SECTIONS, section_dtype
+from .stream import (
+    Batch,
+    BatchReleased,
+    FormatVersionMismatch,
+    MalformedBatch,
+    PipelineTimeout,
+    ResumeRefused,
+    SectionArray,
+    Stream,
+    SuperflowError,
+)
+from .torch_data import TorchIterable
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "BATCH_SECTIONS",
+    "LEVEL_SECTIONS",
+    "Batch",
+    "BatchFormatError",
+    "BatchReleased",
+    "FormatVersionError",
+    "FormatVersionMismatch",
+    "MalformedBatch",
+    "PipelineTimeout",
+    "ResumeRefused",
+    "SectionArray",
+    "Stream",
+    "SuperflowError",
+    "TorchIterable",
+    "read_batch",
+    "section_dtype",
+]

@@ -1,0 +1,269 @@
+"""Scenarios of the `superflow` Python package against a real `superflow-pipeline`, run by
+`cargo test -p superflow-tests --test python_package` with the package installed in a
+fresh virtual environment (as a user installs it). Each prints JSON lines and exits
+non-zero when a check fails.
+
+    check_stream.py read --run R [--count N] [--timeout S]   # one line per batch
+    check_stream.py resume --run R                           # resume replays bit-identically
+    check_stream.py released --run R                         # use after release raises
+    check_stream.py torch_views --run R                      # torch tensors share the memory
+    check_stream.py timeout --run R --timeout S              # no pipeline: PipelineTimeout
+    check_stream.py malformed --run R                        # bad batches: typed errors
+
+`--prefix` defaults to SUPERFLOW_IOX_PREFIX; RANK / WORLD_SIZE select a shard.
+"""
+
+from __future__ import annotations
+
+import argparse
+import ctypes
+import json
+import sys
+import time
+
+import numpy as np
+
+import superflow
+from superflow import format as fmt
+
+
+def checksum(data: np.ndarray) -> int:
+    """sum_i (b_i + 1) * (i * K + 1) mod 2^64 over the bytes (the Rust probe's too)."""
+    b = np.ascontiguousarray(data).reshape(-1).view(np.uint8).astype(np.uint64) + np.uint64(1)
+    weights = np.arange(b.size, dtype=np.uint64) * np.uint64(0x9E3779B97F4A7C15) + np.uint64(1)
+    with np.errstate(over="ignore"):
+        return int(np.sum(b * weights, dtype=np.uint64))
+
+
+def describe(batch: superflow.Batch, payload_range: tuple[int, int]) -> dict:
+    """What a batch holds: position, samples, and every section's dtype, shape, checksum."""
+    start, end = payload_range
+    arrays = {name: np.asarray(batch[name]) for name in batch.names()}
+    inside = all(a.size == 0 or start <= a.__array_interface__["data"][0] < end
+                 for a in arrays.values())
+    return {
+        "sequence": batch.sequence,
+        "epoch": batch.epoch,
+        "step": batch.step,
+        "sample_ids": batch.sample_ids,
+        "keyframes": batch.keyframes,
+        "zero_copy": inside,
+        "sections": {name: {"dtype": a.dtype.str.replace("|", "<"), "shape": list(a.shape),
+                            "checksum": checksum(a)} for name, a in arrays.items()},
+    }
+
+
+def payload_range(batch: superflow.Batch) -> tuple[int, int]:
+    sample = batch._sample  # the iceoryx2 sample: where its shared memory lies
+    start = sample.payload().as_ptr()
+    return start, start + sample.payload().len()
+
+
+def emit(record: dict) -> None:
+    print(json.dumps(record), flush=True)
+
+
+def read(args: argparse.Namespace) -> int:
+    stream = superflow.Stream(args.run, prefix=args.prefix, timeout_s=args.timeout)
+    for _ in range(args.count):
+        batch = next(stream)
+        emit(describe(batch, payload_range(batch)))
+    stream.close()
+    return 0
+
+
+def resume(args: argparse.Namespace) -> int:
+    """Reads 4 batches, asks for (0, 1), and checks that the next 3 are batches 1..3 again,
+    section for section."""
+    stream = superflow.Stream(args.run, prefix=args.prefix, timeout_s=args.timeout)
+    first = {}
+    for _ in range(4):
+        batch = next(stream)
+        first[(batch.epoch, batch.step)] = describe(batch, payload_range(batch))["sections"]
+    stream.resume(0, 1)
+    again = []
+    for _ in range(3):
+        batch = next(stream)
+        again.append((batch.epoch, batch.step))
+        if first.get((batch.epoch, batch.step)) != describe(batch, payload_range(batch))["sections"]:
+            emit({"resume": "differs", "at": [batch.epoch, batch.step]})
+            return 1
+    emit({"resume": "identical", "positions": again})
+    try:
+        stream.resume(10**6, 0)
+        emit({"refused": False})
+        return 1
+    except superflow.ResumeRefused as e:
+        emit({"refused": True, "message": str(e)})
+    stream.close()
+    return 0 if again == [(0, 1), (0, 2), (0, 3)] else 1
+
+
+def released(args: argparse.Namespace) -> int:
+    """Every way of reading a released batch's array raises BatchReleased."""
+    stream = superflow.Stream(args.run, prefix=args.prefix, timeout_s=args.timeout)
+    batch = next(stream)
+    points = batch["points"]
+    row = points[0]
+    before = float(points[:, 0].sum())
+    with batch:
+        pass
+    uses = {
+        "index": lambda: points[0],
+        "slice view": lambda: row[1],
+        "ufunc": lambda: points + 1,
+        "reduction": lambda: points.sum(),
+        "numpy function": lambda: np.mean(points),
+        "copy": lambda: points.copy(),
+        "tolist": lambda: points.tolist(),
+        "iteration": lambda: list(points),
+        "section": lambda: batch["points"],
+    }
+    raised = {}
+    for what, use in uses.items():
+        try:
+            use()
+            raised[what] = False
+        except superflow.BatchReleased:
+            raised[what] = True
+    # The next iteration releases the batch before.
+    second = next(stream)
+    images = second["images"]
+    next(stream)
+    try:
+        images[0]
+        raised["after next()"] = False
+    except superflow.BatchReleased:
+        raised["after next()"] = True
+    emit({"raised": raised, "sum_before": before, "repr": repr(points)})
+    stream.close()
+    return 0 if all(raised.values()) else 1
+
+
+def torch_views(args: argparse.Namespace) -> int:
+    """`batch.torch()` shares the shared memory with the numpy views, and TorchIterable in
+    a DataLoader(batch_size=None) yields those dicts batch after batch."""
+    import torch
+
+    stream = superflow.Stream(args.run, prefix=args.prefix, timeout_s=args.timeout)
+    batch = next(stream)
+    tensors = batch.torch()
+    start, end = payload_range(batch)
+    shared = {name: tensors[name].data_ptr() == np.asarray(batch[name]).__array_interface__["data"][0]
+              for name in batch.names() if batch[name].size}
+    inside = all(start <= tensors[n].data_ptr() < end for n in shared)
+    equal = all(torch.equal(tensors[n], torch.from_numpy(np.array(batch[n]))) for n in shared)
+    loader = torch.utils.data.DataLoader(superflow.TorchIterable(stream), batch_size=None)
+    steps = []
+    for i, item in enumerate(loader):
+        steps.append(int(item["sample_ids"][0, 1]))
+        if i == 2:
+            break
+    emit({"shared": all(shared.values()), "sections": len(shared), "inside": inside,
+          "equal": equal, "loader_sample_ids": steps,
+          "loader_types": sorted({type(v).__name__ for v in item.values()})})
+    stream.close()
+    return 0 if all(shared.values()) and inside and equal else 1
+
+
+def timeout(args: argparse.Namespace) -> int:
+    stream = superflow.Stream(args.run, prefix=args.prefix, timeout_s=args.timeout)
+    started = time.monotonic()
+    try:
+        next(stream)
+    except superflow.PipelineTimeout as e:
+        waited = time.monotonic() - started
+        emit({"timeout": True, "waited_s": waited, "message": str(e), "run": e.run,
+              "service": e.service})
+        return 0 if args.timeout <= waited < args.timeout + 2 else 1
+    emit({"timeout": False})
+    return 1
+
+
+def _header(sections: list[tuple[str, int, tuple[int, ...], int, int]], payload_len: int,
+            version: int = fmt.VERSION, run: str = "bad") -> bytes:
+    """A batch header with `sections` (name, dtype code, shape, offset, length)."""
+    h = np.zeros(1, dtype=fmt.HEADER)
+    h["magic"], h["version"], h["header_size"] = fmt.MAGIC, version, fmt.HEADER_SIZE
+    h["section_count"], h["payload_len"], h["sample_count"] = len(sections), payload_len, 0
+    h["run"] = run.encode()
+    for i, (name, code, shape, offset, length) in enumerate(sections):
+        s = h["sections"][0][i]
+        s["name"], s["dtype"], s["ndim"], s["offset"], s["len_bytes"] = (
+            name.encode(), code, len(shape), offset, length)
+        s["shape"][:len(shape)] = shape
+    return h.tobytes()
+
+
+def malformed(args: argparse.Namespace) -> int:
+    """Publishes bad batches on the run's broadcast service itself and checks the typed
+    errors, then a good one, which the stream still reads."""
+    import iceoryx2 as iox2
+    from superflow.stream import (MAX_BORROWED, MAX_BUFFER, MAX_NODES, MAX_PUBLISHERS,
+                                  MAX_SUBSCRIBERS, _BatchHeader)
+
+    stream = superflow.Stream(args.run, prefix=args.prefix, timeout_s=args.timeout)
+    service = (
+        stream._node.service_builder(iox2.ServiceName.new(stream.service))
+        .publish_subscribe(iox2.Slice[ctypes.c_uint8]).user_header(_BatchHeader)
+        .enable_safe_overflow(False).history_size(0)
+        .subscriber_max_buffer_size(MAX_BUFFER).subscriber_max_borrowed_samples(MAX_BORROWED)
+        .max_subscribers(MAX_SUBSCRIBERS).max_publishers(MAX_PUBLISHERS).max_nodes(MAX_NODES)
+        .open_or_create()
+    )
+    publisher = service.publisher_builder().initial_max_slice_len(64).create()
+    notifier = stream._ready.notifier_builder().create()
+
+    def publish(header: bytes, payload: bytes) -> None:
+        sample = publisher.loan_slice_uninit(len(payload))
+        ctypes.memmove(ctypes.addressof(sample.user_header().contents), header, len(header))
+        ctypes.memmove(sample.payload_ptr, payload, len(payload))
+        sample.assume_init().send()
+        notifier.notify()
+
+    points = np.arange(8, dtype="<f4").tobytes()
+    cases = {
+        "version 2": (_header([("points", 7, (2, 4), 0, 32)], 64, version=2),
+                      superflow.FormatVersionMismatch),
+        "overlapping sections": (_header([("points", 7, (2, 4), 0, 32),
+                                          ("pairing_depth", 7, (8,), 0, 32)], 64),
+                                 superflow.MalformedBatch),
+        "dtype against the table": (_header([("points", 3, (2, 4), 0, 32)], 64),
+                                    superflow.MalformedBatch),
+        "unknown section": (_header([("pointz", 7, (2, 4), 0, 32)], 64),
+                            superflow.MalformedBatch),
+    }
+    results = {}
+    for what, (header, error) in cases.items():
+        publish(header, points + bytes(32))
+        try:
+            next(stream)
+            results[what] = "accepted"
+        except error as e:
+            ok = e.run == args.run and e.service == stream.service and args.run in str(e)
+            results[what] = type(e).__name__ if ok else f"unnamed: {e}"
+    publish(_header([("points", 7, (2, 4), 0, 32)], 64, run=args.run), points + bytes(32))
+    good = next(stream)
+    results["good batch"] = np.asarray(good["points"]).reshape(-1).tolist()
+    emit(results)
+    stream.close()
+    expected = {"version 2": "FormatVersionMismatch", "overlapping sections": "MalformedBatch",
+                "dtype against the table": "MalformedBatch", "unknown section": "MalformedBatch",
+                "good batch": list(map(float, range(8)))}
+    return 0 if results == expected else 1
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser()
+    parser.add_argument("scenario", choices=["read", "resume", "released", "torch_views", "timeout",
+                                             "malformed"])
+    parser.add_argument("--run", required=True)
+    parser.add_argument("--prefix")
+    parser.add_argument("--count", type=int, default=1)
+    parser.add_argument("--timeout", type=float, default=120.0)
+    args = parser.parse_args()
+    return globals()[args.scenario](args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
