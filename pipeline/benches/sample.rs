@@ -25,11 +25,14 @@ fn main() -> anyhow::Result<()> {
     superflow_pipeline::memory::keep_freed_pages();
     let n = arg_count("--samples")?.unwrap_or(48);
     let cores = cores();
-    println!("sample building, default recipe, {n} samples per run, {cores} cores");
     println!(
-        "| drive | superpixels | samples/s 1 core | samples/s {cores} cores | decode ms | sweeps ms | images ms | projection ms | superpixels ms | voxels+maps ms |"
+        "sample building, default recipe, {} rounds of {n} samples on 1 core then {cores}",
+        sample::ROUNDS
     );
-    println!("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|");
+    println!(
+        "| drive | superpixels | samples/s 1 core | samples/s {cores} cores | scaling | decode ms | sweeps ms | images ms | projection ms | superpixels ms | voxels+maps ms |"
+    );
+    println!("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     for name in DRIVES {
         let path = drive_path(name);
         let dataset = Dataset::open(std::slice::from_ref(&path), &IngestConfig::default())?;
@@ -39,14 +42,16 @@ fn main() -> anyhow::Result<()> {
                 ..SampleConfig::default()
             };
             let builder = SampleBuilder::new(&dataset, config)?;
-            let (one, all, times) = sample::one_and_all(&builder, n, cores)?;
+            let run = sample::one_and_all(&builder, n, cores)?;
+            let (one, all) = (run.one, run.all);
             println!(
-                "| {name} | {} | {one:.1} | {all:.1} | {} |",
+                "| {name} | {} | {one:.1} | {all:.1} | {:.2}× | {} |",
                 match source {
                     SuperpixelSource::Slic => "SLIC",
                     _ => "class map",
                 },
-                sample::stage_cells(&times, n),
+                run.scaling,
+                sample::stage_cells(&run.times, n * sample::ROUNDS),
             );
         }
     }

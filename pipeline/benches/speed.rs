@@ -144,7 +144,8 @@ fn main() -> anyhow::Result<()> {
     let regenerate = flag("--regenerate");
     let cores = cores();
     println!(
-        "nuScenes-sized drives, default recipe; {n} samples per run ({n_slic} with SLIC), {cores} cores, load average {} at start",
+        "nuScenes-sized drives, default recipe; {} rounds of {n} samples on 1 core then {cores} ({n_slic} with SLIC), load average {} at start",
+        sample::ROUNDS,
         load_average(3)
     );
     println!(
@@ -170,7 +171,8 @@ fn main() -> anyhow::Result<()> {
                 ..SampleConfig::default()
             };
             let builder = SampleBuilder::new(data, config)?;
-            let (one, all, times) = one_and_all(&builder, count, cores)?;
+            let run = one_and_all(&builder, count, cores)?;
+            let (one, all) = (run.one, run.all);
             println!(
                 "| {w}×{h} | {} | {:.1} | {one:.1} | {all:.1} | {:.2}× | {} |",
                 match source {
@@ -180,8 +182,8 @@ fn main() -> anyhow::Result<()> {
                     _ => "class map (PNG)",
                 },
                 1e3 / one,
-                all / one,
-                stage_cells(&times, count),
+                run.scaling,
+                stage_cells(&run.times, count * sample::ROUNDS),
             );
             if source == SuperpixelSource::Channel {
                 let samples = (0..BATCH as u64)
@@ -193,7 +195,7 @@ fn main() -> anyhow::Result<()> {
         }
     }
     println!(
-        "stage columns: ms per sample on 1 core (decode: 5 sweeps, 9 JPEGs, 9 PNG class maps)"
+        "samples/s: medians of the rounds; scaling: median of the rounds' ratios; stage columns: ms per sample on 1 core (decode: 5 sweeps, 9 JPEGs, 9 PNG class maps)"
     );
     println!();
     println!(

@@ -158,8 +158,8 @@ fn pipeline(args: &Args, cores: usize, table: &mut Table) -> anyhow::Result<()> 
         let dataset = Dataset::open(&[drive_path(name)], &Default::default())
             .with_context(|| format!("opening {name}"))?;
         let builder = SampleBuilder::new(&dataset, SampleConfig::default())?;
-        let (one, all, _) =
-            superflow_tests::bench::sample::one_and_all(&builder, args.samples, cores)?;
+        let run = superflow_tests::bench::sample::one_and_all(&builder, args.samples, cores)?;
+        let (one, all) = (run.one, run.all);
         let s = if cores == 1 { "" } else { "s" };
         table.push(
             "pipeline samples/s",

@@ -39,17 +39,48 @@ pub fn throughput(
     Ok((n as f64 / secs, total))
 }
 
+/// Rounds of [`one_and_all`]: each runs one core, then all cores.
+pub const ROUNDS: usize = 3;
+
+/// What [`one_and_all`] measured.
+#[derive(Debug, Clone)]
+pub struct Throughput {
+    /// Samples/s on one core (median of the rounds).
+    pub one: f64,
+    /// Samples/s on all cores (median of the rounds).
+    pub all: f64,
+    /// All cores over one core: the median of the rounds' ratios, each round's two runs
+    /// back to back (the VM's speed drifts by 10–30 % over minutes; within a round far
+    /// less).
+    pub scaling: f64,
+    /// Stage times of the one-core runs, summed over the rounds (`ROUNDS · n` samples).
+    pub times: StageTimes,
+}
+
 /// Samples/s on one core and on `cores` cores after a warm-up epoch (page cache,
-/// allocator), and the stage times of the one-core run.
+/// allocator): [`ROUNDS`] rounds of `n` samples on one core then on `cores`.
 pub fn one_and_all(
     builder: &SampleBuilder<'_>,
     n: usize,
     cores: usize,
-) -> anyhow::Result<(f64, f64, StageTimes)> {
+) -> anyhow::Result<Throughput> {
     throughput(builder, builder.plan().keyframes.len(), cores)?;
-    let (one, times) = throughput(builder, n, 1)?;
-    let (all, _) = throughput(builder, n, cores)?;
-    Ok((one, all, times))
+    let (mut ones, mut alls, mut ratios) = (Vec::new(), Vec::new(), Vec::new());
+    let mut times = StageTimes::default();
+    for _ in 0..ROUNDS {
+        let (one, t) = throughput(builder, n, 1)?;
+        let (all, _) = throughput(builder, n, cores)?;
+        times.add(&t);
+        ones.push(one);
+        alls.push(all);
+        ratios.push(all / one);
+    }
+    Ok(Throughput {
+        one: super::common::median(&ones),
+        all: super::common::median(&alls),
+        scaling: super::common::median(&ratios),
+        times,
+    })
 }
 
 /// The stage columns of a bench table: ms per sample of decode, sweeps, images,
