@@ -349,7 +349,14 @@ fn torchrun_trains_the_example_with_ddp_on_two_shards() {
     let steps = "6";
     let trainer = superflow_tests::process::spawn(
         Command::new(package_python())
-            .args(["-m", "torch.distributed.run", "--nproc-per-node", "2", "--"])
+            .args([
+                "-m",
+                "torch.distributed.run",
+                "--standalone",
+                "--nproc-per-node",
+                "2",
+                "--",
+            ])
             .arg(example)
             .args(["--run", "pyddp", "--steps", steps, "--timeout", "120"])
             .env("SUPERFLOW_IOX_PREFIX", &p)
@@ -392,4 +399,27 @@ fn torchrun_trains_the_example_with_ddp_on_two_shards() {
     let (first, last) = (mean_loss(0..2), mean_loss(4..6));
     assert!(last < first, "loss {first} -> {last}: {out:?}");
     no_shared_memory_left(&p);
+}
+
+/// A pipeline SIGKILLed mid-stream and not restarted: the iterator raises
+/// `PipelineTimeout` after `timeout_s`, saying no pipeline publishes any more (the dead
+/// pipeline's node was cleaned up on the way).
+#[test]
+fn python_iteration_times_out_when_the_pipeline_dies_for_good() {
+    let p = prefix("pydead");
+    // 6 batches in the epoch; after the kill at most the queued ones (2) still come.
+    let args = ["read", "--run", "pydead", "--count", "6", "--timeout", "3"];
+    let mut reader = scenario(&p, &args, &[]);
+    let rx = superflow_tests::process::lines_of(reader.stdout.take().unwrap());
+    let mut pipe = pipeline(&p, "pydead", &["--batch-size", "1", "--epochs", "1"]);
+    for _ in 0..2 {
+        rx.recv_timeout(LIMIT).expect("batches before the kill");
+    }
+    pipe.kill().unwrap(); // SIGKILL
+    let _ = pipe.wait();
+    let (ok, _, err) = finish(reader, LIMIT);
+    assert!(!ok, "the reader went on without a pipeline: {err}");
+    assert!(err.contains("PipelineTimeout"), "{err}");
+    assert!(err.contains("no pipeline publishes on it"), "{err}");
+    assert!(err.contains("superflow/pydead/batches"), "{err}");
 }

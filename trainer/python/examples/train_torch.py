@@ -4,7 +4,7 @@ spatial, temporal and dense-to-sparse contrastive losses, from trainer/reference
 `superflow.Stream`, with DistributedDataParallel across ranks.
 
     superflow-pipeline --mcap recordings/drives --run exp1 --world-size 2 --batch-size 1 &
-    torchrun --nproc-per-node 2 -- trainer/python/examples/train_torch.py --run exp1 --steps 20
+    torchrun --standalone --nproc-per-node 2 -- trainer/python/examples/train_torch.py --run exp1 --steps 20
 
 (the `--` keeps torchrun from taking `--run` for an abbreviation of its `--run-path`).
 

@@ -23,9 +23,18 @@ from .stream import (
     Stream,
     SuperflowError,
 )
-from .torch_data import TorchIterable
 
 __version__ = "0.1.0"
+
+
+def __getattr__(name: str):
+    # torch is imported only when TorchIterable is asked for: `import superflow` stays
+    # quick (importing torch maps ~1.5 GB of libraries) and works without torch.
+    if name == "TorchIterable":
+        from .torch_data import TorchIterable
+
+        return TorchIterable
+    raise AttributeError(f"module 'superflow' has no attribute {name!r}")
 
 __all__ = [
     "BATCH_SECTIONS",
