@@ -18,7 +18,8 @@ from typing import Any, Iterator
 import iceoryx2 as iox2
 import numpy as np
 
-from .format import HEADER_SIZE, RUN_CHARS, BatchFormatError, FormatVersionError, batch_meta, read_batch
+from .format import (HEADER, HEADER_SIZE, RUN_CHARS, BatchFormatError, FormatVersionError,
+                     batch_meta, read_batch)
 from .sections import section_dtype
 
 # The service settings every superflow process uses (schemas/src/service.rs, `qos`):
@@ -174,10 +175,26 @@ class SectionArray(np.ndarray):
     __str__ = __repr__
 
 
+def _header_bytes(sample: Any) -> np.ndarray:
+    """The user header of a received sample, as bytes (a view, no copy)."""
+    return np.ctypeslib.as_array(sample.user_header().contents.words).view(np.uint8)
+
+
+def _header(sample: Any) -> np.void:
+    """The header record of a received sample, unchecked (for its position fields)."""
+    return np.frombuffer(_header_bytes(sample), dtype=HEADER, count=1)[0]
+
+
+def _position(sample: Any) -> tuple[int, int]:
+    """(epoch, step) of a received sample."""
+    h = _header(sample)
+    return int(h["epoch"]), int(h["step"])
+
+
 def _read(sample: Any, run: str, service: str) -> tuple[np.void, dict[str, np.ndarray]]:
     """The header and sections of a received sample, checked against the format and the
     section table; :class:`MalformedBatch` names the run and service otherwise."""
-    header = np.ctypeslib.as_array(sample.user_header().contents.words).view(np.uint8)
+    header = _header_bytes(sample)
     payload = sample.payload().as_memory_view()
     where = f"run {run!r}, service {service!r}"
     try:
@@ -477,18 +494,13 @@ class Stream:
                 sample = self._receive_sample()
                 if sample is None:
                     time.sleep(0.002)
-                elif self._stash is None and self._position(sample) == (epoch, step):
+                elif self._stash is None and _position(sample) == (epoch, step):
                     self._stash = sample
                 else:
                     sample.delete()
         raise PipelineTimeout(f"run {self.run!r}: no pipeline answered the request to resume "
                               f"{self.service!r} at ({epoch}, {step}) within {timeout_s} s",
                               self.run, self.service)
-
-    @staticmethod
-    def _position(sample: Any) -> tuple[int, int]:
-        words = np.ctypeslib.as_array(sample.user_header().contents.words)
-        return int(words[3]), int(words[4])  # epoch at byte 24, step at byte 32
 
     def _accept(self, reply: _ResumeReply, epoch: int, step: int) -> None:
         if not reply.accepted:
@@ -499,9 +511,8 @@ class Stream:
         publisher = (reply.publisher_hi << 64) | reply.publisher_lo
 
         def new(sample: Any) -> bool:
-            words = np.ctypeslib.as_array(sample.user_header().contents.words)
             return (sample.header.publisher_id.value == publisher
-                    and int(words[6]) >= reply.next_sequence)  # sequence at byte 48
+                    and int(_header(sample)["sequence"]) >= reply.next_sequence)
 
         if self._stash is not None and not new(self._stash):
             self._stash.delete()

@@ -198,20 +198,9 @@ def _header(sections: list[tuple[str, int, tuple[int, ...], int, int]], payload_
 def malformed(args: argparse.Namespace) -> int:
     """Publishes bad batches on the run's broadcast service itself and checks the typed
     errors, then a good one, which the stream still reads."""
-    import iceoryx2 as iox2
-    from superflow.stream import (MAX_BORROWED, MAX_BUFFER, MAX_NODES, MAX_PUBLISHERS,
-                                  MAX_SUBSCRIBERS, _BatchHeader)
-
     stream = superflow.Stream(args.run, prefix=args.prefix, timeout_s=args.timeout)
-    service = (
-        stream._node.service_builder(iox2.ServiceName.new(stream.service))
-        .publish_subscribe(iox2.Slice[ctypes.c_uint8]).user_header(_BatchHeader)
-        .enable_safe_overflow(False).history_size(0)
-        .subscriber_max_buffer_size(MAX_BUFFER).subscriber_max_borrowed_samples(MAX_BORROWED)
-        .max_subscribers(MAX_SUBSCRIBERS).max_publishers(MAX_PUBLISHERS).max_nodes(MAX_NODES)
-        .open_or_create()
-    )
-    publisher = service.publisher_builder().initial_max_slice_len(64).create()
+    # The stream's own service and ready event, with a publisher and a notifier added.
+    publisher = stream._batches.publisher_builder().initial_max_slice_len(64).create()
     notifier = stream._ready.notifier_builder().create()
 
     def publish(header: bytes, payload: bytes) -> None:
