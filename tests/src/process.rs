@@ -180,3 +180,24 @@ pub fn kill_and_restart(
     assert!(ok, "{err}");
     out
 }
+
+/// `mpirun -np ranks` as the data-parallel tests run it: on this host, oversubscribed
+/// (CI has 2 cores), allowed as root (CI runs as root), waiting ranks yielding the CPU
+/// instead of busy-polling, and the shared-memory transport without CMA (ptrace is
+/// off in containers). Open MPI's `mpirun` must be installed (`openmpi-bin`).
+pub fn mpirun(ranks: usize) -> Command {
+    let mut command = Command::new("mpirun");
+    command
+        .args([
+            "-np",
+            &ranks.to_string(),
+            "--oversubscribe",
+            "--bind-to",
+            "none",
+        ])
+        .env("OMPI_ALLOW_RUN_AS_ROOT", "1")
+        .env("OMPI_ALLOW_RUN_AS_ROOT_CONFIRM", "1")
+        .env("OMPI_MCA_mpi_yield_when_idle", "1")
+        .env("OMPI_MCA_btl_vader_single_copy_mechanism", "none");
+    command
+}

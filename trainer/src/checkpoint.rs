@@ -25,6 +25,10 @@ pub struct CheckpointState {
     pub next_epoch: u64,
     /// See `next_epoch`.
     pub next_batch: u64,
+    /// Data-parallel jobs (`--ddp`): the next (epoch, batch) of every rank's shard
+    /// stream, by rank (they differ when shards end an epoch at different steps).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub ranks: Vec<[u64; 2]>,
     /// Run name of the stream.
     pub run: String,
     /// The configuration the run was started with (as TOML).
@@ -181,6 +185,7 @@ mod tests {
             step,
             next_epoch: 0,
             next_batch: step,
+            ranks: Vec::new(),
             run: "t".into(),
             config: String::new(),
             lr: 0.01,

@@ -130,6 +130,12 @@ pub enum TrainerError {
         /// Batch in the epoch.
         batch: u64,
     },
+    /// The MPI job (`--ddp`).
+    #[error("MPI: {0}")]
+    Mpi(String),
+    /// Ranks of a data-parallel job disagree.
+    #[error("data-parallel ranks disagree: {0}")]
+    Ranks(String),
     /// A plot of a run without steps.
     #[error("no steps to plot")]
     NothingToPlot,

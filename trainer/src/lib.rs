@@ -50,6 +50,8 @@
 
 pub mod checkpoint;
 pub mod config;
+#[cfg(feature = "mpi")]
+pub mod ddp;
 pub mod error;
 pub mod init;
 pub mod inputs;
@@ -60,5 +62,6 @@ pub mod schedule;
 pub mod sparse;
 pub mod stream;
 pub mod subscribe;
+pub mod sync;
 pub mod train;
 pub mod vit;

@@ -481,7 +481,7 @@ pub struct LossTerms {
 }
 
 /// The loss values of a step, read back from the device.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
 pub struct LossValues {
     /// Weighted total.
     pub total: f64,

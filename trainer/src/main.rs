@@ -9,11 +9,14 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicI32, Ordering};
 use std::time::{Duration, Instant};
 use superflow_schemas::batch::BatchMeta;
+use superflow_trainer::checkpoint::CheckpointState;
 use superflow_trainer::config::TrainerConfig;
+#[cfg(feature = "mpi")]
+use superflow_trainer::ddp::Ddp;
 use superflow_trainer::loss::LossValues;
-use superflow_trainer::metrics::{self, MetricsWriter, StepRecord};
+use superflow_trainer::metrics::{self, DdpRecord, MetricsWriter, StepRecord};
 use superflow_trainer::sparse::UNetPreset;
-use superflow_trainer::stream::{Action, StreamPosition, StreamTracker};
+use superflow_trainer::stream::{self, Action, StreamPosition, StreamTracker};
 use superflow_trainer::subscribe::{Received, Subscription, Target};
 use superflow_trainer::train::{StepOutcome, Trainer};
 use superflow_trainer::vit::VitPreset;
@@ -64,7 +67,8 @@ struct Args {
     #[arg(long, default_value_t = 0)]
     device_index: usize,
     /// Output directory: checkpoints/, metrics.jsonl, losses.svg [default: runs/<run>
-    /// or runs/<run>-rank<r>].
+    /// or runs/<run>-rank<r>]; with --ddp rank r writes rank-r/metrics.jsonl there and
+    /// rank 0 the checkpoints.
     #[arg(long)]
     out: Option<PathBuf>,
     /// Save a checkpoint every this many steps (0 = only at the end).
@@ -80,6 +84,17 @@ struct Args {
     /// Give up when no batch arrives for this long, seconds.
     #[arg(long, default_value_t = 300)]
     timeout_secs: u64,
+    /// Synchronous data parallelism over MPI: run every rank under `mpirun -np W` (or
+    /// `srun --mpi=pmix`); rank and world size come from MPI, each rank reads the shard
+    /// stream of its rank on its host, gradients are averaged over the ranks every step
+    /// (all ranks hold the same model), rank 0 writes the checkpoints.
+    #[arg(long, conflicts_with_all = ["rank", "world_size"])]
+    ddp: bool,
+    /// `--ddp`: abort the job when a collective (gradient all-reduce, checkpoint
+    /// agreement) waits longer than this for the other ranks (a hung peer), seconds.
+    /// Keep it above --timeout-secs: a peer may be waiting that long for its batch.
+    #[arg(long, default_value_t = 900)]
+    collective_timeout_secs: u64,
     /// Isolates this deployment's iceoryx2 resources (also `SUPERFLOW_IOX_PREFIX`).
     #[arg(long, env = "SUPERFLOW_IOX_PREFIX")]
     iox_prefix: Option<String>,
@@ -250,24 +265,84 @@ struct RunPaths {
     out: PathBuf,
     /// Checkpoint directory.
     checkpoints: PathBuf,
-    /// `metrics.jsonl`.
+    /// `metrics.jsonl` (`rank-<r>/metrics.jsonl` in a data-parallel job).
     metrics: PathBuf,
+    /// `losses.svg`, beside the metrics.
+    plot: PathBuf,
 }
 
 impl RunPaths {
-    fn new(args: &Args, config: &TrainerConfig) -> Self {
+    /// The files of this process: rank `ddp_rank` of a `--ddp` job, or a lone trainer.
+    fn new(args: &Args, config: &TrainerConfig, ddp_rank: Option<usize>) -> Self {
         let out = args.out_dir();
         let checkpoints = config
             .checkpoint
             .dir
             .clone()
             .unwrap_or_else(|| out.join("checkpoints"));
-        let metrics = out.join("metrics.jsonl");
+        let own = match ddp_rank {
+            Some(rank) => out.join(format!("rank-{rank}")),
+            None => out.clone(),
+        };
         Self {
+            metrics: own.join("metrics.jsonl"),
+            plot: own.join("losses.svg"),
             out,
             checkpoints,
-            metrics,
         }
+    }
+}
+
+/// `--ddp`: this rank's place in the MPI job.
+fn join_job(args: &Args) -> anyhow::Result<Option<Ddp>> {
+    if !args.ddp {
+        return Ok(None);
+    }
+    #[cfg(feature = "mpi")]
+    {
+        let timeout = Duration::from_secs(args.collective_timeout_secs);
+        if args.collective_timeout_secs <= args.timeout_secs {
+            tracing::warn!(
+                collective_timeout_secs = args.collective_timeout_secs,
+                timeout_secs = args.timeout_secs,
+                "the collective timeout is not above the batch timeout: a rank waiting for its batch may abort the job first"
+            );
+        }
+        Ok(Some(Ddp::init(timeout)?))
+    }
+    #[cfg(not(feature = "mpi"))]
+    anyhow::bail!(
+        "--ddp needs MPI, and this superflow-trainer was built without its `mpi` feature \
+         (install Open MPI and libclang: apt-get install libopenmpi-dev openmpi-bin libclang-dev, \
+         then build with the default features)"
+    )
+}
+
+/// Without the `mpi` feature there is no job to be part of: an uninhabited stand-in,
+/// so the session code is the same in both builds.
+#[cfg(not(feature = "mpi"))]
+#[derive(Debug)]
+enum Ddp {}
+
+#[cfg(not(feature = "mpi"))]
+impl Ddp {
+    fn rank(&self) -> usize {
+        match *self {}
+    }
+    fn size(&self) -> usize {
+        match *self {}
+    }
+    fn local_rank(&self) -> usize {
+        match *self {}
+    }
+    fn all_reduce_sum(&self, _: &mut [f32], _: &str) {
+        match *self {}
+    }
+    fn broadcast_bytes(&self, _: Vec<u8>, _: &str) -> Vec<u8> {
+        match *self {}
+    }
+    fn all_gather(&self, _: &[u64], _: &str) -> Vec<u64> {
+        match *self {}
     }
 }
 
@@ -275,22 +350,28 @@ impl RunPaths {
 fn run(args: &Args) -> anyhow::Result<Option<i32>> {
     args.check_rank()?;
     let config = args.config()?;
+    let ddp = join_job(args)?;
     let iox = superflow_schemas::service::iceoryx2_config(args.iox_prefix.as_deref())
         .map_err(|e| anyhow::anyhow!(e))?;
     let stop = watch_signals().context("installing the SIGTERM/SIGINT handlers")?;
-    let target = args.rank.map_or(Target::Broadcast, Target::Rank);
+    let target = match &ddp {
+        Some(ddp) => Target::Rank(ddp.local_rank() as u32),
+        None => args.rank.map_or(Target::Broadcast, Target::Rank),
+    };
     let subscription = Subscription::open(&args.run, target, &iox, 2)
         .with_context(|| format!("subscribing to run {}", args.run))?;
-    let paths = RunPaths::new(args, &config);
+    let paths = RunPaths::new(args, &config, ddp.as_ref().map(Ddp::rank));
     let (steps, every) = (config.optim.steps, config.checkpoint.every);
     let device = device(&args.backend, args.device_index)?;
     tracing::info!(backend = %args.backend, ?device, "compute device");
     let mut trainer = Trainer::new(config, &device)?;
-    let resumed_at = if args.resume {
-        resume(args, &mut trainer, &subscription, &paths)?
-    } else {
-        start_fresh(&paths)?;
-        None
+    let resumed_at = match &ddp {
+        Some(ddp) => start_ranks(args, &mut trainer, &subscription, &paths, ddp)?,
+        None if args.resume => resume(args, &mut trainer, &subscription, &paths)?,
+        None => {
+            start_fresh(&paths, true)?;
+            None
+        }
     };
     let metrics = MetricsWriter::open(&paths.metrics)?;
     let bar = progress_bar(steps, trainer.step_count());
@@ -301,6 +382,8 @@ fn run(args: &Args) -> anyhow::Result<Option<i32>> {
         trainer,
         metrics,
         stream: StreamTracker::new(resumed_at),
+        held: None,
+        ddp,
         bar,
         started: Instant::now(),
         waiting: 0.0,
@@ -315,6 +398,158 @@ fn run(args: &Args) -> anyhow::Result<Option<i32>> {
     session.finish()
 }
 
+/// Asks the pipeline to continue this trainer's stream at `at`.
+fn ask_resume(
+    subscription: &Subscription,
+    run: &str,
+    at: StreamPosition,
+    timeout: Duration,
+) -> anyhow::Result<u128> {
+    let reply = subscription
+        .resume(at.epoch, at.batch, timeout)
+        .with_context(|| format!("asking run {run} to resume"))?;
+    if reply.accepted != 1 {
+        anyhow::bail!(
+            "the pipeline refused to resume run {run} at epoch {} batch {} (reason {}): \
+             is it the same recording and configuration?",
+            at.epoch,
+            at.batch,
+            reply.reason
+        );
+    }
+    Ok(reply.publisher())
+}
+
+/// How rank 0 starts a data-parallel job; every rank receives it.
+#[derive(Debug, Default, serde::Serialize, serde::Deserialize)]
+struct JobStart {
+    /// Rank 0's configuration (TOML): every rank must run the same.
+    config: String,
+    /// The checkpoint the job continues from (`--resume` and one exists).
+    resume: Option<CheckpointState>,
+    /// Why rank 0 cannot start the job.
+    error: Option<String>,
+}
+
+/// `--ddp`: rank 0 decides how the job starts (fresh, or from the newest checkpoint)
+/// and every rank receives the same parameters and optimizer state from it; each rank
+/// then asks its shard stream to continue at its own position. Returns that position
+/// when resuming.
+fn start_ranks(
+    args: &Args,
+    trainer: &mut Trainer,
+    subscription: &Subscription,
+    paths: &RunPaths,
+    ddp: &Ddp,
+) -> anyhow::Result<Option<StreamPosition>> {
+    let rank = ddp.rank();
+    let (start, model, optim) = if rank == 0 {
+        match first_rank_start(args, trainer, paths) {
+            Ok(start) => start,
+            Err(e) => (
+                JobStart {
+                    error: Some(format!("{e:#}")),
+                    ..JobStart::default()
+                },
+                Vec::new(),
+                Vec::new(),
+            ),
+        }
+    } else {
+        Default::default()
+    };
+    let start = ddp.broadcast_bytes(serde_json::to_vec(&start)?, "job start (rank 0's decision)");
+    let start: JobStart = serde_json::from_slice(&start).context("rank 0's job start")?;
+    if let Some(error) = start.error {
+        anyhow::bail!(if rank == 0 {
+            error
+        } else {
+            format!("rank 0 could not start the job: {error}")
+        });
+    }
+    if start.config != trainer.config_toml() {
+        anyhow::bail!(
+            "rank {rank}'s configuration differs from rank 0's: give every rank the same trainer.toml and flags"
+        );
+    }
+    let model = ddp.broadcast_bytes(model, "rank 0's parameters");
+    let optim = ddp.broadcast_bytes(optim, "rank 0's optimizer state");
+    let step = start.resume.as_ref().map_or(0, |s| s.step);
+    trainer.restore_bytes(model, optim, step, &paths.checkpoints)?;
+    let Some(state) = start.resume else {
+        start_fresh(paths, false)?;
+        tracing::info!(
+            rank,
+            world_size = ddp.size(),
+            "every rank starts from rank 0's parameters"
+        );
+        return Ok(None);
+    };
+    if state.ranks.len() != ddp.size() {
+        anyhow::bail!(
+            "the checkpoint at step {} was written by a job of {} data-parallel ranks; resume it with mpirun -np {}",
+            state.step,
+            state.ranks.len(),
+            state.ranks.len().max(1)
+        );
+    }
+    let [epoch, batch] = state.ranks[rank];
+    let at = StreamPosition::new(epoch, batch);
+    ask_resume(
+        subscription,
+        &args.run,
+        at,
+        Duration::from_secs(args.timeout_secs),
+    )?;
+    tracing::info!(
+        rank,
+        step,
+        epoch,
+        batch,
+        "resuming: this rank's shard continues at its checkpointed position"
+    );
+    drop_redone_metrics(paths, step)?;
+    Ok(Some(at))
+}
+
+/// Rank 0's part of [`start_ranks`]: the decision and the records to send.
+fn first_rank_start(
+    args: &Args,
+    trainer: &Trainer,
+    paths: &RunPaths,
+) -> anyhow::Result<(JobStart, Vec<u8>, Vec<u8>)> {
+    let config = trainer.config_toml();
+    let latest = superflow_trainer::checkpoint::latest(&paths.checkpoints)?;
+    match latest {
+        Some(ckpt) if args.resume => {
+            let read =
+                |p: PathBuf| std::fs::read(&p).with_context(|| format!("reading {}", p.display()));
+            let (model, optim) = (read(ckpt.model_path())?, read(ckpt.optim_path())?);
+            tracing::info!(checkpoint = %ckpt.dir.display(), step = ckpt.state.step, "the job continues from this checkpoint");
+            let start = JobStart {
+                config,
+                resume: Some(ckpt.state),
+                error: None,
+            };
+            Ok((start, model, optim))
+        }
+        Some(_) => anyhow::bail!(
+            "{} already holds checkpoints: pass --resume to continue that run, or choose another --out",
+            paths.checkpoints.display()
+        ),
+        None => {
+            if args.resume {
+                tracing::warn!(dir = %paths.checkpoints.display(), "--resume: no checkpoint yet, starting fresh");
+            }
+            let start = JobStart {
+                config,
+                ..JobStart::default()
+            };
+            Ok((start, trainer.model_bytes()?, Vec::new()))
+        }
+    }
+}
+
 /// `--resume`: restores the newest checkpoint and asks the pipeline to continue at its
 /// next batch (`None` when there is no checkpoint yet: a fresh start).
 fn resume(
@@ -327,43 +562,39 @@ fn resume(
         tracing::warn!(dir = %paths.checkpoints.display(), "--resume: no checkpoint yet, starting fresh");
         return Ok(None);
     };
-    let reply = subscription
-        .resume(
-            state.next_epoch,
-            state.next_batch,
-            Duration::from_secs(args.timeout_secs),
-        )
-        .with_context(|| format!("asking run {} to resume", args.run))?;
-    if reply.accepted != 1 {
-        anyhow::bail!(
-            "the pipeline refused to resume run {} at epoch {} batch {} (reason {}): \
-             is it the same recording and configuration?",
-            args.run,
-            state.next_epoch,
-            state.next_batch,
-            reply.reason
-        );
-    }
+    ask_resume(
+        subscription,
+        &args.run,
+        state.next(),
+        Duration::from_secs(args.timeout_secs),
+    )?;
     tracing::info!(
         step = state.step,
         epoch = state.next_epoch,
         batch = state.next_batch,
         "resuming: the pipeline continues at the checkpoint's next batch"
     );
-    let redone = metrics::truncate_after(&paths.metrics, state.step)?;
-    if redone > 0 {
-        tracing::warn!(
-            steps = redone,
-            after = state.step,
-            "steps trained after the checkpoint are lost and will be redone on the same batches; their metrics lines are dropped"
-        );
-    }
+    drop_redone_metrics(paths, state.step)?;
     Ok(Some(state.next()))
 }
 
-/// A fresh run: refuses an output directory holding checkpoints, drops old metrics.
-fn start_fresh(paths: &RunPaths) -> anyhow::Result<()> {
-    if superflow_trainer::checkpoint::latest(&paths.checkpoints)?.is_some() {
+/// A resumed run redoes the steps after its checkpoint's `step`: their metrics lines go.
+fn drop_redone_metrics(paths: &RunPaths, step: u64) -> anyhow::Result<()> {
+    let redone = metrics::truncate_after(&paths.metrics, step)?;
+    if redone > 0 {
+        tracing::warn!(
+            steps = redone,
+            after = step,
+            "steps trained after the checkpoint are lost and will be redone on the same batches; their metrics lines are dropped"
+        );
+    }
+    Ok(())
+}
+
+/// A fresh run: refuses an output directory holding checkpoints (`check_checkpoints`:
+/// the process that writes them), drops old metrics.
+fn start_fresh(paths: &RunPaths, check_checkpoints: bool) -> anyhow::Result<()> {
+    if check_checkpoints && superflow_trainer::checkpoint::latest(&paths.checkpoints)?.is_some() {
         anyhow::bail!(
             "{} already holds checkpoints: pass --resume to continue that run, or choose another --out",
             paths.checkpoints.display()
@@ -396,6 +627,10 @@ struct Session<'a> {
     trainer: Trainer,
     metrics: MetricsWriter,
     stream: StreamTracker,
+    /// `--ddp`: a batch received but kept for a later step (this rank's shard began its
+    /// next epoch while others finish theirs).
+    held: Option<Received>,
+    ddp: Option<Ddp>,
     bar: ProgressBar,
     started: Instant,
     /// Seconds spent waiting for batches, and computing steps.
@@ -408,6 +643,11 @@ struct Session<'a> {
     paths: RunPaths,
 }
 
+/// Where a batch lies in its stream.
+fn position_of(batch: &Received) -> StreamPosition {
+    StreamPosition::new(batch.header().epoch, batch.header().step)
+}
+
 impl Session<'_> {
     fn timeout(&self) -> Duration {
         Duration::from_secs(self.args.timeout_secs)
@@ -417,6 +657,63 @@ impl Session<'_> {
     fn train(&mut self) -> anyhow::Result<()> {
         while self.trainer.step_count() < self.steps {
             let t = Instant::now();
+            let batch = match self.held.take() {
+                Some(batch) => Some(batch),
+                None => self.next_trainable()?,
+            };
+            let wait = t.elapsed().as_secs_f64();
+            let Some(ddp) = &self.ddp else {
+                let Some(batch) = batch else { break };
+                let at = position_of(&batch);
+                if self.step(Some(batch), at, wait)? {
+                    break;
+                }
+                continue;
+            };
+            // Data-parallel: every rank says where its batch lies and whether it stops;
+            // the step trains the earliest position (a rank whose shard already began
+            // the next epoch keeps its batch for later and adds no gradient).
+            let mine = batch.as_ref().map(position_of);
+            let stop = self.stop.load(Ordering::SeqCst) != 0 || batch.is_none();
+            let what = format!("agreement before step {}", self.trainer.step_count() + 1);
+            let ranks = ddp.all_gather(
+                &[
+                    mine.map_or(u64::MAX, |p| p.epoch),
+                    mine.map_or(u64::MAX, |p| p.batch),
+                    u64::from(stop),
+                ],
+                &what,
+            );
+            let states: Vec<_> = ranks
+                .chunks(3)
+                .map(|r| {
+                    (
+                        (r[0] != u64::MAX).then(|| StreamPosition::new(r[0], r[1])),
+                        r[2] != 0,
+                    )
+                })
+                .collect();
+            let Some(at) = stream::agree(&states) else {
+                self.held = batch;
+                tracing::warn!("a rank is stopping: every rank stops after the same step");
+                break;
+            };
+            let batch = match batch {
+                Some(b) if position_of(&b) == at => Some(b),
+                other => {
+                    self.held = other;
+                    None
+                }
+            };
+            self.step(batch, at, wait)?;
+        }
+        Ok(())
+    }
+
+    /// The next batch to train on, past batches trained already and streams asked to
+    /// continue elsewhere; `None` once a stop signal was caught.
+    fn next_trainable(&mut self) -> anyhow::Result<Option<Received>> {
+        loop {
             let Some(batch) = next_batch(
                 &self.subscription,
                 &self.args.run,
@@ -424,11 +721,11 @@ impl Session<'_> {
                 &self.stop,
             )?
             else {
-                break;
+                return Ok(None);
             };
-            let position = StreamPosition::new(batch.header().epoch, batch.header().step);
+            let position = position_of(&batch);
             match self.stream.classify(batch.origin(), position) {
-                Action::Train => {}
+                Action::Train => return Ok(Some(batch)),
                 Action::Skip { skipped } => {
                     tracing::warn!(
                         epoch = position.epoch,
@@ -436,20 +733,13 @@ impl Session<'_> {
                         skipped,
                         "already trained on this batch: skipped"
                     );
-                    continue;
                 }
                 Action::Resume { at, restarted } => {
                     drop(batch);
                     self.continue_at(position, at, restarted)?;
-                    continue;
                 }
             }
-            let wait = t.elapsed().as_secs_f64();
-            if self.step(batch, wait)? {
-                break;
-            }
         }
-        Ok(())
     }
 
     /// The stream is not at this trainer's next batch `at` (a new pipeline, the old one
@@ -469,65 +759,113 @@ impl Session<'_> {
             restarted,
             "the stream is not at this trainer's next batch (a restarted pipeline, or another trainer's resume); asking it to continue there"
         );
-        let run = &self.args.run;
-        let reply = self
-            .subscription
-            .resume(at.epoch, at.batch, self.timeout())
-            .with_context(|| format!("asking run {run} to resume"))?;
-        if reply.accepted != 1 {
-            anyhow::bail!(
-                "the restarted pipeline of run {run} refused to continue at epoch {} batch {} (reason {})",
-                at.epoch,
-                at.batch,
-                reply.reason
-            );
-        }
-        self.stream.resumed(reply.publisher());
+        let publisher = ask_resume(&self.subscription, &self.args.run, at, self.timeout())?;
+        self.stream.resumed(publisher);
         Ok(())
     }
 
-    /// One step on `batch` (waited for `wait` seconds): metrics, log, progress and the
-    /// periodic checkpoint. `true` when a stop signal was caught: the run ends here.
-    fn step(&mut self, batch: Received, wait: f64) -> anyhow::Result<bool> {
-        let view = batch.view().context("invalid batch")?;
-        let meta = view.meta().clone();
-        let outcome = self.trainer.step(&view).with_context(|| {
-            format!(
-                "step {} (epoch {}, batch {})",
-                self.trainer.step_count() + 1,
-                meta.epoch,
-                meta.step
-            )
-        })?;
+    /// One step at stream position `at` on `batch` (waited for `wait` seconds; `None`: a
+    /// data-parallel rank without a batch at this step): metrics, log, progress and the
+    /// periodic checkpoint. `true` when a stop signal was caught: a lone trainer ends
+    /// here (data-parallel ranks agree on stopping before the next step).
+    fn step(
+        &mut self,
+        batch: Option<Received>,
+        at: StreamPosition,
+        wait: f64,
+    ) -> anyhow::Result<bool> {
+        let view = batch
+            .as_ref()
+            .map(Received::view)
+            .transpose()
+            .context("invalid batch")?;
+        let meta = view.as_ref().map(|v| v.meta().clone());
+        let number = self.trainer.step_count() + 1;
+        let outcome = match (&self.ddp, &view) {
+            (Some(ddp), view) => {
+                let what = format!("gradient all-reduce of step {number}");
+                let mut reduce = |values: &mut [f32]| ddp.all_reduce_sum(values, &what);
+                self.trainer.step_synced(view.as_ref(), Some(&mut reduce))
+            }
+            (None, Some(view)) => self.trainer.step(view),
+            (None, None) => anyhow::bail!("step {number}: no batch"),
+        }
+        .with_context(|| format!("step {number} ({at})"))?;
         drop(view);
         drop(batch);
         self.waiting += wait;
         self.computing += outcome.seconds;
-        self.stream
-            .trained(StreamPosition::new(meta.epoch, meta.step));
-        let record = step_record(self.trainer.step_count(), &meta, &outcome, wait);
+        if meta.is_some() {
+            self.stream.trained(at);
+        }
+        let mut record = step_record(number, at, meta.as_ref(), &outcome, wait);
+        record.params_hash = self.trainer.params_hash();
+        if let (Some(ddp), Some(global)) = (&self.ddp, &outcome.global) {
+            record.ddp = Some(DdpRecord {
+                rank: ddp.rank() as u32,
+                world_size: ddp.size() as u32,
+                loss: global.losses.total,
+                samples: global.samples,
+                reduce_ms: outcome.phases.reduce * 1e3,
+                reduce_bytes: global.bytes,
+            });
+        }
         self.metrics.write(&record)?;
         log_step(&record, &outcome);
         self.bar.set_position(record.step);
-        self.bar.set_message(format!("loss {:.4}", record.loss));
+        let shown = record.ddp.as_ref().map_or(record.loss, |d| d.loss);
+        self.bar.set_message(format!("loss {shown:.4}"));
         let stopping = self.stop.load(Ordering::SeqCst) != 0;
         let periodic = self.every > 0 && record.step.is_multiple_of(self.every);
-        if periodic && record.step < self.steps && !stopping {
-            let dir = self.save_checkpoint(&outcome.losses)?;
+        // Data-parallel ranks checkpoint together whatever their signals say (the stop
+        // is agreed before the next step).
+        if periodic
+            && record.step < self.steps
+            && (!stopping || self.ddp.is_some())
+            && let Some(dir) = self.save_checkpoint(&outcome)?
+        {
             tracing::info!(checkpoint = %dir.display(), "checkpoint saved");
         }
-        self.last = Some(outcome.losses);
+        self.last = Some(outcome.global.map_or(outcome.losses, |g| g.losses));
         Ok(stopping)
     }
 
-    fn save_checkpoint(&self, losses: &LossValues) -> anyhow::Result<PathBuf> {
-        let next = self
-            .stream
-            .next()
-            .context("a checkpoint before the first step")?;
-        Ok(self
-            .trainer
-            .save_checkpoint(&self.paths.checkpoints, &self.args.run, next, losses)?)
+    /// The position this trainer continues at: the batch it holds, or the one after its
+    /// last trained batch.
+    fn next_position(&self) -> Option<StreamPosition> {
+        self.held.as_ref().map(position_of).or(self.stream.next())
+    }
+
+    /// Saves a checkpoint (a data-parallel job: every rank calls this, rank 0 writes it
+    /// with every rank's next position); the directory written, if this process wrote.
+    fn save_checkpoint(
+        &self,
+        outcome_or_last: &impl LastLosses,
+    ) -> anyhow::Result<Option<PathBuf>> {
+        let losses = outcome_or_last.losses();
+        let run = &self.args.run;
+        let Some(ddp) = &self.ddp else {
+            let next = self
+                .next_position()
+                .context("a checkpoint before the first step")?;
+            let state = self.trainer.checkpoint_state(run, next, &losses);
+            return Ok(Some(
+                self.trainer
+                    .save_checkpoint(&self.paths.checkpoints, &state)?,
+            ));
+        };
+        let next = self.next_position().unwrap_or_default();
+        let what = format!("checkpoint positions at step {}", self.trainer.step_count());
+        let all = ddp.all_gather(&[next.epoch, next.batch], &what);
+        if ddp.rank() != 0 {
+            return Ok(None);
+        }
+        let mut state = self.trainer.checkpoint_state(run, next, &losses);
+        state.ranks = all.chunks(2).map(|p| [p[0], p[1]]).collect();
+        Ok(Some(
+            self.trainer
+                .save_checkpoint(&self.paths.checkpoints, &state)?,
+        ))
     }
 
     /// The final checkpoint, the plot and the summary; `Some(128 + signal)` when stopped
@@ -535,10 +873,14 @@ impl Session<'_> {
     fn finish(self) -> anyhow::Result<Option<i32>> {
         self.bar.finish_and_clear();
         let signal = self.stop.load(Ordering::SeqCst);
-        if let Some(losses) = &self.last
-            && self.stream.next().is_some()
+        let checkpoint = match &self.ddp {
+            // Every rank takes part (the same steps on all ranks).
+            Some(_) => self.last.filter(|_| self.trainer.step_count() > 0),
+            None => self.last.filter(|_| self.stream.next().is_some()),
+        };
+        if let Some(losses) = checkpoint
+            && let Some(dir) = self.save_checkpoint(&losses)?
         {
-            let dir = self.save_checkpoint(losses)?;
             if signal != 0 {
                 tracing::warn!(
                     checkpoint = %dir.display(),
@@ -549,13 +891,15 @@ impl Session<'_> {
                 tracing::info!(checkpoint = %dir.display(), "final checkpoint saved");
             }
         }
-        if signal != 0 {
-            return Ok(Some(128 + signal));
+        // Stopped early: by this process's signal, or (data-parallel) another rank's.
+        let stopped_early =
+            signal != 0 || (self.ddp.is_some() && self.trainer.step_count() < self.steps);
+        if stopped_early {
+            return Ok(Some(128 + if signal != 0 { signal } else { 15 }));
         }
         if self.args.plot {
-            let svg = self.paths.out.join("losses.svg");
-            metrics::plot_svg(&metrics::read(&self.paths.metrics)?, &svg)?;
-            tracing::info!(plot = %svg.display(), "loss curves written");
+            metrics::plot_svg(&metrics::read(&self.paths.metrics)?, &self.paths.plot)?;
+            tracing::info!(plot = %self.paths.plot.display(), "loss curves written");
         }
         let total = self.started.elapsed().as_secs_f64();
         tracing::info!(
@@ -570,13 +914,38 @@ impl Session<'_> {
     }
 }
 
-/// The metrics line of step `step`, trained on the batch `meta` after waiting `wait`
+/// The losses a checkpoint records: those of a step just taken, or the last ones.
+trait LastLosses {
+    fn losses(&self) -> LossValues;
+}
+
+impl LastLosses for StepOutcome {
+    fn losses(&self) -> LossValues {
+        self.global.as_ref().map_or(self.losses, |g| g.losses)
+    }
+}
+
+impl LastLosses for LossValues {
+    fn losses(&self) -> LossValues {
+        *self
+    }
+}
+
+/// The metrics line of step `step` at stream position `at`, trained on the batch `meta`
+/// (none: a data-parallel rank without a batch at this step) after waiting `wait`
 /// seconds for it.
-fn step_record(step: u64, meta: &BatchMeta, outcome: &StepOutcome, wait: f64) -> StepRecord {
+fn step_record(
+    step: u64,
+    at: StreamPosition,
+    meta: Option<&BatchMeta>,
+    outcome: &StepOutcome,
+    wait: f64,
+) -> StepRecord {
+    let samples = meta.map_or(0, |m| m.sample_count as usize);
     StepRecord {
         step,
-        epoch: meta.epoch,
-        batch: meta.step,
+        epoch: at.epoch,
+        batch: at.batch,
         loss: outcome.losses.total,
         l_sc: outcome.losses.sc,
         l_tc: outcome.losses.tc,
@@ -584,12 +953,14 @@ fn step_record(step: u64, meta: &BatchMeta, outcome: &StepOutcome, wait: f64) ->
         lr: outcome.lr,
         wait_ms: wait * 1e3,
         step_ms: outcome.seconds * 1e3,
-        samples_per_s: meta.sample_count as f64 / (wait + outcome.seconds).max(1e-9),
-        samples: meta.sample_count as usize,
+        samples_per_s: samples as f64 / (wait + outcome.seconds).max(1e-9),
+        samples,
         points: outcome.counts[0],
         pairings: outcome.counts[1],
         voxels: outcome.counts[2],
         sample_ids: outcome.sample_ids.clone(),
+        params_hash: 0,
+        ddp: None,
     }
 }
 

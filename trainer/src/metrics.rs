@@ -42,6 +42,30 @@ pub struct StepRecord {
     pub voxels: usize,
     /// `sample_ids` of the batch: (epoch, index in epoch) per sample.
     pub sample_ids: Vec<[u64; 2]>,
+    /// 64-bit hash of the trainable parameters after this step's update: equal on the
+    /// ranks of a data-parallel job (`superflow_trainer::sync::params_hash`).
+    #[serde(default)]
+    pub params_hash: u64,
+    /// The step over all ranks of a data-parallel job (`--ddp`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ddp: Option<DdpRecord>,
+}
+
+/// A data-parallel step as all ranks took it.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct DdpRecord {
+    /// This rank.
+    pub rank: u32,
+    /// Ranks in the job.
+    pub world_size: u32,
+    /// Total loss averaged over all ranks' samples (what the update followed).
+    pub loss: f64,
+    /// Samples of all ranks (this rank's may be 0: its shard's epoch ended first).
+    pub samples: usize,
+    /// Time in the gradient all-reduce (flatten, reduce, unflatten), ms.
+    pub reduce_ms: f64,
+    /// Bytes each rank put into the all-reduce.
+    pub reduce_bytes: usize,
 }
 
 /// Appends step records to a JSON-lines file.

@@ -150,6 +150,19 @@ impl StreamTracker {
     }
 }
 
+/// The step data-parallel ranks take together, from each rank's batch position (`None`:
+/// it has none, having caught a stop signal) and whether it is stopping: `None` when any
+/// rank stops (all stop after the same step), otherwise the earliest position. Ranks
+/// holding a later batch (their shard began the next epoch while others finish theirs,
+/// as shards differ by at most one keyframe) keep it for a later step and add no
+/// gradient to this one, so no keyframe is dropped or repeated.
+pub fn agree(ranks: &[(Option<StreamPosition>, bool)]) -> Option<StreamPosition> {
+    if ranks.iter().any(|(at, stop)| *stop || at.is_none()) {
+        return None;
+    }
+    ranks.iter().filter_map(|(at, _)| *at).min()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -267,5 +280,17 @@ mod tests {
         assert_eq!(s.classify(A, at(2, 10)), Action::Train);
         s.trained(at(2, 10));
         assert_eq!(s.next(), Some(at(2, 11)));
+    }
+
+    #[test]
+    fn ranks_agree_on_the_earliest_batch_or_on_stopping() {
+        let (a, b) = (Some(at(0, 2)), Some(at(1, 0)));
+        assert_eq!(agree(&[(a, false), (a, false)]), a);
+        // Rank 1's shard ended epoch 0 a batch earlier: rank 0 trains alone.
+        assert_eq!(agree(&[(a, false), (b, false)]), a);
+        assert_eq!(agree(&[(b, false), (a, false)]), a);
+        assert_eq!(agree(&[(a, false), (b, true)]), None);
+        assert_eq!(agree(&[(None, false), (a, false)]), None);
+        assert_eq!(agree(&[]), None);
     }
 }

@@ -9,6 +9,7 @@ use crate::loss::{LossValues, SuperFlowLoss};
 use crate::model::SuperFlowModel;
 use crate::schedule::OneCycle;
 use crate::stream::StreamPosition;
+use crate::sync::{GradientBuffer, params_hash};
 use crate::vit::{DinoVit, VitConfig, imagenet_normalize};
 use burn::module::Module;
 use burn::optim::{AdamWConfig, GradientsParams, ModuleOptimizer};
@@ -35,6 +36,32 @@ pub struct StepOutcome {
     pub counts: [usize; 3],
     /// (epoch, index in epoch) of each sample.
     pub sample_ids: Vec<[u64; 2]>,
+    /// The step over all data-parallel ranks (`None` on a single process).
+    pub global: Option<GlobalStep>,
+}
+
+/// Sums a [`GradientBuffer`]'s values over the data-parallel ranks, in place.
+pub type Reduce<'a> = dyn FnMut(&mut [f32]) + 'a;
+
+/// A data-parallel step over all ranks.
+#[derive(Debug, Clone, PartialEq)]
+pub struct GlobalStep {
+    /// The loss terms, averaged over the ranks' samples.
+    pub losses: LossValues,
+    /// Samples of all ranks.
+    pub samples: usize,
+    /// Bytes each rank sent into the all-reduce.
+    pub bytes: usize,
+}
+
+/// What this rank's batch gave (all zero on a rank without a batch at this step).
+#[derive(Debug, Default)]
+struct Local {
+    samples: usize,
+    losses: LossValues,
+    sc_frames: Vec<f64>,
+    counts: [usize; 3],
+    sample_ids: Vec<[u64; 2]>,
 }
 
 /// Seconds of each phase of a step (the CPU backend runs eagerly, so each phase's
@@ -49,6 +76,8 @@ pub struct StepPhases {
     pub forward: f64,
     /// Backward pass.
     pub backward: f64,
+    /// Gradient all-reduce (data-parallel steps).
+    pub reduce: f64,
     /// AdamW update.
     pub update: f64,
 }
@@ -153,6 +182,18 @@ impl Trainer {
 
     /// One step on `view`: tensors, frozen ViT, 3D network, losses, backward, AdamW.
     pub fn step(&mut self, view: &BatchView<'_>) -> Result<StepOutcome, TrainerError> {
+        self.step_synced(Some(view), None)
+    }
+
+    /// One data-parallel step: the gradients of `view` (none when this rank has no batch
+    /// at this step: its shard's epoch ended first) are flattened, combined with the
+    /// other ranks' by `reduce` (an elementwise sum over ranks, see [`crate::sync`]),
+    /// and the mean gradient is applied. Every rank applies the same update.
+    pub fn step_synced(
+        &mut self,
+        view: Option<&BatchView<'_>>,
+        reduce: Option<&mut Reduce<'_>>,
+    ) -> Result<StepOutcome, TrainerError> {
         let started = Instant::now();
         let mut phases = StepPhases::default();
         let mut lap = Instant::now();
@@ -160,101 +201,191 @@ impl Trainer {
             *slot = lap.elapsed().as_secs_f64();
             lap = Instant::now();
         };
-        let inputs = StepInputs::from_view(
-            view,
-            &self.device,
-            &self.vit_device,
-            self.config.loss.pixel_stride,
-        )?;
-        mark(&mut phases.inputs);
-        let patches = self.vit.forward(imagenet_normalize(inputs.images.clone()));
-        let patches = patches.autodiff();
-        mark(&mut phases.vit);
         let model = self
             .model
             .take()
             .expect("the model is present between steps");
-        let point_features = model.point_features(
-            inputs.voxel_features.clone(),
-            &inputs.levels,
-            inputs.pairing_voxel.clone(),
-        );
-        let pixel_features = model.image_head.forward(patches, &inputs.sampler);
-        let terms = self
-            .loss
-            .forward(point_features, pixel_features, &inputs.plan);
-        mark(&mut phases.forward);
-        let grads = GradientsParams::from_grads(terms.total.backward(), &model);
-        mark(&mut phases.backward);
+        let mut local = Local::default();
+        let mut grads = GradientsParams::new();
+        if let Some(view) = view {
+            let inputs = match StepInputs::from_view(
+                view,
+                &self.device,
+                &self.vit_device,
+                self.config.loss.pixel_stride,
+            ) {
+                Ok(inputs) => inputs,
+                Err(e) => {
+                    self.model = Some(model);
+                    return Err(e.into());
+                }
+            };
+            mark(&mut phases.inputs);
+            let patches = self.vit.forward(imagenet_normalize(inputs.images.clone()));
+            let patches = patches.autodiff();
+            mark(&mut phases.vit);
+            let point_features = model.point_features(
+                inputs.voxel_features.clone(),
+                &inputs.levels,
+                inputs.pairing_voxel.clone(),
+            );
+            let pixel_features = model.image_head.forward(patches, &inputs.sampler);
+            let terms = self
+                .loss
+                .forward(point_features, pixel_features, &inputs.plan);
+            mark(&mut phases.forward);
+            let losses = terms.values();
+            if !losses.total.is_finite() {
+                self.model = Some(model);
+                return Err(TrainerError::NonFiniteLoss {
+                    loss: losses.total,
+                    step: self.step + 1,
+                    epoch: view.meta().epoch,
+                    batch: view.meta().step,
+                });
+            }
+            grads = GradientsParams::from_grads(terms.total.backward(), &model);
+            mark(&mut phases.backward);
+            local = Local {
+                samples: view.meta().sample_count as usize,
+                sc_frames: terms
+                    .sc_frames
+                    .iter()
+                    .map(|t| {
+                        t.clone()
+                            .into_data()
+                            .try_into_vec::<f32>()
+                            .ok()
+                            .and_then(|v| v.first().copied())
+                            .map_or(f64::NAN, f64::from)
+                    })
+                    .collect(),
+                losses,
+                counts: inputs.counts,
+                sample_ids: inputs.sample_ids.iter().map(|s| [s[0], s[1]]).collect(),
+            };
+        }
+        let mut global = None;
+        let mut averaged = None;
+        if let Some(reduce) = reduce {
+            let n = local.samples as f32;
+            let l = &local.losses;
+            let scalars = [l.total, l.sc, l.tc, l.d2s].map(|v| v as f32 * n);
+            let mut buffer =
+                GradientBuffer::from_gradients(&model, &mut grads, local.samples, &scalars);
+            reduce(&mut buffer.values);
+            let total = buffer.samples();
+            let mean = |i: usize| f64::from(buffer.scalars()[i]) / f64::from(total.max(1.0));
+            global = Some(GlobalStep {
+                losses: LossValues {
+                    total: mean(0),
+                    sc: mean(1),
+                    tc: mean(2),
+                    d2s: mean(3),
+                },
+                samples: total.round() as usize,
+                bytes: buffer.bytes(),
+            });
+            grads = buffer.into_gradients(&model, &self.vit_device);
+            mark(&mut phases.reduce);
+            averaged = Some(buffer);
+        } else if view.is_none() {
+            self.model = Some(model);
+            return Err(TrainerError::Ranks(
+                "a step without a batch needs the other ranks' gradients".into(),
+            ));
+        }
         let lr = self.schedule.lr(self.step);
-        self.model = Some(self.optim.step(lr, model, grads));
+        let mut model = self.optim.step(lr, model, grads);
+        if let Some(buffer) = averaged {
+            model = buffer.average_buffers(model);
+        }
+        self.model = Some(model);
         self.step += 1;
         mark(&mut phases.update);
-        let losses = terms.values();
-        if !losses.total.is_finite() {
-            return Err(TrainerError::NonFiniteLoss {
-                loss: losses.total,
-                step: self.step,
-                epoch: view.meta().epoch,
-                batch: view.meta().step,
-            });
-        }
-        let sc_frames = terms
-            .sc_frames
-            .iter()
-            .map(|t| {
-                t.clone()
-                    .into_data()
-                    .try_into_vec::<f32>()
-                    .ok()
-                    .and_then(|v| v.first().copied())
-                    .map_or(f64::NAN, f64::from)
-            })
-            .collect();
         Ok(StepOutcome {
-            losses,
-            sc_frames,
+            losses: local.losses,
+            sc_frames: local.sc_frames,
             lr,
             seconds: started.elapsed().as_secs_f64(),
             phases,
-            counts: inputs.counts,
-            sample_ids: inputs.sample_ids.iter().map(|s| [s[0], s[1]]).collect(),
+            counts: local.counts,
+            sample_ids: local.sample_ids,
+            global,
         })
     }
 
-    /// Saves model, optimizer, schedule position and `next`, the stream position of the
-    /// next batch to train on, into `root` (atomically).
-    pub fn save_checkpoint(
-        &self,
-        root: &Path,
-        run: &str,
-        next: StreamPosition,
-        last: &LossValues,
-    ) -> Result<PathBuf, TrainerError> {
-        let model = (self.model().clone().into_record().into_bytes()).map_err(|error| {
-            TrainerError::Encode {
+    /// A 64-bit hash of the trainable parameters (equal on replicas holding the same
+    /// model; see [`crate::sync::params_hash`]).
+    pub fn params_hash(&self) -> u64 {
+        params_hash(self.model())
+    }
+
+    /// The trainable model as a burnpack record (what a checkpoint's `model.bpk` holds).
+    pub fn model_bytes(&self) -> Result<Vec<u8>, TrainerError> {
+        let bytes = self
+            .model()
+            .clone()
+            .into_record()
+            .into_bytes()
+            .map_err(|error| TrainerError::Encode {
                 what: "model",
                 error,
-            }
-        })?;
-        let optim = self
+            })?;
+        Ok(bytes.to_vec())
+    }
+
+    /// The optimizer state as a record (what a checkpoint's `optim.bpk` holds).
+    pub fn optim_bytes(&self) -> Result<Vec<u8>, TrainerError> {
+        let bytes = self
             .optim
             .into_bytes()
             .map_err(|error| TrainerError::Encode {
                 what: "optimizer",
                 error,
             })?;
-        let state = CheckpointState {
+        Ok(bytes.to_vec())
+    }
+
+    /// Saves model, optimizer and `state` ([`checkpoint_state`](Self::checkpoint_state):
+    /// schedule position, stream position of the next batch) into `root`, atomically.
+    pub fn save_checkpoint(
+        &self,
+        root: &Path,
+        state: &CheckpointState,
+    ) -> Result<PathBuf, TrainerError> {
+        checkpoint::save(
+            root,
+            state,
+            &self.model_bytes()?,
+            &self.optim_bytes()?,
+            self.config.checkpoint.keep,
+        )
+    }
+
+    /// The state a checkpoint taken now records.
+    pub fn checkpoint_state(
+        &self,
+        run: &str,
+        next: StreamPosition,
+        last: &LossValues,
+    ) -> CheckpointState {
+        CheckpointState {
             format: checkpoint::FORMAT.into(),
             step: self.step,
             next_epoch: next.epoch,
             next_batch: next.batch,
+            ranks: Vec::new(),
             run: run.to_string(),
-            config: toml::to_string(&self.config).unwrap_or_default(),
+            config: self.config_toml(),
             lr: self.schedule.lr(self.step.saturating_sub(1)),
             loss: last.total,
-        };
-        checkpoint::save(root, &state, &model, &optim, self.config.checkpoint.keep)
+        }
+    }
+
+    /// The configuration as TOML (what checkpoints record; data-parallel ranks compare it).
+    pub fn config_toml(&self) -> String {
+        toml::to_string(&self.config).unwrap_or_default()
     }
 
     /// Restores the newest checkpoint of `root`; returns its state (None if there is
@@ -264,25 +395,48 @@ impl Trainer {
             return Ok(None);
         };
         let read = |p: PathBuf| std::fs::read(&p).map_err(|e| TrainerError::io("reading", p, e));
-        let record = ModuleRecord::from_bytes(Bytes::from_bytes_vec(read(ckpt.model_path())?))
-            .map_err(|error| TrainerError::Record {
-                path: ckpt.model_path(),
+        self.restore_bytes(
+            read(ckpt.model_path())?,
+            read(ckpt.optim_path())?,
+            ckpt.state.step,
+            &ckpt.dir,
+        )?;
+        tracing::info!(checkpoint = %ckpt.dir.display(), step = self.step, "restored");
+        Ok(Some(ckpt.state))
+    }
+
+    /// Takes the model and optimizer records (the bytes of [`model_bytes`](Self::model_bytes)
+    /// and [`optim_bytes`](Self::optim_bytes), read from a checkpoint in `source` or
+    /// received from another rank) and the step count. An empty `optim` keeps the
+    /// optimizer as it is (a fresh run's).
+    pub fn restore_bytes(
+        &mut self,
+        model: Vec<u8>,
+        optim: Vec<u8>,
+        step: u64,
+        source: &Path,
+    ) -> Result<(), TrainerError> {
+        let record = ModuleRecord::from_bytes(Bytes::from_bytes_vec(model)).map_err(|error| {
+            TrainerError::Record {
+                path: source.join("model.bpk"),
                 error,
-            })?;
-        let model = self
+            }
+        })?;
+        let current = self
             .model
             .take()
             .expect("the model is present between steps");
-        self.model = Some(model.load_record(record));
-        let optim = std::mem::replace(&mut self.optim, AdamWConfig::new().init());
-        self.optim = optim
-            .from_bytes(Bytes::from_bytes_vec(read(ckpt.optim_path())?))
-            .map_err(|error| TrainerError::Record {
-                path: ckpt.optim_path(),
-                error,
-            })?;
-        self.step = ckpt.state.step;
-        tracing::info!(checkpoint = %ckpt.dir.display(), step = self.step, "restored");
-        Ok(Some(ckpt.state))
+        self.model = Some(current.load_record(record));
+        if !optim.is_empty() {
+            let old = std::mem::replace(&mut self.optim, AdamWConfig::new().init());
+            self.optim = old
+                .from_bytes(Bytes::from_bytes_vec(optim))
+                .map_err(|error| TrainerError::Record {
+                    path: source.join("optim.bpk"),
+                    error,
+                })?;
+        }
+        self.step = step;
+        Ok(())
     }
 }

@@ -244,6 +244,7 @@ fn median_phases(all: &[StepPhases]) -> StepPhases {
         vit: m(|p| p.vit),
         forward: m(|p| p.forward),
         backward: m(|p| p.backward),
+        reduce: m(|p| p.reduce),
         update: m(|p| p.update),
     }
 }
