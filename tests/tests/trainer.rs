@@ -1,7 +1,9 @@
 //! The real `superflow-pipeline` feeding the real `superflow-trainer` (tiny presets) on
 //! the sample drive: the loss goes down, checkpoints are written, and a trainer killed
 //! after a checkpoint and restarted with `--resume` continues with the same batches and
-//! the same losses as an uninterrupted run.
+//! the same losses as an uninterrupted run. `superflow-trainer check` (the backend
+//! comparison `deploy/gpu/check.sh` runs on a GPU) on a batch file from
+//! `superflow-pipeline batch`.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
 
@@ -185,4 +187,78 @@ fn training_lowers_the_loss_and_a_resumed_run_matches_an_uninterrupted_one() {
     );
     let _ = std::fs::remove_dir_all(&full);
     let _ = std::fs::remove_dir_all(&cut);
+}
+
+#[test]
+fn check_runs_the_same_steps_on_every_backend_and_compares_their_losses() {
+    let dir = temp_dir("check");
+    std::fs::create_dir_all(&dir).unwrap();
+    let batch = dir.join("batch.bin");
+    let (ok, _, err) = finish(
+        spawn(
+            Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-probe")))
+                .args(["batch", "--mcap", DRIVE, "--batch-size", "2", "--out"])
+                .arg(&batch)
+                .current_dir(workspace_root())
+                .stdout(Stdio::null())
+                .stderr(Stdio::piped()),
+        ),
+        LIMIT,
+    );
+    assert!(ok, "{err}");
+    let json = dir.join("check.json");
+    let (ok, out, err) = finish(
+        spawn(
+            Command::new(workspace_binary(
+                env!("CARGO_BIN_EXE_superflow-probe"),
+                "superflow-trainer",
+            ))
+            .args(["check", "--batch"])
+            .arg(&batch)
+            .args(["--backends", "flex,flex", "--steps", "2", "--unet", "tiny"])
+            .args(["--vit", "tiny", "--pixel-stride", "4", "--json"])
+            .arg(&json)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped()),
+        ),
+        LIMIT,
+    );
+    assert!(ok, "{out}\n{err}");
+    assert!(
+        out.contains("| flex |") && err.contains("the backends agree"),
+        "{out}\n{err}"
+    );
+    let runs: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    let runs = runs.as_array().unwrap();
+    assert_eq!(runs.len(), 2);
+    let losses = |r: &serde_json::Value| r["losses"].as_array().unwrap().clone();
+    assert_eq!(losses(&runs[0]).len(), 2, "2 steps");
+    assert_eq!(
+        losses(&runs[0]),
+        losses(&runs[1]),
+        "the same backend gives the same losses"
+    );
+    let total = |r: &serde_json::Value, i: usize| r["losses"][i]["total"].as_f64().unwrap();
+    assert!(total(&runs[0], 0) > 0.0 && total(&runs[0], 0) != total(&runs[0], 1));
+
+    // A batch file that is not one: an error naming it.
+    std::fs::write(&batch, b"not a batch").unwrap();
+    let (ok, _, err) = finish(
+        spawn(
+            Command::new(workspace_binary(
+                env!("CARGO_BIN_EXE_superflow-probe"),
+                "superflow-trainer",
+            ))
+            .args(["check", "--backends", "flex", "--batch"])
+            .arg(&batch)
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped()),
+        ),
+        LIMIT,
+    );
+    assert!(
+        !ok && err.contains("batch.bin") && err.contains("shorter than a batch header"),
+        "{err}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
 }

@@ -130,6 +130,14 @@ pub enum TrainerError {
         /// Batch in the epoch.
         batch: u64,
     },
+    /// A batch file (`superflow-pipeline batch`) that cannot be used.
+    #[error("batch file {}: {reason}", path.display())]
+    BatchFile {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        reason: String,
+    },
     /// The MPI job (`--ddp`).
     #[error("MPI: {0}")]
     Mpi(String),

@@ -48,6 +48,7 @@
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 
+pub mod check;
 pub mod checkpoint;
 pub mod config;
 #[cfg(feature = "mpi")]

@@ -9,6 +9,7 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicI32, Ordering};
 use std::time::{Duration, Instant};
 use superflow_schemas::batch::BatchMeta;
+use superflow_trainer::check::{self, BatchFile};
 use superflow_trainer::checkpoint::CheckpointState;
 use superflow_trainer::config::TrainerConfig;
 #[cfg(feature = "mpi")]
@@ -25,6 +26,8 @@ use superflow_trainer::vit::VitPreset;
 #[derive(Debug, Parser)]
 #[command(version, about)]
 struct Args {
+    #[command(subcommand)]
+    command: Option<Sub>,
     /// Run name of the pipeline to subscribe to.
     #[arg(long, default_value = "default")]
     run: String,
@@ -35,36 +38,36 @@ struct Args {
     #[arg(long)]
     world_size: Option<u32>,
     /// trainer.toml (networks, losses, optimizer, checkpoints); flags override it.
-    #[arg(long)]
+    #[arg(long, global = true)]
     config: Option<PathBuf>,
     /// Optimizer steps of the run (also the one-cycle schedule's length) [default: the
     /// config's `optim.steps`].
-    #[arg(long)]
+    #[arg(long, global = true)]
     steps: Option<u64>,
     /// 3D network: minkunet34, minkunet18, tiny.
-    #[arg(long)]
+    #[arg(long, global = true)]
     unet: Option<UNetPreset>,
     /// 2D network size without weights: tiny, small, base, large.
-    #[arg(long)]
+    #[arg(long, global = true)]
     vit: Option<VitPreset>,
     /// DINOv2 weights (safetensors) for the frozen 2D network.
-    #[arg(long)]
+    #[arg(long, global = true)]
     image_weights: Option<PathBuf>,
     /// Superpixel pooling at every n-th pixel (1 = all, as the official code).
-    #[arg(long)]
+    #[arg(long, global = true)]
     pixel_stride: Option<usize>,
     /// Peak learning rate.
     #[arg(long)]
     lr: Option<f64>,
     /// Seed of the initial weights.
-    #[arg(long)]
+    #[arg(long, global = true)]
     seed: Option<u64>,
     /// Compute backend: flex (CPU), wgpu (build with --features wgpu), cuda (--features cuda).
     #[arg(long, default_value = "flex")]
     backend: String,
     /// GPU index for cuda (wgpu takes the best adapter; set CUBECL_WGPU_DEFAULT_DEVICE to
     /// choose another).
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, default_value_t = 0, global = true)]
     device_index: usize,
     /// Output directory: checkpoints/, metrics.jsonl, losses.svg [default: runs/<run>
     /// or runs/<run>-rank<r>]; with --ddp rank r writes rank-r/metrics.jsonl there and
@@ -100,13 +103,43 @@ struct Args {
     iox_prefix: Option<String>,
 }
 
+/// What else the binary does besides training on a stream.
+#[derive(Debug, clap::Subcommand)]
+enum Sub {
+    /// Trains a few steps on one batch file on several backends from the same initial
+    /// weights and compares their losses (a GPU backend against the CPU's `flex`): the
+    /// check before a long run on a new machine. Network flags (--unet, --vit,
+    /// --pixel-stride, --config, --seed, --steps [default 3]) apply.
+    Check(CheckArgs),
+}
+
+/// `superflow-trainer check`.
+#[derive(Debug, clap::Args)]
+struct CheckArgs {
+    /// Batch file written by `superflow-pipeline batch`.
+    #[arg(long)]
+    batch: PathBuf,
+    /// Backends to run, comma-separated; the first is the reference.
+    #[arg(long, value_delimiter = ',', default_value = "flex,wgpu")]
+    backends: Vec<String>,
+    /// Largest relative difference of any loss term of any step from the reference.
+    #[arg(long, default_value_t = 1e-3)]
+    tolerance: f64,
+    /// Also write the results as JSON to this file.
+    #[arg(long)]
+    json: Option<PathBuf>,
+}
+
 impl Args {
     fn config(&self) -> anyhow::Result<TrainerConfig> {
         let mut c = match &self.config {
             Some(path) => TrainerConfig::load(path)?,
             None => TrainerConfig::default(),
         };
-        if let Some(v) = self.steps {
+        // `check --steps` counts the steps to compare, not the schedule's length.
+        if let Some(v) = self.steps
+            && self.command.is_none()
+        {
             c.optim.steps = v;
         }
         if let Some(v) = self.unet {
@@ -983,6 +1016,76 @@ fn log_step(record: &StepRecord, outcome: &StepOutcome) {
     );
 }
 
+/// `superflow-trainer check`: the same steps on every backend, compared with the first.
+fn check(args: &Args, c: &CheckArgs) -> anyhow::Result<Option<i32>> {
+    let steps = args.steps.unwrap_or(3).max(1) as usize;
+    let config = args.config()?;
+    let batch = BatchFile::read(&c.batch)?;
+    let view = batch.view()?;
+    tracing::info!(
+        batch = %c.batch.display(),
+        bytes = batch.bytes(),
+        samples = view.meta().sample_count,
+        unet = ?config.model.unet,
+        vit = ?config.model.vit,
+        steps,
+        "checking backends on one batch"
+    );
+    drop(view);
+    let mut runs = Vec::new();
+    for backend in &c.backends {
+        let device = device(backend, args.device_index)?;
+        tracing::info!(backend, ?device, "running");
+        let run = check::run_backend(backend, &config, &device, &batch, steps)
+            .with_context(|| format!("backend {backend}"))?;
+        runs.push(run);
+    }
+    let reference = &runs[0];
+    println!(
+        "| backend | init s | first step ms | ms / step (after the first) | steps/s | worst relative loss difference vs {} |",
+        reference.backend
+    );
+    println!("|---|---:|---:|---:|---:|---:|");
+    let mut worst = 0.0f64;
+    let mut json = Vec::new();
+    for run in &runs {
+        let difference = run.worst_difference(reference);
+        worst = worst.max(difference);
+        let steady = run.steady_ms();
+        println!(
+            "| {} | {:.2} | {:.1} | {steady:.1} | {:.2} | {difference:.2e} |",
+            run.backend,
+            run.init_s,
+            run.step_ms[0],
+            1e3 / steady
+        );
+        json.push(serde_json::json!({
+            "backend": run.backend,
+            "init_s": run.init_s,
+            "step_ms": run.step_ms,
+            "losses": run.losses,
+            "worst_relative_difference": difference,
+        }));
+    }
+    if let Some(path) = &c.json {
+        std::fs::write(path, serde_json::to_vec_pretty(&json)?)
+            .with_context(|| format!("writing {}", path.display()))?;
+    }
+    if worst > c.tolerance {
+        anyhow::bail!(
+            "the backends disagree: a loss differs by {worst:.2e} (relative) from {}'s, more than --tolerance {:.0e}",
+            reference.backend,
+            c.tolerance
+        );
+    }
+    tracing::info!(
+        worst = format_args!("{worst:.2e}"),
+        tolerance = c.tolerance,
+        "the backends agree"
+    );
+    Ok(None)
+}
+
 fn main() -> std::process::ExitCode {
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
@@ -992,7 +1095,12 @@ fn main() -> std::process::ExitCode {
             tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
         )
         .init();
-    match run(&Args::parse()) {
+    let args = Args::parse();
+    let outcome = match &args.command {
+        Some(Sub::Check(c)) => check(&args, c),
+        None => run(&args),
+    };
+    match outcome {
         Ok(None) => std::process::ExitCode::SUCCESS,
         // Stopped by a signal after checkpointing: not done, so not success.
         Ok(Some(code)) => std::process::ExitCode::from(code as u8),
