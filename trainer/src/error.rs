@@ -138,6 +138,9 @@ pub enum TrainerError {
         /// What is wrong.
         reason: String,
     },
+    /// The downstream probe (`superflow-trainer probe`).
+    #[error("probe: {0}")]
+    Probe(String),
     /// The MPI job (`--ddp`).
     #[error("MPI: {0}")]
     Mpi(String),

@@ -59,6 +59,7 @@ pub mod inputs;
 pub mod loss;
 pub mod metrics;
 pub mod model;
+pub mod probe;
 pub mod schedule;
 pub mod sparse;
 pub mod stream;
