@@ -351,6 +351,7 @@ fn scripts_parse_and_pass_shellcheck() {
         "slurm/superflow-ddp.sbatch",
         "slurm/superflow-pipeline.sh",
         RANK_WRAPPER,
+        "gpu/check.sh",
     ] {
         let path = deploy(script);
         let (ok, text) = output(Command::new("bash").arg("-n").arg(&path));
