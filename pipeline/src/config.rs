@@ -5,11 +5,14 @@
 //! * `[sample]` with `[sample.slic]`, `[sample.augment]` and `[sample.voxel]`
 //!   ([`SampleConfig`]): the sample recipe;
 //! * `[service]` ([`ServiceConfig`]): the stream — mode, ranks and hosts, batch size,
-//!   prefetch, epochs, subscriber waits.
+//!   prefetch, epochs, subscriber waits;
+//! * `[labels]` ([`LabelConfig`]): per-point semantic labels — field, mask, raw id →
+//!   training class mapping, ignore index, class names (read only by `inspect` and by
+//!   whoever asks for labels, e.g. a linear probe; samples never read them).
 //!
 //! `pipeline/pipeline.toml` lists every setting with its default and a comment.
 
-use crate::drive::IngestConfig;
+use crate::drive::{IngestConfig, LabelConfig};
 use crate::invalid::InvalidSetting;
 use crate::publish::ServiceConfig;
 use crate::sample::SampleConfig;
@@ -27,6 +30,8 @@ pub struct PipelineConfig {
     pub sample: SampleConfig,
     /// The stream (`[service]`): mode, world size, batch size, prefetch, epochs.
     pub service: ServiceConfig,
+    /// Per-point labels (`[labels]`, `[labels.mapping]`).
+    pub labels: LabelConfig,
 }
 
 /// A configuration file that cannot be used.
@@ -88,7 +93,8 @@ impl PipelineConfig {
             ));
         }
         self.sample.validate()?;
-        self.service.validate()
+        self.service.validate()?;
+        self.labels.validate()
     }
 }
 
@@ -160,7 +166,13 @@ mod tests {
         let file: toml::Table = toml::from_str(&text).unwrap();
         let defaults = toml::Table::try_from(PipelineConfig::default()).unwrap();
         assert_eq!(keys(&file, ""), keys(&defaults, ""));
-        for optional in ["lidar_topic", "map_frame", "ego_frame"] {
+        for optional in [
+            "lidar_topic",
+            "map_frame",
+            "ego_frame",
+            "field",
+            "label_mask",
+        ] {
             assert!(text.contains(&format!("\n# {optional} = ")), "{optional}");
         }
         let err =
@@ -174,6 +186,25 @@ mod tests {
             err.to_string(),
             "service.host_rank = 1 must be below service.host_count = 1"
         );
+    }
+
+    #[test]
+    fn the_labels_section_reads_a_mapping_and_a_mask() {
+        let config: PipelineConfig = toml::from_str(
+            "[labels]\nfield = \"label\"\nlabel_mask = 0xFFFF\nclasses = [\"car\", \"road\"]\n\
+             [labels.mapping]\n10 = 0\n40 = 1\n0x30 = 255\n",
+        )
+        .unwrap();
+        assert!(config.validate().is_ok());
+        let labels = &config.labels;
+        assert_eq!(labels.label_mask, Some(0xFFFF));
+        assert_eq!(labels.ignore_index, 255);
+        let map = labels.label_map().unwrap();
+        assert_eq!(map.classes_of(&[10, 40, 48, 11]), Ok(vec![0, 1, 255, 255]));
+        let bad: PipelineConfig =
+            toml::from_str("[labels]\nclasses = [\"car\"]\n[labels.mapping]\n10 = 3\n").unwrap();
+        let e = bad.validate().unwrap_err();
+        assert_eq!(e.setting, "labels.mapping.10");
     }
 
     /// The dotted paths of every key of `table`.

@@ -5,10 +5,13 @@
 
 use crate::drive::SkipReport;
 use crate::drive::dataset::ChannelSummary;
-use crate::drive::{Dataset, Drive, Role};
+use crate::drive::{Dataset, Drive, DriveLabels, LabelConfig, LabelForm, Role};
 use crate::sample::SampleConfig;
 use crate::sample::plan::drive_keyframes;
+use crate::source::ChunkCache;
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
 use std::fmt::Write as _;
 
 /// The format identifier of the JSON report.
@@ -82,12 +85,23 @@ pub struct InspectReport {
 }
 
 impl InspectReport {
-    /// Builds the report of an indexed dataset.
+    /// Builds the report of an indexed dataset (without [`DriveReport::labels`]: that
+    /// reads every sweep, see [`InspectReport::with_labels`]).
     pub fn new(dataset: &Dataset) -> Self {
         InspectReport {
             format: INSPECT_FORMAT.to_string(),
             drives: dataset.drives.iter().map(DriveReport::new).collect(),
         }
+    }
+
+    /// [`InspectReport::new`] with each drive's labels read under `config` (every sweep
+    /// of a labelled drive is decoded).
+    pub fn with_labels(dataset: &Dataset, config: &LabelConfig) -> Self {
+        let mut report = Self::new(dataset);
+        for (drive, out) in dataset.drives.iter().zip(&mut report.drives) {
+            out.labels = LabelsReport::of(drive, config);
+        }
+        report
     }
 
     /// The report for people.
@@ -147,6 +161,161 @@ pub struct DriveReport {
     pub skipped: SkipReport,
     /// Why the dataset cannot be trained on, if it cannot.
     pub problems: Option<String>,
+    /// Per-point labels, when the drive has them and the report was asked to read them
+    /// (`inspect` does; see [`InspectReport::with_labels`]).
+    #[serde(default)]
+    pub labels: Option<LabelsReport>,
+}
+
+/// A drive's per-point labels: where they are and what they hold.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct LabelsReport {
+    /// Where they are; `None` when they could not be located (see `first_error`).
+    pub form: Option<LabelForm>,
+    /// LiDAR sweeps.
+    pub sweeps: usize,
+    /// Sweeps whose labels read.
+    pub sweeps_labelled: usize,
+    /// Points of those sweeps per raw id (after `label_mask`).
+    pub raw_ids: BTreeMap<u32, u64>,
+    /// Points of those sweeps per training class, with its name when `[labels] classes`
+    /// names it (`ignore` for `ignore_index`).
+    pub classes: Vec<ClassCount>,
+    /// Sweeps whose labels did not read.
+    pub errors: usize,
+    /// The first of those errors (or why the labels could not be located).
+    pub first_error: Option<String>,
+}
+
+/// Points of one training class.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ClassCount {
+    /// The class id.
+    pub id: u8,
+    /// Its name from `[labels] classes`, `ignore`, or empty.
+    pub name: String,
+    /// Points.
+    pub points: u64,
+}
+
+impl LabelsReport {
+    /// The labels of `drive` under `config`, every sweep read; `None` when the drive has
+    /// no labels.
+    pub fn of(drive: &Drive, config: &LabelConfig) -> Option<Self> {
+        let labels = match DriveLabels::open(drive, config) {
+            Ok(labels) => labels?,
+            Err(e) => {
+                return Some(LabelsReport {
+                    sweeps: drive.lidar.as_ref().map_or(0, |l| l.sweeps.len()),
+                    first_error: Some(e.to_string()),
+                    ..LabelsReport::default()
+                });
+            }
+        };
+        #[derive(Default)]
+        struct Tally {
+            raw: BTreeMap<u32, u64>,
+            classes: BTreeMap<u8, u64>,
+            labelled: usize,
+            errors: Vec<(usize, String)>,
+        }
+        let tally = (0..labels.sweeps())
+            .into_par_iter()
+            .fold(
+                || (Tally::default(), ChunkCache::new(2)),
+                |(mut tally, mut cache), sweep| {
+                    match labels.read(sweep, &mut cache) {
+                        Ok(read) => {
+                            tally.labelled += 1;
+                            let raw = read.decoded.cloud.label.unwrap_or_default();
+                            for id in raw {
+                                *tally.raw.entry(id).or_default() += 1;
+                            }
+                            for class in read.labels {
+                                *tally.classes.entry(class).or_default() += 1;
+                            }
+                        }
+                        Err(e) => tally.errors.push((sweep, e.to_string())),
+                    }
+                    (tally, cache)
+                },
+            )
+            .map(|(tally, _)| tally)
+            .reduce(Tally::default, |mut a, b| {
+                for (id, n) in b.raw {
+                    *a.raw.entry(id).or_default() += n;
+                }
+                for (class, n) in b.classes {
+                    *a.classes.entry(class).or_default() += n;
+                }
+                a.labelled += b.labelled;
+                a.errors.extend(b.errors);
+                a
+            });
+        let ignore = labels.map().ignore_index();
+        Some(LabelsReport {
+            form: Some(labels.form().clone()),
+            sweeps: labels.sweeps(),
+            sweeps_labelled: tally.labelled,
+            raw_ids: tally.raw,
+            classes: tally
+                .classes
+                .into_iter()
+                .map(|(id, points)| ClassCount {
+                    id,
+                    name: config
+                        .classes
+                        .get(usize::from(id))
+                        .cloned()
+                        .or_else(|| (id == ignore).then(|| "ignore".to_string()))
+                        .unwrap_or_default(),
+                    points,
+                })
+                .collect(),
+            errors: tally.errors.len(),
+            first_error: tally.errors.into_iter().min().map(|(_, e)| e),
+        })
+    }
+
+    /// The report for people: a few lines.
+    fn to_text(&self) -> String {
+        let mut out = String::new();
+        match &self.form {
+            Some(form) => {
+                let _ = writeln!(
+                    out,
+                    "\nlabels: {form}; {} of {} sweeps labelled",
+                    self.sweeps_labelled, self.sweeps
+                );
+            }
+            None => {
+                let _ = writeln!(out, "\nlabels: not readable");
+            }
+        }
+        if !self.raw_ids.is_empty() {
+            let ids: Vec<String> = self
+                .raw_ids
+                .iter()
+                .map(|(id, n)| format!("{id}: {n}"))
+                .collect();
+            let _ = writeln!(out, "  raw ids (points): {}", ids.join(", "));
+        }
+        if !self.classes.is_empty() {
+            let classes: Vec<String> = self
+                .classes
+                .iter()
+                .map(|c| match c.name.as_str() {
+                    "" => format!("{}: {}", c.id, c.points),
+                    name => format!("{} {name}: {}", c.id, c.points),
+                })
+                .collect();
+            let _ = writeln!(out, "  training classes (points): {}", classes.join(", "));
+        }
+        if let Some(e) = &self.first_error {
+            let _ = writeln!(out, "  {} sweeps failed; first: {e}", self.errors);
+        }
+        out
+    }
 }
 
 /// Keyframe spacing of the paper and the official code.
@@ -283,6 +452,7 @@ impl DriveReport {
             camera_timing: CameraTimingReport::of(dataset),
             skipped: dataset.skipped.clone(),
             problems: dataset.check_sensors().err().map(|e| e.to_string()),
+            labels: None,
         }
     }
 
@@ -377,6 +547,9 @@ impl DriveReport {
                 "keyframes (least camera offset): {}; worst camera offset median {median:.1} ms, max {max:.1} ms",
                 t.keyframes
             );
+        }
+        if let Some(labels) = &self.labels {
+            out.push_str(&labels.to_text());
         }
         let _ = writeln!(out, "skipped {} messages", self.skipped.total());
         for (kind, e) in &self.skipped.entries {

@@ -79,7 +79,8 @@ struct Args {
 #[derive(Debug, Subcommand)]
 enum Command {
     /// Lists what the drives hold: dialect, channels and roles, cameras, frame tree,
-    /// time span, usable keyframes and skipped messages.
+    /// time span, usable keyframes, per-point labels (`[labels]` of the configuration)
+    /// and skipped messages.
     Inspect {
         /// Print the stable JSON report (`superflow.inspect/1`) instead of text.
         #[arg(long)]
@@ -218,8 +219,9 @@ fn write_slic_sidecars(
 fn run(args: &Args) -> anyhow::Result<()> {
     match &args.command {
         Some(Command::Inspect { json }) => {
+            let labels = load_config(args)?.labels;
             let dataset = open(args)?;
-            let report = InspectReport::new(&dataset);
+            let report = InspectReport::with_labels(&dataset, &labels);
             if *json {
                 println!("{}", serde_json::to_string_pretty(&report)?);
             } else {

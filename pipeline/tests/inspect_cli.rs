@@ -35,13 +35,29 @@ fn json_report_matches_the_ground_truth() {
                 "foxglove_protobuf"
             }
         );
-        assert_eq!(report.files.len(), 1);
-        assert!(report.files[0].damage.is_empty());
+        // The drive and, when its labels are in a sidecar, `<drive>.labels.mcap`.
+        let labels = &truth["labels"];
+        let sidecar_channels = labels["sidecar"]["channels"]
+            .as_array()
+            .cloned()
+            .unwrap_or_default();
+        assert_eq!(
+            report.files.len(),
+            1 + usize::from(!labels["sidecar"].is_null())
+        );
+        assert!(report.files.iter().all(|f| f.damage.is_empty()));
         assert_eq!(report.problems, None);
         assert_eq!(report.skipped.total(), 0);
 
-        // Every channel of the truth, with its count and role.
-        for channel in truth["channels"].as_array().unwrap() {
+        // Every channel of the truth (the drive's and its sidecar's), with its count and
+        // role.
+        let channels: Vec<&Value> = truth["channels"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .chain(&sidecar_channels)
+            .collect();
+        for channel in &channels {
             let topic = channel["topic"].as_str().unwrap();
             let found = report
                 .channels
@@ -58,9 +74,43 @@ fn json_report_matches_the_ground_truth() {
             let expected_role = if role == "other" { "ignored" } else { role };
             assert_eq!(found.role.name(), expected_role, "{topic}");
         }
+        assert_eq!(report.channels.len(), channels.len());
+
+        // The labels: where they are, every sweep labelled, the points of each class.
+        let found = report
+            .labels
+            .as_ref()
+            .expect("the sample drives are labelled");
+        let form = serde_json::to_value(found.form.as_ref().unwrap()).unwrap();
+        assert_eq!(form["form"], labels["form"]);
+        match labels["form"].as_str().unwrap() {
+            "field" => assert_eq!(form["field"], labels["field"]),
+            _ => {
+                assert_eq!(form["topic"], labels["topic"]);
+                let file = form["file"].as_str().unwrap();
+                let want = labels["sidecar"]["file"].as_str().unwrap();
+                assert!(file.ends_with(&format!("/{want}")), "{file}");
+            }
+        }
+        let sweeps = truth["lidar"]["sweeps"].as_array().unwrap().len();
+        assert_eq!((found.sweeps, found.sweeps_labelled), (sweeps, sweeps));
+        assert_eq!((found.errors, &found.first_error), (0, &None));
+        let per_class: Vec<u64> = labels["points_per_class"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|n| n.as_u64().unwrap())
+            .collect();
+        for (id, points) in per_class.iter().enumerate() {
+            assert_eq!(
+                found.raw_ids.get(&(id as u32)).copied().unwrap_or(0),
+                *points,
+                "class {id}"
+            );
+        }
         assert_eq!(
-            report.channels.len(),
-            truth["channels"].as_array().unwrap().len()
+            found.raw_ids.values().sum::<u64>(),
+            per_class.iter().sum::<u64>()
         );
 
         let lidar = &truth["lidar"];
@@ -153,6 +203,11 @@ fn text_report_and_errors_for_people() {
         "{stdout}"
     );
     assert!(stdout.contains("/LIDAR_TOP") && stdout.contains("/lidar_top/points_raw"));
+    assert!(
+        stdout.contains("labels: field `label` of the LiDAR clouds; 60 of 60 sweeps labelled")
+            && stdout.contains("street_ros2.labels.mcap: /lidar_top/points_raw/labels; 60 of 60"),
+        "{stdout}"
+    );
     let (ok, _, stderr) = inspect(&["--mcap", "recordings/drives/nope.mcap"]);
     assert!(!ok);
     assert!(stderr.contains("recordings/drives/nope.mcap"), "{stderr}");

@@ -2,11 +2,14 @@
 //! protobuf schemas): `/LIDAR_TOP`, `/CAM_*/image_rect_compressed`, `/CAM_*/camera_info`,
 //! `/tf` with the ego pose at every sensor stamp and the extrinsics re-published at every
 //! keyframe, plus `/CAM_*/superpixels` class maps (raw `mono8` images in the drive, or
-//! `png` compressed images in a sidecar file) and an unrelated JSON `/odom` channel.
+//! `png` compressed images in a sidecar file) and an unrelated JSON `/odom` channel. The
+//! LiDAR's per-point labels are a UINT8 `label` field of `/LIDAR_TOP` (as a
+//! nuScenes-lidarseg conversion has them) or clouds of that one field on
+//! `/LIDAR_TOP/labels` in a `<drive>.labels.mcap` sidecar.
 
 use crate::encode::{class_map_pngs, jpegs};
 use crate::error::{GenerateError, Result};
-use crate::options::ClassMapStorage;
+use crate::options::{ClassMapStorage, LidarLabels};
 use crate::out::McapOut;
 use crate::sim::{CameraFrame, CameraRig};
 use crate::truth::{CameraTruth, FramesTruth, PoseTruth, SweepTruth};
@@ -109,11 +112,13 @@ struct CameraChannels {
     superpixels: usize,
 }
 
-/// The drive file and, with [`ClassMapStorage::PngSidecar`], the class-map sidecar.
+/// The drive file and, with [`ClassMapStorage::PngSidecar`], the class-map sidecar;
+/// with [`LidarLabels::Sidecar`], the labels sidecar.
 #[derive(Debug)]
 struct Files {
     drive: McapOut,
     sidecar: Option<McapOut>,
+    labels: Option<McapOut>,
 }
 
 impl Files {
@@ -127,6 +132,8 @@ impl Files {
 #[derive(Debug)]
 struct Channels {
     lidar: usize,
+    /// The label clouds, in the labels sidecar.
+    labels: Option<usize>,
     tf: usize,
     cameras: Vec<CameraChannels>,
     odom: usize,
@@ -147,6 +154,10 @@ impl Channels {
         let out = &mut files.drive;
         let lidar = point_cloud.channel(out, &format!("/{LIDAR}"), "lidar");
         let tf = frame_transform.channel(out, "/tf", "transforms");
+        let labels = files
+            .labels
+            .as_mut()
+            .map(|side| point_cloud.channel(side, &labels_topic(), "labels"));
         let mut cameras = Vec::with_capacity(sim.rig.cameras.len());
         for cam in &sim.rig.cameras {
             let image = compressed_image.channel(
@@ -181,6 +192,7 @@ impl Channels {
         );
         Ok(Self {
             lidar,
+            labels,
             tf,
             cameras,
             odom,
@@ -196,12 +208,14 @@ pub fn write(sim: &Simulation) -> Result<GeneratedDrive> {
         out.set_chunk_size(sim.options.chunk_size);
         out
     };
+    let labels = sim.options.labels.resolve(Dialect::Foxglove);
     let mut files = Files {
         drive: new_file(),
         sidecar: (sim.options.class_maps == ClassMapStorage::PngSidecar).then(new_file),
+        labels: (labels == LidarLabels::Sidecar).then(new_file),
     };
     let channels = Channels::declare(&mut files, sim)?;
-    let (sweeps, lidar_stamps) = write_lidar(&mut files.drive, &channels, sim)?;
+    let (sweeps, lidar_stamps) = write_lidar(&mut files, &channels, sim)?;
     let keyframe_stamps: Vec<Stamp> = lidar_stamps
         .iter()
         .step_by(KEYFRAME_EVERY)
@@ -217,6 +231,7 @@ pub fn write(sim: &Simulation) -> Result<GeneratedDrive> {
     let Files {
         drive: mut out,
         sidecar,
+        labels: labels_sidecar,
     } = files;
     write_odometry(&mut out, channels.odom, sim);
 
@@ -243,6 +258,16 @@ pub fn write(sim: &Simulation) -> Result<GeneratedDrive> {
         .map(|side| side.finish("", Some(mcap::Compression::Lz4)))
         .transpose()?
         .unzip();
+    let (labels_sidecar, labels_channels) = labels_sidecar
+        .map(|side| side.finish("", Some(mcap::Compression::Lz4)))
+        .transpose()?
+        .unzip();
+    let labels = sim.labels_truth(
+        Dialect::Foxglove,
+        &format!("/{LIDAR}"),
+        &labels_topic(),
+        labels_channels,
+    );
     let truth = sim.ground_truth(WrittenDrive {
         dialect: Dialect::Foxglove,
         profile: "",
@@ -260,37 +285,51 @@ pub fn write(sim: &Simulation) -> Result<GeneratedDrive> {
         lidar_stamps,
         cameras,
         sidecar_channels,
+        labels,
     });
     Ok(GeneratedDrive {
         mcap,
         sidecar,
+        labels_sidecar,
         truth,
     })
 }
 
+/// Topic of the label clouds in the labels sidecar.
+fn labels_topic() -> String {
+    format!("/{LIDAR}/labels")
+}
+
 /// The LiDAR, motion compensated into the LiDAR frame at the end of the sweep, with the
-/// ego pose on `/tf` at every sweep and the LiDAR's extrinsics at every keyframe.
-/// Returns the sweeps' truth and stamps.
+/// ego pose on `/tf` at every sweep and the LiDAR's extrinsics at every keyframe; the
+/// labels as a field of the points or as label clouds in the labels sidecar. Returns
+/// the sweeps' truth and stamps.
 fn write_lidar(
-    out: &mut McapOut,
+    files: &mut Files,
     channels: &Channels,
     sim: &Simulation,
 ) -> Result<(Vec<SweepTruth>, Vec<Stamp>)> {
-    let fields: Vec<PackedElementField> = ["x", "y", "z", "intensity", "ring"]
+    let label_field = sim.options.labels.resolve(Dialect::Foxglove) == LidarLabels::InCloud;
+    let field = |name: &str, offset: u32, numeric: NumericType| PackedElementField {
+        name: name.to_string(),
+        offset,
+        r#type: numeric as i32,
+    };
+    let mut fields: Vec<PackedElementField> = ["x", "y", "z", "intensity", "ring"]
         .iter()
         .enumerate()
-        .map(|(i, name)| PackedElementField {
-            name: (*name).to_string(),
-            offset: 4 * i as u32,
-            r#type: NumericType::Float32 as i32,
-        })
+        .map(|(i, name)| field(name, 4 * i as u32, NumericType::Float32))
         .collect();
+    if label_field {
+        fields.push(field("label", 20, NumericType::Uint8));
+    }
+    let point_stride = if label_field { 21 } else { 20 };
     let mut sweeps = Vec::new();
     let mut lidar_stamps = Vec::new();
     for (k, returns) in sim.sweeps.iter().enumerate() {
         let (_, end) = sim.timing.sweep_span(k);
         let lidar_from_map = (sim.map_from_ego(end) * sim.rig.ego_from_lidar).inverse();
-        let mut data = Vec::with_capacity(returns.len() * 20);
+        let mut data = Vec::with_capacity(returns.len() * point_stride as usize);
         for r in returns {
             let p = lidar_from_map * r.point_in_map;
             for v in [
@@ -302,22 +341,37 @@ fn write_lidar(
             ] {
                 data.extend_from_slice(&v.to_le_bytes());
             }
+            if label_field {
+                data.push(r.class);
+            }
         }
         let msg = PointCloud {
             timestamp: Some(timestamp(end)?),
             frame_id: LIDAR.to_string(),
             pose: None,
-            point_stride: 20,
+            point_stride,
             fields: fields.clone(),
             data: data.into(),
         };
         let at = end.nanos();
+        let out = &mut files.drive;
         out.message(channels.lidar, at, at, msg.encode_to_vec());
         let ego = frame_transform(end, MAP_FRAME, EGO_FRAME, &sim.map_from_ego(end))?;
         out.message(channels.tf, at, at, ego);
         if k % KEYFRAME_EVERY == 0 {
             let extrinsics = frame_transform(end, EGO_FRAME, LIDAR, &sim.rig.ego_from_lidar)?;
             out.message(channels.tf, at, at, extrinsics);
+        }
+        if let (Some(side), Some(channel)) = (files.labels.as_mut(), channels.labels) {
+            let labels = PointCloud {
+                timestamp: Some(timestamp(end)?),
+                frame_id: LIDAR.to_string(),
+                pose: None,
+                point_stride: 1,
+                fields: vec![field("label", 0, NumericType::Uint8)],
+                data: sim.sweep_classes(k).into(),
+            };
+            side.message(channel, at, at, labels.encode_to_vec());
         }
         sweeps.push(SweepTruth {
             stamp_nanos: end.nanos(),

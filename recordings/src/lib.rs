@@ -11,8 +11,9 @@
 //!
 //! [`DriveOptions`] changes the rig and the layout: beams, columns, image size, camera
 //! triggers ([`CameraTrigger`]), class maps in the drive or in a PNG sidecar
-//! ([`ClassMapStorage`]); [`DriveOptions::nuscenes`] is a nuScenes-sized drive for
-//! benchmarks.
+//! ([`ClassMapStorage`]), the LiDAR's per-point labels (each return's class) as a cloud
+//! field or in a `<drive>.labels.mcap` sidecar ([`LidarLabels`]);
+//! [`DriveOptions::nuscenes`] is a nuScenes-sized drive for benchmarks.
 //!
 //! The drive is then written in one of two real-world dialects ([`Dialect`]) — the
 //! nuScenes-converter Foxglove protobuf layout or a ROS 2 rosbag2 layout — together with
@@ -42,7 +43,7 @@ pub mod truth;
 pub use encode::{encode_jpeg, encode_png_mono};
 pub use error::GenerateError;
 use nalgebra::{Isometry3, Point3};
-pub use options::{CameraTrigger, ClassMapStorage, DriveOptions};
+pub use options::{CameraTrigger, ClassMapStorage, DriveOptions, LidarLabels};
 use rayon::prelude::*;
 use scene::Scene;
 use sim::{CameraFrame, DriveTiming, Return, Rig};
@@ -122,6 +123,9 @@ pub struct GeneratedDrive {
     /// The class-map sidecar `<drive>.superpixels.mcap` with
     /// [`ClassMapStorage::PngSidecar`]; `None` when the class maps are in the drive.
     pub sidecar: Option<Vec<u8>>,
+    /// The labels sidecar `<drive>.labels.mcap` when the labels go to one
+    /// ([`LidarLabels::Sidecar`]).
+    pub labels_sidecar: Option<Vec<u8>>,
     /// The facts about it.
     pub truth: GroundTruth,
 }
@@ -162,6 +166,26 @@ impl Simulation {
         sim::map_from_ego(self.timing.start, stamp)
     }
 
+    /// The class of every return of sweep `k`, in the order the sweep's points are
+    /// written: the per-point labels of the drive (empty past the last sweep).
+    pub fn sweep_classes(&self, k: usize) -> Vec<u8> {
+        self.sweeps
+            .get(k)
+            .map(|returns| returns.iter().map(|r| r.class).collect())
+            .unwrap_or_default()
+    }
+
+    /// Returns per class id over every sweep (index = id of [`scene::CLASSES`]).
+    pub fn points_per_class(&self) -> Vec<u64> {
+        let mut counts = vec![0u64; scene::CLASSES.len()];
+        for r in self.sweeps.iter().flatten() {
+            if let Some(n) = counts.get_mut(usize::from(r.class)) {
+                *n += 1;
+            }
+        }
+        counts
+    }
+
     /// Ego poses at every LiDAR and camera stamp, for the ground truth.
     fn pose_samples(&self, lidar_stamps: &[Stamp]) -> Vec<PoseSample> {
         let mut stamps: Vec<Stamp> = lidar_stamps.to_vec();
@@ -193,9 +217,42 @@ pub(crate) struct WrittenDrive {
     pub(crate) lidar_stamps: Vec<Stamp>,
     pub(crate) cameras: Vec<truth::CameraTruth>,
     pub(crate) sidecar_channels: Option<Vec<truth::ChannelTruth>>,
+    /// Where the labels went ([`Simulation::labels_truth`]).
+    pub(crate) labels: Option<truth::LabelsTruth>,
 }
 
 impl Simulation {
+    /// Where a dialect writer put the labels, for the ground truth: a `label` UINT8 field
+    /// of the clouds on `lidar_topic`, or label clouds on `labels_topic` in the labels
+    /// sidecar whose channels are `sidecar_channels`; `None` without labels.
+    pub(crate) fn labels_truth(
+        &self,
+        dialect: Dialect,
+        lidar_topic: &str,
+        labels_topic: &str,
+        sidecar_channels: Option<Vec<truth::ChannelTruth>>,
+    ) -> Option<truth::LabelsTruth> {
+        let (form, topic) = match self.options.labels.resolve(dialect) {
+            LidarLabels::None => return None,
+            LidarLabels::Sidecar => ("sidecar", labels_topic),
+            LidarLabels::InCloud | LidarLabels::Native => ("field", lidar_topic),
+        };
+        Some(truth::LabelsTruth {
+            form: form.into(),
+            topic: topic.into(),
+            field: "label".into(),
+            datatype: "uint8".into(),
+            points_per_class: self.points_per_class(),
+            sidecar: sidecar_channels.map(|channels| truth::SidecarTruth {
+                file: self
+                    .options
+                    .labels_sidecar_name(dialect)
+                    .unwrap_or_default(),
+                channels,
+            }),
+        })
+    }
+
     /// The ground truth of a drive written from this simulation.
     pub(crate) fn ground_truth(&self, written: WrittenDrive) -> GroundTruth {
         GroundTruth {
@@ -237,6 +294,7 @@ impl Simulation {
                         .unwrap_or_default(),
                     channels,
                 }),
+            labels: written.labels,
         }
     }
 }

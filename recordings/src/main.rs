@@ -1,14 +1,21 @@
 //! `superflow-recordings --out DIR`: writes the sample drives and their ground truth;
 //! `superflow-recordings --damaged DIR`: writes the damaged recordings;
 //! `superflow-recordings --preset nuscenes --image-size 1600x900`: a nuScenes-sized drive
-//! for benchmarks, under its own file stem.
+//! for benchmarks, under its own file stem;
+//! `superflow-recordings --out DIR --keyframes 120`: a longer labelled street drive (60 s)
+//! for evaluating a probe, named `street_<dialect>_60s`.
 
 use anyhow::Context as _;
 use clap::{Parser, ValueEnum};
 use std::path::{Path, PathBuf};
 use superflow_recordings::{
-    CameraTrigger, ClassMapStorage, Dialect, DriveOptions, GeneratedDrive, damaged, generate_with,
+    CameraTrigger, ClassMapStorage, Dialect, DriveOptions, GeneratedDrive, LidarLabels, damaged,
+    generate_with,
 };
+
+/// Keyframe spacing of the pipeline's default recipe: `--keyframes N` is a drive of N of
+/// them.
+const KEYFRAME_INTERVAL_SECS: f64 = 0.5;
 
 /// Drive presets.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
@@ -38,12 +45,27 @@ enum ClassMaps {
     PngSidecar,
 }
 
+/// `--labels` values.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
+enum Labels {
+    /// No per-point labels.
+    None,
+    /// A `label` field in the Foxglove clouds, a `<drive>.labels.mcap` sidecar for ROS 2
+    /// (the sample drives).
+    Native,
+    /// A `label` field in the clouds of either dialect.
+    InCloud,
+    /// A `<drive>.labels.mcap` sidecar in either dialect.
+    Sidecar,
+}
+
 /// Generates the sample drives of `recordings/` (deterministic: same bytes every run).
 #[derive(Debug, Parser)]
 #[command(version, about)]
 struct Args {
     /// Directory to write `<drive>.mcap`, `<drive>.superpixels.mcap` (with a class-map
-    /// sidecar) and `<drive>.truth.json` into.
+    /// sidecar), `<drive>.labels.mcap` (with a labels sidecar) and `<drive>.truth.json`
+    /// into.
     #[arg(long, default_value = "recordings/drives")]
     out: PathBuf,
     /// Only this dialect (`foxglove` or `ros2`); both by default.
@@ -56,9 +78,14 @@ struct Args {
     /// Camera image size `WxH` of the nuScenes preset: 800x450 (default) or 1600x900.
     #[arg(long, value_name = "WxH")]
     image_size: Option<String>,
-    /// Length of the drive in seconds (the sample drives: 3).
-    #[arg(long)]
+    /// Length of the drive in seconds (the sample drives: 3). A sample-preset drive of
+    /// another length is named `street_<dialect>_<secs>s`, never over the sample drives.
+    #[arg(long, conflicts_with = "keyframes")]
     duration_secs: Option<f64>,
+    /// Length of the drive in keyframes of the default recipe (0.5 s each; the sample
+    /// drives: 6): `--keyframes 120` is a 60 s drive.
+    #[arg(long)]
+    keyframes: Option<u32>,
     /// Cameras of the rig, the first N in nuScenes order (the sample drives: 6).
     #[arg(long)]
     cameras: Option<usize>,
@@ -72,6 +99,9 @@ struct Args {
     /// Where the class maps go.
     #[arg(long, value_enum)]
     class_maps: Option<ClassMaps>,
+    /// Where the LiDAR's per-point labels go (the sample preset: native; nuscenes: none).
+    #[arg(long, value_enum)]
+    labels: Option<Labels>,
     /// Write the damaged recordings (`recordings/damaged/`, from a short drive) into this
     /// directory instead of the sample drives.
     #[arg(long, value_name = "DIR")]
@@ -108,12 +138,29 @@ fn options(args: &Args) -> anyhow::Result<DriveOptions> {
             DriveOptions::nuscenes(w, h)
         }
     };
-    if let Some(secs) = args.duration_secs {
+    let secs = args.duration_secs.or_else(|| {
+        args.keyframes
+            .map(|k| f64::from(k) * KEYFRAME_INTERVAL_SECS)
+    });
+    if let Some(secs) = secs {
         anyhow::ensure!(
             (0.05..=3600.0).contains(&secs),
-            "--duration-secs must be 0.05..=3600 (one LiDAR sweep at least)"
+            "--duration-secs must be 0.05..=3600 (one LiDAR sweep at least), --keyframes 1..=7200"
         );
         options.duration_nanos = (secs * 1e9).round() as i64;
+        if args.preset == Preset::Sample
+            && options.duration_nanos != DriveOptions::default().duration_nanos
+        {
+            options.name = format!("street_{{dialect}}_{secs}s");
+        }
+    }
+    if let Some(labels) = args.labels {
+        options.labels = match labels {
+            Labels::None => LidarLabels::None,
+            Labels::Native => LidarLabels::Native,
+            Labels::InCloud => LidarLabels::InCloud,
+            Labels::Sidecar => LidarLabels::Sidecar,
+        };
     }
     if let Some(cameras) = args.cameras {
         anyhow::ensure!((1..=6).contains(&cameras), "--cameras must be 1..=6");
@@ -157,6 +204,11 @@ fn write_drive(
     if let (Some(bytes), Some(name)) = (&drive.sidecar, options.sidecar_name(dialect)) {
         let path = write(dir, &name, bytes)?;
         tracing::info!(sidecar = %path.display(), bytes = bytes.len(), "wrote class-map sidecar");
+    }
+    if let (Some(bytes), Some(name)) = (&drive.labels_sidecar, options.labels_sidecar_name(dialect))
+    {
+        let path = write(dir, &name, bytes)?;
+        tracing::info!(sidecar = %path.display(), bytes = bytes.len(), "wrote labels sidecar");
     }
     write(dir, &format!("{stem}.truth.json"), &drive.truth_json()?)?;
     Ok(mcap)

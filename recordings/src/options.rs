@@ -50,6 +50,49 @@ impl ClassMapStorage {
 /// The tag of the class-map sidecar: `<drive>.superpixels.mcap`.
 pub const SIDECAR_TAG: &str = "superpixels";
 
+/// The tag of the labels sidecar: `<drive>.labels.mcap`.
+pub const LABELS_SIDECAR_TAG: &str = "labels";
+
+/// Where the per-point semantic labels of the LiDAR go (each return's
+/// [`crate::sim::Return::class`], the ids of [`crate::scene::CLASSES`]).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum LidarLabels {
+    /// No labels (the damaged recordings, the nuScenes-sized drive).
+    None,
+    /// As the sample drives have them: a field in the Foxglove clouds, a sidecar for
+    /// ROS 2 ([`LidarLabels::resolve`]).
+    #[default]
+    Native,
+    /// A UINT8 `label` field after the cloud's other fields.
+    InCloud,
+    /// A `<drive>.labels.mcap` sidecar: per sweep a cloud with one UINT8 `label` field, the
+    /// sweep's stamp, frame and point order, on `<lidar topic>/labels`.
+    Sidecar,
+}
+
+impl LidarLabels {
+    /// The CLI spelling (`none`, `native`, `in-cloud`, `sidecar`).
+    pub fn name(self) -> &'static str {
+        match self {
+            LidarLabels::None => "none",
+            LidarLabels::Native => "native",
+            LidarLabels::InCloud => "in-cloud",
+            LidarLabels::Sidecar => "sidecar",
+        }
+    }
+
+    /// What this means in `dialect`: [`LidarLabels::Native`] becomes
+    /// [`LidarLabels::InCloud`] for Foxglove (a nuScenes-lidarseg conversion) and
+    /// [`LidarLabels::Sidecar`] for ROS 2 (labels produced after the recording).
+    pub fn resolve(self, dialect: Dialect) -> Self {
+        match (self, dialect) {
+            (LidarLabels::Native, Dialect::Foxglove) => LidarLabels::InCloud,
+            (LidarLabels::Native, Dialect::Ros2) => LidarLabels::Sidecar,
+            (other, _) => other,
+        }
+    }
+}
+
 /// What to simulate: the sample drives use [`DriveOptions::default`]; shorter, smaller
 /// drives (the source of `recordings/damaged/`) and larger ones ([`DriveOptions::nuscenes`])
 /// change it.
@@ -73,6 +116,9 @@ pub struct DriveOptions {
     pub camera_trigger: CameraTrigger,
     /// Where the class maps go ([`ClassMapStorage::InDrive`] for the sample drives).
     pub class_maps: ClassMapStorage,
+    /// Where the LiDAR's per-point labels go ([`LidarLabels::Native`] for the sample
+    /// drives).
+    pub labels: LidarLabels,
     /// MCAP chunk size, bytes (512 KiB for the sample drives).
     pub chunk_size: u64,
 }
@@ -89,6 +135,7 @@ impl Default for DriveOptions {
             beams: 16,
             camera_trigger: CameraTrigger::Fixed,
             class_maps: ClassMapStorage::InDrive,
+            labels: LidarLabels::Native,
             chunk_size: 512 * 1024,
         }
     }
@@ -97,13 +144,14 @@ impl Default for DriveOptions {
 impl DriveOptions {
     /// A short, small drive: 1.5 s (3 keyframes at 0.5 s), the front and front-right
     /// cameras at 240×136, 60 LiDAR columns, 32 KiB chunks (so that damage to one chunk
-    /// costs a small part of the file). About 0.4 MB per dialect.
+    /// costs a small part of the file), no labels. About 0.4 MB per dialect.
     pub fn short() -> Self {
         Self {
             duration_nanos: 1_500_000_000,
             cameras: 2,
             image_size: (240, 136),
             lidar_columns: 60,
+            labels: LidarLabels::None,
             chunk_size: 32 * 1024,
             ..Self::default()
         }
@@ -111,8 +159,8 @@ impl DriveOptions {
 
     /// A nuScenes-sized drive for benchmarks: 2 s (4 keyframes at 2 Hz), a 32-beam LiDAR
     /// with 1084 firings per 20 Hz revolution, six cameras at `width × height` triggered
-    /// as the beam passes them, class maps as PNGs in a sidecar, 4 MiB chunks. Its stem is
-    /// `nuscenes_{dialect}_<width>x<height>`.
+    /// as the beam passes them, class maps as PNGs in a sidecar, no labels, 4 MiB chunks.
+    /// Its stem is `nuscenes_{dialect}_<width>x<height>`.
     pub fn nuscenes(width: u32, height: u32) -> Self {
         Self {
             name: format!("nuscenes_{{dialect}}_{width}x{height}"),
@@ -123,6 +171,7 @@ impl DriveOptions {
             beams: 32,
             camera_trigger: CameraTrigger::Staggered,
             class_maps: ClassMapStorage::PngSidecar,
+            labels: LidarLabels::None,
             chunk_size: 4 * 1024 * 1024,
         }
     }
@@ -142,6 +191,12 @@ impl DriveOptions {
         (self.class_maps == ClassMapStorage::PngSidecar)
             .then(|| format!("{}.{SIDECAR_TAG}.mcap", self.drive_name(dialect)))
     }
+
+    /// File name of the labels sidecar in `dialect`, if the labels go to one.
+    pub fn labels_sidecar_name(&self, dialect: Dialect) -> Option<String> {
+        (self.labels.resolve(dialect) == LidarLabels::Sidecar)
+            .then(|| format!("{}.{LABELS_SIDECAR_TAG}.mcap", self.drive_name(dialect)))
+    }
 }
 
 #[cfg(test)]
@@ -158,7 +213,13 @@ mod tests {
                 dialect.drive_name()
             );
             assert_eq!(default.sidecar_name(dialect), None);
+            assert_eq!(DriveOptions::short().labels_sidecar_name(dialect), None);
         }
+        assert_eq!(default.labels_sidecar_name(Dialect::Foxglove), None);
+        assert_eq!(
+            default.labels_sidecar_name(Dialect::Ros2).as_deref(),
+            Some("street_ros2.labels.mcap")
+        );
         let nuscenes = DriveOptions::nuscenes(800, 450);
         assert_eq!(
             nuscenes.drive_name(Dialect::Foxglove),

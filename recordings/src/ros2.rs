@@ -4,11 +4,13 @@
 //! plumb_bob distortion, `CameraInfo`, `map → odom → base_link` on `/tf` and the
 //! extrinsics (`base_link → cam_*_link → cam_*_optical_frame`) once on `/tf_static`;
 //! class maps as raw `mono8` images in the bag, or as `png` compressed images in a
-//! sidecar file.
+//! sidecar file. The LiDAR's per-point labels are `PointCloud2`s of one UINT8 `label`
+//! field on `/lidar_top/points_raw/labels` in a `<drive>.labels.mcap` sidecar (same
+//! stamp, frame and point order as the sweep), or a `label` field of the sweep itself.
 
 use crate::encode::{class_map_pngs, jpegs};
 use crate::error::{GenerateError, Result};
-use crate::options::ClassMapStorage;
+use crate::options::{ClassMapStorage, LidarLabels};
 use crate::out::McapOut;
 use crate::sim::{CameraFrame, CameraRig, Return, body_from_optical};
 use crate::truth::{CameraTruth, FramesTruth, PoseTruth, SweepTruth};
@@ -32,6 +34,8 @@ pub const EGO_FRAME: &str = "base_link";
 pub const LIDAR_FRAME: &str = "lidar_top";
 /// The LiDAR topic.
 pub const LIDAR_TOPIC: &str = "/lidar_top/points_raw";
+/// The topic of the label clouds in the labels sidecar.
+pub const LABELS_TOPIC: &str = "/lidar_top/points_raw/labels";
 
 /// Lower-case ROS name of a camera (`CAM_FRONT` → `cam_front`).
 pub fn camera_base(name: &str) -> String {
@@ -145,7 +149,14 @@ pub fn write(sim: &Simulation) -> Result<GeneratedDrive> {
 
     write_static_transforms(&mut out, tf_static, sim)?;
     write_odometry(&mut out, tf, sim)?;
-    let (sweeps, lidar_stamps) = write_lidar(&mut out, lidar, sim)?;
+    let mut labels =
+        (sim.options.labels.resolve(Dialect::Ros2) == LidarLabels::Sidecar).then(|| {
+            let mut side = McapOut::default();
+            side.set_chunk_size(sim.options.chunk_size);
+            let channel = channel::<PointCloud2>(&mut side, LABELS_TOPIC, "labels");
+            (side, channel)
+        });
+    let (sweeps, lidar_stamps) = write_lidar(&mut out, lidar, labels.as_mut(), sim)?;
     let mut sidecar = (sim.options.class_maps == ClassMapStorage::PngSidecar).then(|| {
         let mut side = McapOut::default();
         side.set_chunk_size(sim.options.chunk_size);
@@ -169,6 +180,11 @@ pub fn write(sim: &Simulation) -> Result<GeneratedDrive> {
         .map(|side| side.finish("ros2", Some(mcap::Compression::Zstd)))
         .transpose()?
         .unzip();
+    let (labels_sidecar, labels_channels) = labels
+        .map(|(side, _)| side.finish("ros2", Some(mcap::Compression::Zstd)))
+        .transpose()?
+        .unzip();
+    let labels = sim.labels_truth(Dialect::Ros2, LIDAR_TOPIC, LABELS_TOPIC, labels_channels);
     let truth = sim.ground_truth(WrittenDrive {
         dialect: Dialect::Ros2,
         profile: "ros2",
@@ -186,10 +202,12 @@ pub fn write(sim: &Simulation) -> Result<GeneratedDrive> {
         lidar_stamps,
         cameras,
         sidecar_channels,
+        labels,
     });
     Ok(GeneratedDrive {
         mcap,
         sidecar,
+        labels_sidecar,
         truth,
     })
 }
@@ -270,21 +288,24 @@ fn write_odometry(out: &mut McapOut, channel: usize, sim: &Simulation) -> Result
     Ok(())
 }
 
-/// The LiDAR: velodyne XYZIRT layout (point_step 22), stamped at the start of the
-/// sweep, each point in the LiDAR frame at its own firing time. Returns the sweeps'
-/// truth and stamps.
+/// The LiDAR: velodyne XYZIRT layout (point_step 22; 23 with a UINT8 `label` field),
+/// stamped at the start of the sweep, each point in the LiDAR frame at its own firing
+/// time; with `labels`, a label cloud per sweep in the labels sidecar (its file and
+/// channel). Returns the sweeps' truth and stamps.
 fn write_lidar(
     out: &mut McapOut,
     channel: usize,
+    mut labels: Option<&mut (McapOut, usize)>,
     sim: &Simulation,
 ) -> Result<(Vec<SweepTruth>, Vec<Stamp>)> {
+    let label_field = sim.options.labels.resolve(Dialect::Ros2) == LidarLabels::InCloud;
     let field = |name: &str, offset, datatype| PointField {
         name: name.into(),
         offset,
         datatype,
         count: 1,
     };
-    let fields = vec![
+    let mut fields = vec![
         field("x", 0, PointField::FLOAT32),
         field("y", 4, PointField::FLOAT32),
         field("z", 8, PointField::FLOAT32),
@@ -292,11 +313,15 @@ fn write_lidar(
         field("ring", 16, PointField::UINT16),
         field("time", 18, PointField::FLOAT32),
     ];
+    if label_field {
+        fields.push(field("label", 22, PointField::UINT8));
+    }
+    let point_step = if label_field { 23 } else { 22 };
     let mut sweeps = Vec::new();
     let mut lidar_stamps = Vec::new();
     for (k, returns) in sim.sweeps.iter().enumerate() {
         let (begin, _) = sim.timing.sweep_span(k);
-        let data = sweep_data(sim, begin, returns);
+        let data = sweep_data(sim, begin, returns, label_field);
         let width = u32::try_from(returns.len()).map_err(|_| GenerateError::TooManyPoints {
             sweep: k,
             points: returns.len(),
@@ -307,8 +332,8 @@ fn write_lidar(
             width,
             fields: fields.clone(),
             is_bigendian: false,
-            point_step: 22,
-            row_step: 22 * width,
+            point_step,
+            row_step: point_step * width,
             data,
             is_dense: true,
         };
@@ -319,6 +344,26 @@ fn write_lidar(
             LIDAR_LATENCY_NANOS,
             ros2::encode(&cloud)?,
         );
+        if let Some((side, labels_channel)) = labels.as_deref_mut() {
+            let cloud = PointCloud2 {
+                header: header(begin, LIDAR_FRAME)?,
+                height: 1,
+                width,
+                fields: vec![field("label", 0, PointField::UINT8)],
+                is_bigendian: false,
+                point_step: 1,
+                row_step: width,
+                data: sim.sweep_classes(k),
+                is_dense: true,
+            };
+            queue(
+                side,
+                *labels_channel,
+                begin,
+                LIDAR_LATENCY_NANOS,
+                ros2::encode(&cloud)?,
+            );
+        }
         sweeps.push(SweepTruth {
             stamp_nanos: begin.nanos(),
             points: u64::from(width),
@@ -330,9 +375,10 @@ fn write_lidar(
 
 /// The points of a sweep that began at `begin`, 22 bytes each: x, y, z and intensity
 /// (`f32`) in the LiDAR frame at the point's firing time, ring (`u16`), time since
-/// `begin` in seconds (`f32`).
-fn sweep_data(sim: &Simulation, begin: Stamp, returns: &[Return]) -> Vec<u8> {
-    let mut data = Vec::with_capacity(returns.len() * 22);
+/// `begin` in seconds (`f32`); with `label`, the return's class (`u8`) after them.
+fn sweep_data(sim: &Simulation, begin: Stamp, returns: &[Return], label: bool) -> Vec<u8> {
+    let step = if label { 23 } else { 22 };
+    let mut data = Vec::with_capacity(returns.len() * step);
     let mut column_stamp = None;
     let mut lidar_from_map = Isometry3::identity();
     for r in returns {
@@ -346,6 +392,9 @@ fn sweep_data(sim: &Simulation, begin: Stamp, returns: &[Return]) -> Vec<u8> {
         }
         data.extend_from_slice(&r.ring.to_le_bytes());
         data.extend_from_slice(&(r.stamp.secs_since(begin) as f32).to_le_bytes());
+        if label {
+            data.push(r.class);
+        }
     }
     data
 }

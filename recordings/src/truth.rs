@@ -199,6 +199,30 @@ pub struct GroundTruth {
     /// the JSON otherwise).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub sidecar: Option<SidecarTruth>,
+    /// The LiDAR's per-point labels, when written (absent from the JSON otherwise). The
+    /// label of every point is its return's class
+    /// ([`crate::Simulation::sweep_classes`] recomputes them).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub labels: Option<LabelsTruth>,
+}
+
+/// Where the LiDAR's per-point labels are and what they hold.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LabelsTruth {
+    /// `field` (a field of the LiDAR clouds) or `sidecar` (parallel clouds in
+    /// `<drive>.labels.mcap`, one per sweep, same stamp, frame and point order).
+    pub form: String,
+    /// Topic of the labelled clouds: the LiDAR's, or the sidecar's label clouds'.
+    pub topic: String,
+    /// Name of the label field.
+    pub field: String,
+    /// Its type (`uint8`), the ids of [`GroundTruth::classes`].
+    pub datatype: String,
+    /// Points per class id over every sweep (index = id).
+    pub points_per_class: Vec<u64>,
+    /// The sidecar file and its channels (sidecar form only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub sidecar: Option<SidecarTruth>,
 }
 
 /// A sidecar file (`<drive>.<tag>.mcap`, next to the drive) and its channels.

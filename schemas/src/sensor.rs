@@ -65,7 +65,9 @@ pub enum SensorError {
 ///
 /// Points are in the frame `frame_id` (the LiDAR frame). `time_offset_secs`, when present,
 /// is each point's capture time relative to `stamp` (negative when the stamp is the end
-/// of the sweep), for clouds that are not motion compensated.
+/// of the sweep), for clouds that are not motion compensated. `label`, when present, is
+/// each point's semantic class id as recorded (nuScenes-lidarseg, SemanticKITTI after its
+/// instance bits are masked off): raw ids, before any mapping to training classes.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 pub struct PointCloud {
     /// The sensor's stamp of the sweep.
@@ -80,6 +82,10 @@ pub struct PointCloud {
     pub ring: Option<Vec<u16>>,
     /// Per-point time relative to `stamp`, in seconds.
     pub time_offset_secs: Option<Vec<f32>>,
+    /// Per-point raw semantic class id, when the recording labels its points and the
+    /// reader was asked for them (absent from older serialized clouds).
+    #[serde(default)]
+    pub label: Option<Vec<u32>>,
 }
 
 impl PointCloud {
@@ -114,6 +120,9 @@ impl PointCloud {
         }
         if let Some(time) = &self.time_offset_secs {
             check("time_offset_secs", time.len())?;
+        }
+        if let Some(label) = &self.label {
+            check("label", label.len())?;
         }
         Ok(())
     }
@@ -583,6 +592,20 @@ mod tests {
                 .unwrap_err()
                 .to_string()
                 .contains("intensity has 2")
+        );
+        let cloud = PointCloud {
+            frame_id: "lidar".into(),
+            xyz: vec![[0.0; 3]; 3],
+            intensity: vec![0.0; 3],
+            label: Some(vec![4; 4]),
+            ..Default::default()
+        };
+        assert!(
+            cloud
+                .validate()
+                .unwrap_err()
+                .to_string()
+                .contains("label has 4 values for 3 points")
         );
         let image = Image::new(
             Stamp::default(),

@@ -2,7 +2,7 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
 
-use superflow_recordings::{Dialect, damaged, generate};
+use superflow_recordings::{Dialect, DriveOptions, damaged, generate};
 use superflow_tests::{sample_drive, workspace_root};
 
 #[test]
@@ -23,6 +23,28 @@ fn generator_reproduces_the_committed_drives_byte_for_byte() {
             "the ground truth of {} differs from a fresh generation",
             committed.path.display()
         );
+        // The labels sidecar (`<drive>.labels.mcap`), where the dialect's labels go to one.
+        let sidecar = committed.path.with_file_name(format!(
+            "{}.labels.mcap",
+            DriveOptions::default().drive_name(dialect)
+        ));
+        match &drive.labels_sidecar {
+            Some(fresh) => {
+                let bytes = std::fs::read(&sidecar).unwrap();
+                assert!(
+                    *fresh == bytes,
+                    "{} differs from a fresh generation ({} vs {} bytes)",
+                    sidecar.display(),
+                    fresh.len(),
+                    bytes.len()
+                );
+            }
+            None => assert!(
+                !sidecar.exists(),
+                "{} is committed but not generated",
+                sidecar.display()
+            ),
+        }
     }
 }
 

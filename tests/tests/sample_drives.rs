@@ -3,6 +3,7 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
 
+use ::foxglove::messages::packed_element_field::NumericType;
 use nalgebra::Point3;
 use std::collections::BTreeMap;
 use superflow_pipeline::decode::{foxglove, ros2};
@@ -98,10 +99,22 @@ fn lidar_sweeps_carry_the_truth_stamps_and_point_counts() {
                     let cloud: foxglove::PointCloud =
                         foxglove::decode("foxglove.PointCloud", &message.data).unwrap();
                     assert_eq!(cloud.frame_id, lidar.frame_id);
+                    // Every FLOAT32 field of every point (the `label` field is UINT8).
+                    let float_offsets: Vec<usize> = cloud
+                        .fields
+                        .iter()
+                        .filter(|f| f.r#type == NumericType::Float32 as i32)
+                        .map(|f| f.offset as usize)
+                        .collect();
+                    assert!(float_offsets.len() >= 3);
                     let floats: Vec<f32> = cloud
                         .data
-                        .chunks_exact(4)
-                        .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                        .chunks_exact(cloud.point_stride as usize)
+                        .flat_map(|p| {
+                            float_offsets.iter().map(move |&o| {
+                                f32::from_le_bytes([p[o], p[o + 1], p[o + 2], p[o + 3]])
+                            })
+                        })
                         .collect();
                     (
                         foxglove::stamp("foxglove.PointCloud", cloud.timestamp.as_ref()).unwrap(),

@@ -45,6 +45,20 @@ pub struct LidarStream {
     pub sweeps: Vec<FrameRef>,
 }
 
+/// A point-cloud channel of a `<drive>.labels.mcap` sidecar: label clouds parallel to the
+/// LiDAR's sweeps (same stamps, same point order), one per sweep. Which one labels the
+/// LiDAR is decided when the labels are opened ([`super::labels::DriveLabels::open`]).
+#[derive(Debug, Clone)]
+pub struct LabelCloudStream {
+    /// Its topic.
+    pub topic: String,
+    /// The LiDAR topic its channel metadata names
+    /// ([`LABELS_LIDAR_TOPIC_KEY`](super::discover::LABELS_LIDAR_TOPIC_KEY)), if any.
+    pub lidar_topic: Option<String>,
+    /// Every label cloud, sorted by stamp.
+    pub frames: Vec<FrameRef>,
+}
+
 /// One camera: its image stream, calibration and optional class-map stream.
 #[derive(Debug, Clone)]
 pub struct CameraStream {
@@ -212,6 +226,9 @@ pub struct Drive {
     pub lidar: Option<LidarStream>,
     /// Cameras, sorted by name.
     pub cameras: Vec<CameraStream>,
+    /// The point clouds of a `<drive>.labels.mcap` sidecar, sorted by topic (empty
+    /// without one).
+    pub label_clouds: Vec<LabelCloudStream>,
     /// Every transform.
     pub tf: TransformTree,
     /// Stamped edges that never change, treated as static (re-published extrinsics).
@@ -578,6 +595,7 @@ mod tests {
             channels: Vec::new(),
             lidar: None,
             cameras: Vec::new(),
+            label_clouds: Vec::new(),
             tf,
             frozen_edges: Vec::new(),
             map_frame,

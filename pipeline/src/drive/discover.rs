@@ -60,6 +60,9 @@ pub enum Role {
     Transforms,
     /// Static transforms (`/tf_static`).
     StaticTransforms,
+    /// Per-point labels parallel to the LiDAR's sweeps: a point cloud of a
+    /// `<drive>.labels.mcap` sidecar.
+    Labels,
     /// Not used; the string says why.
     Ignored(String),
 }
@@ -75,6 +78,7 @@ impl Role {
             Role::SlicSuperpixels => "slic_superpixels",
             Role::Transforms => "transforms",
             Role::StaticTransforms => "static_transforms",
+            Role::Labels => "labels",
             Role::Ignored(_) => "ignored",
         }
     }
@@ -110,6 +114,10 @@ pub fn camera_namespace(topic: &str) -> &str {
     }
     ns
 }
+
+/// Channel metadata of a label cloud of a `<drive>.labels.mcap` sidecar: the LiDAR topic
+/// whose sweeps it labels (needed only when the sidecar has several label clouds).
+pub const LABELS_LIDAR_TOPIC_KEY: &str = "superflow.labels.lidar_topic";
 
 /// Channel metadata of a precomputed SLIC channel: the settings it was computed with.
 pub const SLIC_SETTINGS_KEY: &str = "superflow.slic.settings";

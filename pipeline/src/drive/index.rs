@@ -41,6 +41,9 @@ pub(super) struct TopicData {
 /// The index of a drive while its files are scanned.
 struct Index {
     topics: BTreeMap<String, TopicData>,
+    /// The point-cloud topics of `<drive>.labels.mcap` sidecars, apart from `topics`: a
+    /// label cloud may repeat the LiDAR's topic name.
+    label_topics: BTreeMap<String, TopicData>,
     tf: TransformTree,
     skipped: SkipReport,
 }
@@ -51,6 +54,8 @@ struct Indexed<'a> {
     file: u32,
     /// Path of its file.
     path: &'a Path,
+    /// Whether the file is a labels sidecar ([`super::inputs::is_labels_sidecar`]).
+    labels_sidecar: bool,
     m: MessageRef<'a>,
 }
 
@@ -71,6 +76,7 @@ impl Drive {
         }
         let mut index = Index {
             topics: BTreeMap::new(),
+            label_topics: BTreeMap::new(),
             tf: TransformTree::new((config.tf_tolerance_ms * 1e6) as i64),
             skipped: SkipReport::default(),
         };
@@ -89,12 +95,13 @@ impl Drive {
         let frozen_edges = index.tf.freeze_constant_edges();
         index.check_frames(files);
         index.log_skips();
-        let streams = Streams::assemble(&index.topics, &index.tf, config);
+        let streams = Streams::assemble(&index.topics, &index.label_topics, &index.tf, config);
         Ok(Drive {
             files: opened,
             channels: streams.channels,
             lidar: streams.lidar,
             cameras: streams.cameras,
+            label_clouds: streams.label_clouds,
             tf: index.tf,
             frozen_edges,
             map_frame: streams.map_frame,
@@ -115,9 +122,17 @@ impl Index {
         mut progress: impl FnMut(u64),
     ) -> Result<McapFile, SourceError> {
         let _span = tracing::info_span!("index", file = %path.display()).entered();
+        let labels_sidecar = super::inputs::is_labels_sidecar(path);
         let scanned = McapFile::scan_with_progress(
             path,
-            |m| self.index_message(Indexed { file, path, m }),
+            |m| {
+                self.index_message(Indexed {
+                    file,
+                    path,
+                    labels_sidecar,
+                    m,
+                })
+            },
             |done, _| progress(done),
         )?;
         tracing::debug!(
@@ -136,7 +151,11 @@ impl Index {
     /// Drops each topic's frames whose stamp is far from its log time, then sorts them
     /// and drops repeated stamps (counting both).
     fn check_frames(&mut self, files: &[PathBuf]) {
-        for t in self.topics.values_mut() {
+        for t in self
+            .topics
+            .values_mut()
+            .chain(self.label_topics.values_mut())
+        {
             drop_stamps_far_from_log_time(t, files, &mut self.skipped);
             for repeated in sort_frames(&mut t.frames) {
                 self.skipped
@@ -164,15 +183,20 @@ impl Index {
     }
 
     /// Counts a message on its topic and indexes what it holds: a sensor frame, a
-    /// calibration or transforms.
+    /// calibration or transforms. The point clouds of a labels sidecar go to
+    /// `label_topics`.
     fn index_message(&mut self, msg: Indexed<'_>) {
         let m = &msg.m;
-        let topic = self
-            .topics
+        let kind = schema_kind(m.channel);
+        let topics = match kind {
+            Some((SchemaKind::PointCloud, _)) if msg.labels_sidecar => &mut self.label_topics,
+            _ => &mut self.topics,
+        };
+        let topic = topics
             .entry(m.channel.topic.clone())
             .or_insert_with(|| TopicData {
                 channel: m.channel.clone(),
-                kind: schema_kind(m.channel),
+                kind,
                 count: 0,
                 frame_id: None,
                 frames: Vec::new(),

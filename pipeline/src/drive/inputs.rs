@@ -10,7 +10,8 @@ use std::path::{Path, PathBuf};
 /// of its `.mcap` files as a drive of its own; a file is a drive. A sidecar —
 /// `<name>.<tag>.mcap` next to `<name>.mcap`, e.g. `drive.superpixels.mcap` with class
 /// maps computed offline — joins the drive of `<name>.mcap` (found next to it even when
-/// only the drive is named) instead of being a drive of its own.
+/// only the drive is named) instead of being a drive of its own; so does
+/// `<name>.labels.mcap` with per-point labels ([`LABELS_SIDECAR_TAG`]).
 pub fn drive_groups(inputs: &[PathBuf]) -> Result<Vec<Vec<PathBuf>>, IngestError> {
     let mut groups: Vec<Vec<PathBuf>> = Vec::new();
     for input in inputs {
@@ -33,6 +34,21 @@ pub fn drive_groups(inputs: &[PathBuf]) -> Result<Vec<Vec<PathBuf>>, IngestError
         group.retain(|f| seen.insert(f.clone()));
     }
     Ok(groups)
+}
+
+/// The tag of a labels sidecar: `<drive>.labels.mcap` holds point clouds parallel to
+/// the drive's LiDAR sweeps, one label field each (see [`super::labels`]).
+pub const LABELS_SIDECAR_TAG: &str = "labels";
+
+/// Whether `file` is a labels sidecar, `<name>.labels.mcap` (its point clouds are label
+/// clouds, never a LiDAR).
+pub fn is_labels_sidecar(file: &Path) -> bool {
+    file.extension().is_some_and(|e| e == "mcap")
+        && file
+            .file_stem()
+            .and_then(|s| s.to_str())
+            .and_then(|stem| stem.rsplit_once('.'))
+            .is_some_and(|(name, tag)| !name.is_empty() && tag == LABELS_SIDECAR_TAG)
 }
 
 /// `dir/<name>.mcap` for a sidecar `dir/<name>.<tag>.mcap`.

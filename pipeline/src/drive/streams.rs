@@ -2,7 +2,7 @@
 //! summaries, the LiDAR, the cameras (with their calibration and class maps) and the ego
 //! and map frames.
 
-use super::dataset::{CameraStream, ChannelSummary, LidarStream, SlicStream};
+use super::dataset::{CameraStream, ChannelSummary, LabelCloudStream, LidarStream, SlicStream};
 use super::discover::{self, IngestConfig, Role};
 use super::index::TopicData;
 use super::tf::TransformTree;
@@ -23,6 +23,7 @@ pub(super) struct Streams {
     pub channels: Vec<ChannelSummary>,
     pub lidar: Option<LidarStream>,
     pub cameras: Vec<CameraStream>,
+    pub label_clouds: Vec<LabelCloudStream>,
     pub ego_frame: Option<String>,
     pub map_frame: Option<String>,
 }
@@ -34,9 +35,11 @@ struct Roles<'a> {
 }
 
 impl Streams {
-    /// Assigns roles to the channels of `topics` and builds the streams.
+    /// Assigns roles to the channels of `topics` and builds the streams; `label_topics`
+    /// (the point clouds of a labels sidecar) are label clouds.
     pub fn assemble(
         topics: &BTreeMap<String, TopicData>,
+        label_topics: &BTreeMap<String, TopicData>,
         tf: &TransformTree,
         config: &IngestConfig,
     ) -> Streams {
@@ -56,10 +59,25 @@ impl Streams {
             .map_frame
             .clone()
             .or_else(|| ego_frame.as_deref().and_then(|e| tf.root_of(e).ok()));
+        let mut channels = roles.channel_summaries();
+        channels.extend(label_topics.values().map(|t| summary(t, Role::Labels)));
+        channels.sort_by(|a, b| a.topic.cmp(&b.topic));
         Streams {
-            channels: roles.channel_summaries(),
+            channels,
             lidar: roles.lidar(),
             cameras: roles.cameras(),
+            label_clouds: label_topics
+                .values()
+                .map(|t| LabelCloudStream {
+                    topic: t.channel.topic.clone(),
+                    lidar_topic: t
+                        .channel
+                        .metadata
+                        .get(discover::LABELS_LIDAR_TOPIC_KEY)
+                        .cloned(),
+                    frames: t.frames.clone(),
+                })
+                .collect(),
             ego_frame,
             map_frame,
         }
@@ -84,26 +102,7 @@ impl Roles<'_> {
     fn channel_summaries(&self) -> Vec<ChannelSummary> {
         self.topics
             .values()
-            .map(|t| {
-                let span_nanos = match (t.frames.first(), t.frames.last()) {
-                    (Some(a), Some(b)) if t.frames.len() > 1 => b.stamp.nanos_since(a.stamp),
-                    _ => t.last_log.saturating_sub(t.first_log) as i64,
-                };
-                ChannelSummary {
-                    topic: t.channel.topic.clone(),
-                    role: self.of(&t.channel.topic),
-                    schema: t.channel.schema_name().to_string(),
-                    schema_encoding: t
-                        .channel
-                        .schema
-                        .as_ref()
-                        .map_or(String::new(), |s| s.encoding.clone()),
-                    message_encoding: t.channel.message_encoding.clone(),
-                    message_count: t.count,
-                    rate_hz: (span_nanos > 0 && t.count > 1)
-                        .then(|| (t.count - 1) as f64 / (span_nanos as f64 * 1e-9)),
-                }
-            })
+            .map(|t| summary(t, self.of(&t.channel.topic)))
             .collect()
     }
 
@@ -180,5 +179,27 @@ impl Roles<'_> {
                 frames: s.frames.clone(),
             }),
         })
+    }
+}
+
+/// The summary of an indexed topic of role `role`.
+fn summary(t: &TopicData, role: Role) -> ChannelSummary {
+    let span_nanos = match (t.frames.first(), t.frames.last()) {
+        (Some(a), Some(b)) if t.frames.len() > 1 => b.stamp.nanos_since(a.stamp),
+        _ => t.last_log.saturating_sub(t.first_log) as i64,
+    };
+    ChannelSummary {
+        topic: t.channel.topic.clone(),
+        role,
+        schema: t.channel.schema_name().to_string(),
+        schema_encoding: t
+            .channel
+            .schema
+            .as_ref()
+            .map_or(String::new(), |s| s.encoding.clone()),
+        message_encoding: t.channel.message_encoding.clone(),
+        message_count: t.count,
+        rate_hz: (span_nanos > 0 && t.count > 1)
+            .then(|| (t.count - 1) as f64 / (span_nanos as f64 * 1e-9)),
     }
 }

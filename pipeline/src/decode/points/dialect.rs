@@ -1,7 +1,8 @@
 //! The per-dialect entry points: ROS 2 `PointCloud2` (row geometry, endianness),
 //! `foxglove.PointCloud` (stride, pose) and MCAP messages dispatched on their schema.
 
-use super::layout::PointLayout;
+use super::label::LabelFieldSpec;
+use super::layout::FieldList;
 use super::read::{Grid, decode_core};
 use super::time::TimeFieldSpec;
 use super::{DecodedCloud, PointsError};
@@ -15,16 +16,44 @@ use crate::source::MessageRef;
 /// Schema name of `foxglove.PointCloud`.
 const FOXGLOVE_SCHEMA: &str = "foxglove.PointCloud";
 
+/// What to read of a cloud beyond positions, intensity and ring: the per-point time
+/// (inferred unless given), the labels (not read unless given) and the message index of
+/// each kept point (not recorded unless asked for).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct CloudOptions<'a> {
+    /// How to read the per-point time; `None` infers it (see the module documentation).
+    pub time: Option<&'a TimeFieldSpec>,
+    /// Which field holds the semantic labels; `None` reads none (and costs nothing).
+    /// Given, the field is required and fills [`PointCloud::label`](superflow_schemas::sensor::PointCloud::label).
+    pub label: Option<&'a LabelFieldSpec>,
+    /// Record [`DecodedCloud::kept_indices`].
+    pub kept_indices: bool,
+}
+
 /// Decodes a ROS 2 `sensor_msgs/msg/PointCloud2` (see the module documentation for the
 /// fields read and the time inference that `time` overrides).
 pub fn decode_ros2(
     msg: &PointCloud2,
     time: Option<&TimeFieldSpec>,
 ) -> Result<DecodedCloud, PointsError> {
+    decode_ros2_with(
+        msg,
+        &CloudOptions {
+            time,
+            ..CloudOptions::default()
+        },
+    )
+}
+
+/// [`decode_ros2`] reading what `options` asks for.
+pub fn decode_ros2_with(
+    msg: &PointCloud2,
+    options: &CloudOptions<'_>,
+) -> Result<DecodedCloud, PointsError> {
     let ctx = Ctx::ros2(&msg.header);
-    let layout = PointLayout::from_ros2(msg, time)?;
+    let layout = FieldList::ros2(msg).layout(options.time, options.label)?;
     let grid = ros2_grid(&ctx, msg)?;
-    decode_core(&ctx, &layout, &msg.data, grid)
+    decode_core(&ctx, &layout, &msg.data, grid, options.kept_indices)
 }
 
 /// Decodes a `foxglove.PointCloud` (little-endian; see the module documentation for the
@@ -33,11 +62,25 @@ pub fn decode_foxglove(
     msg: &fox::PointCloud,
     time: Option<&TimeFieldSpec>,
 ) -> Result<DecodedCloud, PointsError> {
+    decode_foxglove_with(
+        msg,
+        &CloudOptions {
+            time,
+            ..CloudOptions::default()
+        },
+    )
+}
+
+/// [`decode_foxglove`] reading what `options` asks for.
+pub fn decode_foxglove_with(
+    msg: &fox::PointCloud,
+    options: &CloudOptions<'_>,
+) -> Result<DecodedCloud, PointsError> {
     let ctx = foxglove_ctx(msg)?;
-    let layout = PointLayout::from_foxglove(msg, time)?;
+    let layout = FieldList::foxglove(msg)?.layout(options.time, options.label)?;
     let grid = foxglove_grid(&ctx, msg)?;
     let pose = foxglove_pose(&ctx, msg)?;
-    let mut decoded = decode_core(&ctx, &layout, &msg.data, grid)?;
+    let mut decoded = decode_core(&ctx, &layout, &msg.data, grid, options.kept_indices)?;
     if let Some(frame_from_cloud) = pose {
         for p in &mut decoded.cloud.xyz {
             let q = frame_from_cloud
@@ -55,27 +98,58 @@ pub fn decode_message(
     msg: &MessageRef<'_>,
     time: Option<&TimeFieldSpec>,
 ) -> Result<DecodedCloud, PointsError> {
-    let channel = msg.channel;
-    let undecodable = |source: DecodeError| PointsError::Message {
-        topic: channel.topic.clone(),
-        source: Box::new(source),
-    };
-    match schema_kind(channel) {
-        Some((SchemaKind::PointCloud, Dialect::Ros2)) => {
-            let cloud: PointCloud2 =
-                ros2::decode(msg.data).map_err(|e| undecodable(DecodeError::from(e)))?;
-            decode_ros2(&cloud, time)
-        }
-        Some((SchemaKind::PointCloud, Dialect::FoxgloveProtobuf)) => {
-            let cloud: fox::PointCloud =
-                fox::decode(FOXGLOVE_SCHEMA, msg.data).map_err(undecodable)?;
-            decode_foxglove(&cloud, time)
-        }
-        _ => Err(PointsError::NotAPointCloud {
+    decode_message_with(
+        msg,
+        &CloudOptions {
+            time,
+            ..CloudOptions::default()
+        },
+    )
+}
+
+/// [`decode_message`] reading what `options` asks for.
+pub fn decode_message_with(
+    msg: &MessageRef<'_>,
+    options: &CloudOptions<'_>,
+) -> Result<DecodedCloud, PointsError> {
+    match AnyCloud::decode(msg)? {
+        AnyCloud::Ros2(cloud) => decode_ros2_with(&cloud, options),
+        AnyCloud::Foxglove(cloud) => decode_foxglove_with(&cloud, options),
+    }
+}
+
+/// A point-cloud message of either dialect, decoded from its wire format.
+#[derive(Debug)]
+pub(super) enum AnyCloud {
+    /// `sensor_msgs/msg/PointCloud2`.
+    Ros2(PointCloud2),
+    /// `foxglove.PointCloud`.
+    Foxglove(fox::PointCloud),
+}
+
+impl AnyCloud {
+    /// The message decoded by its channel's schema.
+    pub(super) fn decode(msg: &MessageRef<'_>) -> Result<Self, PointsError> {
+        let channel = msg.channel;
+        let undecodable = |source: DecodeError| PointsError::Message {
             topic: channel.topic.clone(),
-            schema: channel.schema_name().to_string(),
-            encoding: channel.message_encoding.clone(),
-        }),
+            source: Box::new(source),
+        };
+        match schema_kind(channel) {
+            Some((SchemaKind::PointCloud, Dialect::Ros2)) => ros2::decode(msg.data)
+                .map(AnyCloud::Ros2)
+                .map_err(|e| undecodable(DecodeError::from(e))),
+            Some((SchemaKind::PointCloud, Dialect::FoxgloveProtobuf)) => {
+                fox::decode(FOXGLOVE_SCHEMA, msg.data)
+                    .map(AnyCloud::Foxglove)
+                    .map_err(undecodable)
+            }
+            _ => Err(PointsError::NotAPointCloud {
+                topic: channel.topic.clone(),
+                schema: channel.schema_name().to_string(),
+                encoding: channel.message_encoding.clone(),
+            }),
+        }
     }
 }
 
@@ -87,7 +161,7 @@ pub(super) fn foxglove_ctx(msg: &fox::PointCloud) -> Result<Ctx<'_>, PointsError
 }
 
 /// The grid of a Foxglove cloud: one row of `data.len() / point_stride` points.
-fn foxglove_grid(ctx: &Ctx<'_>, msg: &fox::PointCloud) -> Result<Grid, PointsError> {
+pub(super) fn foxglove_grid(ctx: &Ctx<'_>, msg: &fox::PointCloud) -> Result<Grid, PointsError> {
     let data: &[u8] = &msg.data;
     let stride = msg.point_stride as usize;
     // The layout has a coordinate inside every point, so the stride is at least 1.
@@ -107,7 +181,7 @@ fn foxglove_grid(ctx: &Ctx<'_>, msg: &fox::PointCloud) -> Result<Grid, PointsErr
 }
 
 /// The grid of a ROS cloud, checked against its data.
-fn ros2_grid(ctx: &Ctx<'_>, msg: &PointCloud2) -> Result<Grid, PointsError> {
+pub(super) fn ros2_grid(ctx: &Ctx<'_>, msg: &PointCloud2) -> Result<Grid, PointsError> {
     let row_len = u64::from(msg.width) * u64::from(msg.point_step);
     let row_step = if msg.row_step == 0 {
         row_len

@@ -34,6 +34,36 @@ pub enum PointsError {
         /// The field names present, comma-separated.
         fields: String,
     },
+    /// Labels were asked for and no field holds them.
+    #[error(
+        "point cloud `{frame_id}` at {stamp}: no label field ({wanted}, regardless of case; fields: {fields})"
+    )]
+    MissingLabelField {
+        /// Frame of the cloud.
+        frame_id: String,
+        /// Its stamp.
+        stamp: Stamp,
+        /// The names looked for.
+        wanted: String,
+        /// The field names present, comma-separated.
+        fields: String,
+    },
+    /// A label value that is not a class id (a non-negative integer below 2^32).
+    #[error(
+        "point cloud `{frame_id}` at {stamp}: point {index} has label field `{field}` = {value}, not a class id (a non-negative integer below 2^32)"
+    )]
+    BadLabel {
+        /// Frame of the cloud.
+        frame_id: String,
+        /// Its stamp.
+        stamp: Stamp,
+        /// Name of the label field.
+        field: String,
+        /// Index of the point in the message (invalid points counted).
+        index: usize,
+        /// The recorded value.
+        value: f64,
+    },
     /// A used field has more (or fewer) than one element per point.
     #[error(
         "point cloud `{frame_id}` at {stamp}: field `{field}` has count {count}, only 1 is supported"

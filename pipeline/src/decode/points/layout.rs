@@ -3,6 +3,7 @@
 //! built from a ROS 2 or Foxglove field list and checked against the point size.
 
 use super::PointsError;
+use super::label::{LabelFieldSpec, LabelPlan};
 use super::time::{TIME_NAMES, TimeFieldSpec, TimePlan, TimeReference, TimeRule, TimeUnit};
 use crate::decode::context::Ctx;
 use crate::decode::foxglove as fox;
@@ -163,11 +164,13 @@ pub struct PointLayout {
     pub(super) intensity: Option<NamedField>,
     pub(super) ring: Option<NamedField>,
     pub(super) time: Option<TimePlan>,
+    /// The label field, only when the caller asked for labels.
+    pub(super) label: Option<LabelPlan>,
 }
 
 /// A field of either dialect, before checking.
 #[derive(Debug, Clone, Copy)]
-struct RawField<'a> {
+pub(super) struct RawField<'a> {
     name: &'a str,
     offset: u32,
     numeric: Result<NumericType, i64>,
@@ -177,8 +180,8 @@ struct RawField<'a> {
 /// The field list of one message with what checking its fields needs: the message's
 /// context, the point size, the byte order and the dialect's name of its datatypes.
 #[derive(Debug)]
-struct FieldList<'a> {
-    ctx: Ctx<'a>,
+pub(super) struct FieldList<'a> {
+    pub(super) ctx: Ctx<'a>,
     fields: Vec<RawField<'a>>,
     point_step: u32,
     endianness: Endianness,
@@ -186,9 +189,9 @@ struct FieldList<'a> {
     dialect: &'static str,
 }
 
-impl PointLayout {
-    /// The plan for a ROS 2 `PointCloud2`'s `fields`, `point_step` and `is_bigendian`.
-    pub fn from_ros2(msg: &PointCloud2, time: Option<&TimeFieldSpec>) -> Result<Self, PointsError> {
+impl<'a> FieldList<'a> {
+    /// The field list of a ROS 2 `PointCloud2` (`fields`, `point_step`, `is_bigendian`).
+    pub(super) fn ros2(msg: &'a PointCloud2) -> Self {
         let fields = msg
             .fields
             .iter()
@@ -199,7 +202,7 @@ impl PointLayout {
                 count: f.count,
             })
             .collect();
-        let list = FieldList {
+        FieldList {
             ctx: Ctx::ros2(&msg.header),
             fields,
             point_step: msg.point_step,
@@ -209,16 +212,12 @@ impl PointLayout {
                 Endianness::Little
             },
             dialect: "ROS PointField",
-        };
-        list.layout(time)
+        }
     }
 
-    /// The plan for a `foxglove.PointCloud`'s `fields` and `point_stride`
-    /// (little-endian).
-    pub fn from_foxglove(
-        msg: &fox::PointCloud,
-        time: Option<&TimeFieldSpec>,
-    ) -> Result<Self, PointsError> {
+    /// The field list of a `foxglove.PointCloud` (`fields`, `point_stride`,
+    /// little-endian); an error without a timestamp.
+    pub(super) fn foxglove(msg: &'a fox::PointCloud) -> Result<Self, PointsError> {
         let fields = msg
             .fields
             .iter()
@@ -229,14 +228,29 @@ impl PointLayout {
                 count: 1,
             })
             .collect();
-        let list = FieldList {
+        Ok(FieldList {
             ctx: super::dialect::foxglove_ctx(msg)?,
             fields,
             point_step: msg.point_stride,
             endianness: Endianness::Little,
             dialect: "Foxglove NumericType",
-        };
-        list.layout(time)
+        })
+    }
+}
+
+impl PointLayout {
+    /// The plan for a ROS 2 `PointCloud2`'s `fields`, `point_step` and `is_bigendian`.
+    pub fn from_ros2(msg: &PointCloud2, time: Option<&TimeFieldSpec>) -> Result<Self, PointsError> {
+        FieldList::ros2(msg).layout(time, None)
+    }
+
+    /// The plan for a `foxglove.PointCloud`'s `fields` and `point_stride`
+    /// (little-endian).
+    pub fn from_foxglove(
+        msg: &fox::PointCloud,
+        time: Option<&TimeFieldSpec>,
+    ) -> Result<Self, PointsError> {
+        FieldList::foxglove(msg)?.layout(time, None)
     }
 
     /// Bytes per point.
@@ -263,11 +277,21 @@ impl PointLayout {
     pub fn time(&self) -> Option<&NamedField> {
         self.time.as_ref().map(|t| &t.field)
     }
+
+    /// The label field, if labels were asked for.
+    pub fn label(&self) -> Option<&NamedField> {
+        self.label.as_ref().map(|l| &l.field)
+    }
 }
 
 impl FieldList<'_> {
-    /// The layout: coordinates, then intensity, ring and time, each checked when used.
-    fn layout(&self, time: Option<&TimeFieldSpec>) -> Result<PointLayout, PointsError> {
+    /// The layout: coordinates, then intensity, ring and time, each checked when used,
+    /// and with `label` the label field (required then).
+    pub(super) fn layout(
+        &self,
+        time: Option<&TimeFieldSpec>,
+        label: Option<&LabelFieldSpec>,
+    ) -> Result<PointLayout, PointsError> {
         let xyz = [
             self.coordinate("x")?,
             self.coordinate("y")?,
@@ -280,12 +304,55 @@ impl FieldList<'_> {
             .transpose()?;
         let ring = self.find(&RING_NAMES).map(|f| self.named(f)).transpose()?;
         let time = self.time(time)?;
+        let label = label.map(|spec| self.label(spec, false)).transpose()?;
         Ok(PointLayout {
             point_step: self.point_step as usize,
             xyz,
             intensity,
             ring,
             time,
+            label,
+        })
+    }
+
+    /// Bytes per point.
+    pub(super) fn point_step(&self) -> u32 {
+        self.point_step
+    }
+
+    /// The label field of `spec`: the configured name, else the first of
+    /// [`super::LABEL_NAMES`] present (both case-insensitive); failing that, with
+    /// `sole_field`, the only field of a one-field list (a sidecar label cloud). Absent:
+    /// [`PointsError::MissingLabelField`].
+    pub(super) fn label(
+        &self,
+        spec: &LabelFieldSpec,
+        sole_field: bool,
+    ) -> Result<LabelPlan, PointsError> {
+        let sole = match self.fields.as_slice() {
+            [only] if sole_field => Some(only),
+            _ => None,
+        };
+        let found = self.find_ignoring_case(&spec.names()).or(sole);
+        let field = found.ok_or_else(|| PointsError::MissingLabelField {
+            frame_id: self.ctx.id(),
+            stamp: self.ctx.stamp,
+            wanted: spec.wanted(),
+            fields: self.names(),
+        })?;
+        Ok(LabelPlan {
+            field: self.named(field)?,
+            mask: spec.mask,
+        })
+    }
+
+    /// The first field named as one of `wanted` regardless of case, in the order of
+    /// `wanted`.
+    fn find_ignoring_case(&self, wanted: &[&str]) -> Option<&RawField<'_>> {
+        wanted.iter().find_map(|name| {
+            self.fields
+                .iter()
+                .find(|f| f.name.eq_ignore_ascii_case(name))
         })
     }
 

@@ -31,6 +31,7 @@
 //! | intensity | `intensity`, `i`; `reflectivity` only when neither exists | any | `intensity` as `f32`, the value as stored (UINT8 `0..255`, KITTI `0..1`, ...); 0 with [`DecodedCloud::has_intensity`] `false` when absent |
 //! | ring | `ring`, `channel`, `laser_id`, `line` | any, FLOAT32 included (nuScenes) | `ring` as `u16`; a value that is not an integer in `0..=65535` is an error ([`PointsError::BadRing`]) |
 //! | per-point time | `time`, `t`, `time_offset`, `offset_time`, `timestamp` | see below | `time_offset_secs`, seconds relative to the message stamp |
+//! | semantic label (only through [`CloudOptions::label`]) | the configured name, else `label`, `class`, `semantic`, `semantic_label`, `lidarseg` — **regardless of case** | any integer type; FLOAT32 / FLOAT64 holding integers | `label` as `u32` raw ids, masked if configured; a value that is not a non-negative integer is an error ([`PointsError::BadLabel`]); see [`LabelFieldSpec`] |
 //!
 //! Names are matched exactly (case-sensitive); the first field with a name wins. Fields
 //! that are not used (`ambient`, `range`, `return_type`, padding, ...) are not checked:
@@ -49,6 +50,13 @@
 //! | Livox (PointCloud2 output) | x y z intensity (FLOAT32), tag, line (UINT8), timestamp (FLOAT64 absolute) or offset_time (UINT32 ns) | — |
 //! | Autoware `PointXYZIRC` | x0 y4 z8 (FLOAT32), intensity12 (UINT8), return_type13, channel14 (UINT16) | 16 |
 //! | nuScenes `foxglove.PointCloud` | x0 y4 z8 intensity12 ring16, all FLOAT32 | 20 |
+//!
+//! Labels are read only when [`CloudOptions::label`] asks for them, so a caller that
+//! does not want them pays nothing; a label-only cloud (the parallel cloud of a
+//! `<drive>.labels.mcap` sidecar, without `x`, `y`, `z`) decodes with
+//! [`decode_labels_message`] into a [`LabelCloud`] of every point, and
+//! [`CloudOptions::kept_indices`] gives the message index of each point a LiDAR cloud
+//! kept, to carry such labels through the dropping of invalid points.
 //!
 //! # Per-point time
 //!
@@ -115,14 +123,22 @@
 
 mod dialect;
 mod error;
+mod label;
 mod layout;
 mod read;
 #[cfg(test)]
 mod tests;
 mod time;
 
-pub use dialect::{decode_foxglove, decode_message, decode_ros2};
+pub use dialect::{
+    CloudOptions, decode_foxglove, decode_foxglove_with, decode_message, decode_message_with,
+    decode_ros2, decode_ros2_with,
+};
 pub use error::PointsError;
+pub use label::{
+    LABEL_NAMES, LabelCloud, LabelFieldSpec, decode_labels_foxglove, decode_labels_message,
+    decode_labels_ros2, field_names, find_label_field,
+};
 pub use layout::{Endianness, FieldPlan, NamedField, NumericType, PointLayout};
 pub use time::{TimeFieldSpec, TimeReference, TimeUnit};
 
@@ -142,4 +158,8 @@ pub struct DecodedCloud {
     /// How the per-point time was read (inferred or as configured); `None` when the
     /// message has no time field.
     pub time_field: Option<TimeFieldSpec>,
+    /// The index in the message (row by row, dropped points counted) of each kept
+    /// point, when [`CloudOptions::kept_indices`] asked for it: what carries anything
+    /// parallel to the message's points (a sidecar's labels) through the dropping.
+    pub kept_indices: Option<Vec<u32>>,
 }

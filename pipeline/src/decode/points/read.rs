@@ -2,6 +2,7 @@
 //! drops the non-finite ones, converts ring and time, and resolves a float time field's
 //! unit by the magnitude of its values.
 
+use super::label::{LabelPlan, bad_label};
 use super::layout::{Endianness, FieldPlan, NamedField, NumericType, PointLayout, array};
 use super::time::{
     TimeConversion, TimeFieldSpec, TimeReference, TimeRule, TimeUnit, magnitude_rule,
@@ -23,7 +24,7 @@ pub(super) struct Grid {
 }
 
 /// The bytes of each row's points.
-fn rows(data: &[u8], grid: Grid, point_step: usize) -> impl Iterator<Item = &[u8]> {
+pub(super) fn rows(data: &[u8], grid: Grid, point_step: usize) -> impl Iterator<Item = &[u8]> {
     let row_len = grid.width * point_step;
     (0..grid.rows).map(move |r| {
         let start = r * grid.row_step;
@@ -68,10 +69,13 @@ impl XyzReader for AnyXyz {
 
 /// The optional attributes to read from each kept point.
 #[derive(Debug, Clone, Copy)]
-struct Attributes {
+struct Attributes<'a> {
     intensity: Option<FieldPlan>,
     ring: Option<FieldPlan>,
     time: Option<TimeConversion>,
+    label: Option<&'a LabelPlan>,
+    /// Record the message index of each kept point.
+    kept_indices: bool,
 }
 
 /// The columns of the kept points.
@@ -81,6 +85,8 @@ struct Points {
     intensity: Vec<f32>,
     ring: Option<Vec<u16>>,
     time_offset: Option<Vec<f32>>,
+    label: Option<Vec<u32>>,
+    kept_indices: Option<Vec<u32>>,
     dropped: usize,
     /// The largest `|value|` of the time field over the kept points (0 without one).
     max_abs_time: f64,
@@ -96,13 +102,15 @@ fn fill<X: XyzReader>(
     grid: Grid,
     capacity: usize,
     position: X,
-    attributes: Attributes,
+    attributes: Attributes<'_>,
 ) -> Result<Points, PointsError> {
     let step = layout.point_step.max(1);
     let Attributes {
         intensity: intensity_plan,
         ring: ring_plan,
         time,
+        label: label_plan,
+        kept_indices,
     } = attributes;
     // Columns of `capacity` (the number of points) zeros, written in place and cut to the
     // kept points at the end: no capacity checks or growth calls in the loop.
@@ -111,6 +119,8 @@ fn fill<X: XyzReader>(
     let mut intensity = vec![0f32; capacity];
     let mut ring = vec![0u16; sized(ring_plan.is_some())];
     let mut time_offset = vec![0f32; sized(time.is_some())];
+    let mut label = vec![0u32; sized(label_plan.is_some())];
+    let mut indices = vec![0u32; sized(kept_indices)];
     let mut kept = 0usize;
     let mut index = 0usize;
     let mut max_abs_time = 0.0f64;
@@ -148,6 +158,16 @@ fn fill<X: XyzReader>(
                 }
                 *slot = offset;
             }
+            if let (Some(plan), Some(slot)) = (label_plan, label.get_mut(kept)) {
+                *slot = plan.read(p).map_err(|value| {
+                    bad_label(ctx.frame_id, ctx.stamp, &plan.field.name, i, value)
+                })?;
+            }
+            if let Some(slot) = indices.get_mut(kept) {
+                // A message holds fewer than 2^32 points of at least one byte each
+                // (MCAP messages and CDR sequences count in u32).
+                *slot = i as u32;
+            }
             kept += 1;
         }
     }
@@ -156,11 +176,15 @@ fn fill<X: XyzReader>(
     intensity.truncate(kept);
     ring.truncate(kept);
     time_offset.truncate(kept);
+    label.truncate(kept);
+    indices.truncate(kept);
     Ok(Points {
         xyz,
         intensity,
         ring: ring_plan.map(|_| ring),
         time_offset: time.map(|_| time_offset),
+        label: label_plan.map(|_| label),
+        kept_indices: kept_indices.then_some(indices),
         dropped: index - kept,
         max_abs_time,
     })
@@ -197,7 +221,8 @@ fn bad_value(
     }
 }
 
-/// Applies `layout` to every point of `data` (laid out as `grid`, already checked).
+/// Applies `layout` to every point of `data` (laid out as `grid`, already checked);
+/// with `kept_indices`, records the message index of each kept point.
 ///
 /// A float time field under inference is first read as relative seconds (velodyne, the
 /// common case) while its largest magnitude is tracked; only when that shows absolute
@@ -209,6 +234,7 @@ pub(super) fn decode_core(
     layout: &PointLayout,
     data: &[u8],
     grid: Grid,
+    kept_indices: bool,
 ) -> Result<DecodedCloud, PointsError> {
     // A validated layout has a field inside every point, so this is at least 1.
     let step = layout.point_step.max(1);
@@ -218,7 +244,7 @@ pub(super) fn decode_core(
         .iter()
         .all(|f| f.numeric == NumericType::Float32);
     let offsets = [px.offset, py.offset, pz.offset];
-    let run = |attributes: Attributes| match (float32, px.endianness) {
+    let run = |attributes: Attributes<'_>| match (float32, px.endianness) {
         (true, Endianness::Little) => {
             let position = Float32Xyz::<false>(offsets);
             fill(ctx, layout, data, grid, capacity, position, attributes)
@@ -252,6 +278,8 @@ pub(super) fn decode_core(
         intensity: layout.intensity.as_ref().map(|f| f.plan),
         ring: layout.ring.as_ref().map(|f| f.plan),
         time: time_conversion(first_unit, first_reference),
+        label: layout.label.as_ref(),
+        kept_indices,
     })?;
 
     let time_field = match &layout.time {
@@ -266,6 +294,8 @@ pub(super) fn decode_core(
                     intensity: None,
                     ring: None,
                     time: time_conversion(unit, reference),
+                    label: None,
+                    kept_indices: false,
                 })?
                 .time_offset;
             }
@@ -285,8 +315,10 @@ pub(super) fn decode_core(
             intensity: points.intensity,
             ring: points.ring,
             time_offset_secs: points.time_offset,
+            label: points.label,
         },
         dropped_non_finite: points.dropped,
+        kept_indices: points.kept_indices,
         has_intensity: layout.intensity.is_some(),
         time_field,
     })

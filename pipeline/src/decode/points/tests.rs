@@ -18,6 +18,7 @@ use superflow_schemas::Stamp;
 mod dialect;
 mod errors;
 mod foxglove;
+mod labels;
 mod robustness;
 mod ros_layouts;
 mod time;
