@@ -1,7 +1,9 @@
 //! The real `superflow-pipeline` feeding the real `superflow-trainer` (tiny presets) on
 //! the sample drive: the loss goes down, checkpoints are written, and a trainer killed
 //! after a checkpoint and restarted with `--resume` continues with the same batches and
-//! the same losses as an uninterrupted run. `superflow-trainer check` (the backend
+//! the same losses as an uninterrupted run; `superflow-trainer probe` of the trained
+//! checkpoint and of an untrained network on the drives' labels (linear and fine-tuned)
+//! prints its JSON report. `superflow-trainer check` (the backend
 //! comparison `deploy/gpu/check.sh` runs on a GPU) on a batch file from
 //! `superflow-pipeline batch`.
 
@@ -76,6 +78,42 @@ fn by_step(records: Vec<StepRecord>) -> BTreeMap<u64, StepRecord> {
     records.into_iter().map(|r| (r.step, r)).collect()
 }
 
+/// `superflow-trainer probe --json` of `backbone` on the sample drives (tiny presets).
+fn probe(backbone: &str, extra: &[&str]) -> serde_json::Value {
+    let (ok, out, err) = finish(
+        spawn(
+            Command::new(workspace_binary(
+                env!("CARGO_BIN_EXE_superflow-probe"),
+                "superflow-trainer",
+            ))
+            .args([
+                "probe",
+                "--mcap",
+                "recordings/drives",
+                "--checkpoint",
+                backbone,
+            ])
+            .args([
+                "--unet",
+                "tiny",
+                "--json",
+                "--val-fraction",
+                "0.3",
+                "--gap-secs",
+                "0.5",
+            ])
+            .args(extra)
+            .current_dir(workspace_root())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped()),
+        ),
+        LIMIT,
+    );
+    assert!(ok, "probe {backbone} {extra:?}:\n{err}");
+    serde_json::from_str(out.lines().last().unwrap_or_default())
+        .unwrap_or_else(|e| panic!("probe output {out:?}: {e}"))
+}
+
 fn mean(values: impl Iterator<Item = f64>) -> f64 {
     let v: Vec<f64> = values.collect();
     v.iter().sum::<f64>() / v.len() as f64
@@ -129,6 +167,42 @@ fn training_lowers_the_loss_and_a_resumed_run_matches_an_uninterrupted_one() {
     assert!(full.join("checkpoints/latest").exists());
     assert!(full.join("checkpoints/step-00000020/model.bpk").exists());
     assert!(full.join("losses.svg").exists());
+
+    // The trained backbone and an untrained one, probed on the sample drives' labels.
+    let checkpoint = full.join("checkpoints");
+    for (backbone, extra) in [
+        (checkpoint.to_str().unwrap(), &["--epochs", "5"][..]),
+        ("random", &["--epochs", "5"][..]),
+        (
+            checkpoint.to_str().unwrap(),
+            &["--finetune", "--epochs", "1"][..],
+        ),
+    ] {
+        let report = probe(backbone, extra);
+        let miou = report["miou"].as_f64().unwrap();
+        assert!((0.0..=1.0).contains(&miou), "{report}");
+        let per_class = report["per_class"].as_object().unwrap();
+        assert!(
+            per_class.len() >= 3,
+            "the drives' classes are scored: {report}"
+        );
+        let mean =
+            per_class.values().map(|v| v.as_f64().unwrap()).sum::<f64>() / per_class.len() as f64;
+        assert!(
+            (mean - miou).abs() < 1e-9,
+            "mIoU is the mean of the classes' IoU: {report}"
+        );
+        assert!(report["points"]["val"].as_u64().unwrap() > 1000, "{report}");
+        assert!(report["split"]["train"].as_u64().unwrap() >= 1, "{report}");
+        assert!(report["split"]["val"].as_u64().unwrap() >= 1, "{report}");
+        if backbone != "random" {
+            assert!(
+                report["backbone"].as_str().unwrap().contains("step 24"),
+                "{report}"
+            );
+        }
+        eprintln!("probe {backbone} {extra:?}: mIoU {miou:.3}");
+    }
 
     // The same run, killed after its checkpoint at step 10, then resumed.
     let p = prefix("resume");

@@ -153,7 +153,12 @@ pub fn latest(root: &Path) -> Result<Option<Checkpoint>, TrainerError> {
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
         Err(e) => return Err(TrainerError::io("reading", pointer, e)),
     };
-    let dir = root.join(&name);
+    read(&root.join(&name)).map(Some)
+}
+
+/// The checkpoint in `dir` (a `step-N` directory). A damaged one is an error naming it.
+pub fn read(dir: &Path) -> Result<Checkpoint, TrainerError> {
+    let dir = dir.to_path_buf();
     let state_path = dir.join("state.json");
     let text = fs::read(&state_path).map_err(|e| TrainerError::io("reading", &state_path, e))?;
     let state: CheckpointState = match serde_json::from_slice(&text) {
@@ -172,7 +177,7 @@ pub fn latest(root: &Path) -> Result<Option<Checkpoint>, TrainerError> {
             expected: FORMAT,
         });
     }
-    Ok(Some(Checkpoint { dir, state }))
+    Ok(Checkpoint { dir, state })
 }
 
 #[cfg(test)]

@@ -54,6 +54,7 @@ pub mod config;
 #[cfg(feature = "mpi")]
 pub mod ddp;
 pub mod error;
+pub mod evaluate;
 pub mod init;
 pub mod inputs;
 pub mod loss;

@@ -14,6 +14,7 @@ use superflow_trainer::checkpoint::CheckpointState;
 use superflow_trainer::config::TrainerConfig;
 #[cfg(feature = "mpi")]
 use superflow_trainer::ddp::Ddp;
+use superflow_trainer::evaluate;
 use superflow_trainer::loss::LossValues;
 use superflow_trainer::metrics::{self, DdpRecord, MetricsWriter, StepRecord};
 use superflow_trainer::sparse::UNetPreset;
@@ -63,7 +64,7 @@ struct Args {
     #[arg(long, global = true)]
     seed: Option<u64>,
     /// Compute backend: flex (CPU), wgpu (build with --features wgpu), cuda (--features cuda).
-    #[arg(long, default_value = "flex")]
+    #[arg(long, default_value = "flex", global = true)]
     backend: String,
     /// GPU index for cuda (wgpu takes the best adapter; set CUBECL_WGPU_DEFAULT_DEVICE to
     /// choose another).
@@ -111,6 +112,61 @@ enum Sub {
     /// check before a long run on a new machine. Network flags (--unet, --vit,
     /// --pixel-stride, --config, --seed, --steps [default 3]) apply.
     Check(CheckArgs),
+    /// Scores a 3D backbone downstream: per-point semantic segmentation of the labelled
+    /// sweeps of DRIVES, split by time into train and validation, a linear classifier on
+    /// the frozen backbone's features (or `--finetune`: the whole network), mIoU and
+    /// per-class IoU on the validation sweeps.
+    Probe(ProbeArgs),
+}
+
+/// `superflow-trainer probe`.
+#[derive(Debug, clap::Args)]
+struct ProbeArgs {
+    /// Labelled drives: MCAP files or directories of them (labels in the LiDAR clouds or
+    /// in `<drive>.labels.mcap` sidecars).
+    #[arg(long, num_args = 1.., required = true)]
+    mcap: Vec<PathBuf>,
+    /// The backbone: a run's checkpoint directory (its newest checkpoint), one `step-N`
+    /// directory, or `random` (an untrained network of --unet/--config, for the
+    /// baseline).
+    #[arg(long)]
+    checkpoint: String,
+    /// The pipeline's configuration (channels, de-skew, voxel grid, `[labels]`: field,
+    /// mapping, classes, ignore index) [default: the pipeline's defaults].
+    #[arg(long)]
+    pipeline_config: Option<PathBuf>,
+    /// Train the whole network with a linear classifier instead of a linear classifier on
+    /// frozen features.
+    #[arg(long)]
+    finetune: bool,
+    /// Share of the training sweeps used (few-label protocols: 0.01, 0.1).
+    #[arg(long, default_value_t = 1.0)]
+    label_fraction: f64,
+    /// Passes over the training data [default: 20, fine-tuning 10].
+    #[arg(long)]
+    epochs: Option<usize>,
+    /// Learning rate [default: 1e-2 linear probe, 1e-3 fine-tuning].
+    #[arg(long = "probe-lr")]
+    probe_lr: Option<f64>,
+    /// Share of each drive's time span, at its end, scored as validation.
+    #[arg(long, default_value_t = 0.25)]
+    val_fraction: f64,
+    /// Validation drives of their own (e.g. nuScenes' val scenes): every labelled sweep of
+    /// --mcap trains, every one of these is scored (--val-fraction and --gap-secs unused).
+    #[arg(long, num_args = 1..)]
+    val_mcap: Vec<PathBuf>,
+    /// Seconds of sweeps left out between the training and validation parts.
+    #[arg(long, default_value_t = 1.0)]
+    gap_secs: f64,
+    /// One labelled sweep per this many seconds (nuScenes labels its 2 Hz keyframes).
+    #[arg(long, default_value_t = 0.5)]
+    keyframe_interval_secs: f64,
+    /// Most training points of the linear probe (evenly strided beyond).
+    #[arg(long, default_value_t = 1_000_000)]
+    max_train_points: usize,
+    /// Print the report as JSON on stdout (`{"miou", "per_class", "points", "split", …}`).
+    #[arg(long)]
+    json: bool,
 }
 
 /// `superflow-trainer check`.
@@ -1086,6 +1142,80 @@ fn check(args: &Args, c: &CheckArgs) -> anyhow::Result<Option<i32>> {
     Ok(None)
 }
 
+/// `superflow-trainer probe`.
+fn probe(args: &Args, p: &ProbeArgs) -> anyhow::Result<Option<i32>> {
+    let pipeline = match &p.pipeline_config {
+        Some(path) => superflow_pipeline::config::PipelineConfig::load(path)?,
+        None => superflow_pipeline::config::PipelineConfig::default(),
+    };
+    let device = device(&args.backend, args.device_index)?;
+    let (unet, what) = evaluate::load_backbone(&p.checkpoint, &args.config()?, &device)?;
+    tracing::info!(backbone = %what, "probing");
+    let dataset = superflow_pipeline::drive::Dataset::open(&p.mcap, &pipeline.ingest)
+        .context("opening the drives")?;
+    let interval = (p.keyframe_interval_secs * 1e9) as i64;
+    let mut data = evaluate::labelled_clouds(&dataset, &pipeline, interval)?;
+    let val_from = if p.val_mcap.is_empty() {
+        None
+    } else {
+        let val = superflow_pipeline::drive::Dataset::open(&p.val_mcap, &pipeline.ingest)
+            .context("opening the validation drives")?;
+        let val = evaluate::labelled_clouds(&val, &pipeline, interval)?;
+        let first = data.clouds.len();
+        let drives = dataset.drives.len();
+        data.clouds.extend(val.clouds.into_iter().map(|mut c| {
+            c.time.drive += drives;
+            c
+        }));
+        data.classes = data.classes.max(val.classes);
+        Some(first)
+    };
+    tracing::info!(
+        clouds = data.clouds.len(),
+        classes = data.classes,
+        unlabelled_drives = data.unlabelled_drives,
+        "labelled sweeps"
+    );
+    let settings = evaluate::ProbeSettings {
+        classes: data.classes,
+        ignore: data.ignore,
+        names: data.names,
+        val_fraction: p.val_fraction,
+        val_from,
+        gap_ns: (p.gap_secs * 1e9) as i64,
+        label_fraction: p.label_fraction,
+        finetune: p.finetune,
+        epochs: p.epochs.unwrap_or(if p.finetune { 10 } else { 20 }),
+        lr: p.probe_lr.unwrap_or(if p.finetune { 1e-3 } else { 1e-2 }),
+        max_train_points: p.max_train_points,
+        seed: args.seed.unwrap_or(0),
+    };
+    let report = evaluate::probe(unet, &data.clouds, &settings, &device)?;
+    if p.json {
+        let mut value = serde_json::to_value(&report)?;
+        value["backbone"] = serde_json::Value::String(what);
+        value["protocol"] =
+            serde_json::Value::String(if p.finetune { "finetune" } else { "linear" }.into());
+        value["label_fraction"] = serde_json::json!(p.label_fraction);
+        println!("{}", serde_json::to_string(&value)?);
+    } else {
+        println!("backbone: {what}");
+        println!(
+            "mIoU {:.2} % (accuracy {:.2} %) on {} validation points of {} sweeps; trained on {} points of {} sweeps",
+            report.miou * 100.0,
+            report.accuracy * 100.0,
+            report.points.val,
+            report.split.val,
+            report.points.train,
+            report.split.train
+        );
+        for (name, iou) in &report.per_class {
+            println!("  {name:<24} {:6.2} %", iou * 100.0);
+        }
+    }
+    Ok(None)
+}
+
 fn main() -> std::process::ExitCode {
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
@@ -1098,6 +1228,7 @@ fn main() -> std::process::ExitCode {
     let args = Args::parse();
     let outcome = match &args.command {
         Some(Sub::Check(c)) => check(&args, c),
+        Some(Sub::Probe(p)) => probe(&args, p),
         None => run(&args),
     };
     match outcome {

@@ -15,7 +15,7 @@
 use crate::error::TrainerError;
 use burn::module::Module;
 use burn::nn::loss::CrossEntropyLossConfig;
-use burn::nn::{Linear, LinearConfig};
+use burn::nn::{Initializer, Linear, LinearConfig};
 use burn::optim::{AdamWConfig, GradientsParams};
 use burn::tensor::{Device, Int, Tensor, TensorData};
 use serde::{Deserialize, Serialize};
@@ -222,7 +222,9 @@ impl LinearProbe {
         }
         let device = device.clone().autodiff();
         let mut probe = Self {
-            linear: LinearConfig::new(dim, classes).init(&device),
+            linear: LinearConfig::new(dim, classes)
+                .with_initializer(Initializer::Zeros)
+                .init(&device),
         };
         let mut optim = AdamWConfig::new()
             .with_weight_decay(settings.weight_decay as f32)

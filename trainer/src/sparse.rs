@@ -443,6 +443,17 @@ impl SparseUNet {
     /// Voxel features `[V₀, in_channels]` → L2-normalized head features `[V₀, out_dim]`.
     /// `levels` must hold the maps of 5 levels, finest first.
     pub fn forward(&self, features: Tensor<2>, levels: &[LevelMaps]) -> Tensor<2> {
+        l2_normalize(self.head.forward(self.backbone(features, levels)))
+    }
+
+    /// Channels of [`backbone`](Self::backbone)'s output.
+    pub fn backbone_dim(&self) -> usize {
+        self.head.weight.dims()[0]
+    }
+
+    /// Voxel features → the last decoder stage's features `[V₀, backbone_dim]`, before
+    /// the pretraining head: what downstream probes and fine-tuning start from.
+    pub fn backbone(&self, features: Tensor<2>, levels: &[LevelMaps]) -> Tensor<2> {
         assert!(
             levels.len() >= UNetConfig::LEVELS,
             "the UNet needs kernel maps of {} levels, the batch has {}",
@@ -481,7 +492,7 @@ impl SparseUNet {
                 x = block.forward(x, level);
             }
         }
-        l2_normalize(self.head.forward(x))
+        x
     }
 }
 

@@ -1,0 +1,488 @@
+//! `superflow-trainer probe`: what a pretrained 3D backbone is worth downstream —
+//! per-point semantic segmentation of labelled LiDAR sweeps, scored by mIoU (the
+//! paper's linear-probing and few-label fine-tuning protocols, on the recordings a user
+//! has).
+//!
+//! 1. **Clouds**: the labelled sweeps of every drive, thinned to one per
+//!    `keyframe_interval` (nuScenes labels its 2 Hz keyframes), each decoded and
+//!    de-skewed exactly as the pipeline prepares a pretraining sweep, voxelized with the
+//!    recipe's grid, its 5 levels of kernel maps built, without augmentation. No camera is
+//!    read.
+//! 2. **Split** by time within each drive ([`probe::split_by_time`]): train, a guard gap,
+//!    validation; `label_fraction` keeps that share of the training clouds.
+//! 3. **Linear probe** (default): the backbone frozen (BatchNorm with its running
+//!    statistics), per-point features = the last decoder stage's features of the point's
+//!    voxel, a linear classifier trained on them ([`probe::LinearProbe`]).
+//!    **Fine-tuning** (`finetune`): backbone and a linear classifier trained together with
+//!    cross-entropy, cloud by cloud.
+//! 4. **Score**: mIoU and per-class IoU over the validation clouds' labelled points.
+
+use crate::checkpoint;
+use crate::config::TrainerConfig;
+use crate::error::TrainerError;
+use crate::model::SuperFlowModel;
+use crate::probe::{
+    self, ConfusionMatrix, KeyframeTime, LinearProbe, PointCounts, ProbeReport, ProbeTraining,
+    SplitCounts,
+};
+use crate::sparse::{LevelMaps, SparseUNet};
+use crate::vit::VitConfig;
+use burn::module::Module;
+use burn::nn::loss::CrossEntropyLossConfig;
+use burn::nn::{Initializer, Linear, LinearConfig};
+use burn::optim::{AdamWConfig, GradientsParams};
+use burn::store::ModuleRecord;
+use burn::tensor::Bytes;
+use burn::tensor::{Device, Int, Tensor, TensorData};
+use std::path::Path;
+use superflow_pipeline::config::PipelineConfig;
+use superflow_pipeline::drive::Dataset;
+use superflow_pipeline::drive::labels::DriveLabels;
+use superflow_pipeline::sample::SampleConfig;
+use superflow_pipeline::sample::project::deskew;
+use superflow_pipeline::sample::sparse::{Level, build_levels};
+use superflow_pipeline::sample::voxel::voxelize;
+use superflow_pipeline::source::ChunkCache;
+use superflow_schemas::sensor::PointCloud;
+
+/// One labelled sweep, ready for the backbone.
+#[derive(Debug, Clone)]
+pub struct ProbeCloud {
+    /// Where and when.
+    pub time: KeyframeTime,
+    /// Sweep index in its drive's LiDAR stream.
+    pub sweep: usize,
+    /// `[x, y, z, intensity]` of each voxel's representative point (the pretraining input).
+    pub voxel_features: Vec<[f32; 4]>,
+    /// Kernel maps of the UNet's levels, finest first.
+    pub levels: Vec<Level>,
+    /// The voxel of each point.
+    pub point_to_voxel: Vec<u32>,
+    /// The training class of each point (the ignore index where unlabelled).
+    pub labels: Vec<u16>,
+}
+
+/// What the labelled drives hold, beside the clouds.
+#[derive(Debug, Clone)]
+pub struct LabelledData {
+    /// The labelled sweeps kept (one per keyframe interval).
+    pub clouds: Vec<ProbeCloud>,
+    /// Drives without labels (skipped).
+    pub unlabelled_drives: usize,
+    /// Training classes: `[labels] classes` when given, else one past the largest class
+    /// seen.
+    pub classes: usize,
+    /// Class names (from `[labels] classes`; empty: numbered).
+    pub names: Vec<String>,
+    /// The label of unlabelled points.
+    pub ignore: u16,
+}
+
+/// The labelled sweeps of `dataset` (`[labels]` of `config` says where labels are and how
+/// raw ids map to classes), one per `interval_ns` per drive, each prepared as the
+/// pipeline prepares a pretraining sweep (`config.sample`: de-skew, voxel grid, levels).
+pub fn labelled_clouds(
+    dataset: &Dataset,
+    config: &PipelineConfig,
+    interval_ns: i64,
+) -> Result<LabelledData, TrainerError> {
+    let recipe = &config.sample;
+    let mut data = LabelledData {
+        clouds: Vec::new(),
+        unlabelled_drives: 0,
+        classes: config.labels.classes.len(),
+        names: config.labels.classes.clone(),
+        ignore: 0,
+    };
+    let label_error = |drive: &str, e: &dyn std::fmt::Display| {
+        TrainerError::Probe(format!("labels of {drive}: {e}"))
+    };
+    let mut largest = None::<u16>;
+    for (d, drive) in dataset.drives.iter().enumerate() {
+        let (Some(lidar), Some(labels)) = (
+            &drive.lidar,
+            DriveLabels::open(drive, &config.labels)
+                .map_err(|e| label_error(&drive.file_list(), &e))?,
+        ) else {
+            tracing::warn!(drive = %drive.file_list(), "no LiDAR labels (neither a label field nor a labels sidecar): skipped");
+            data.unlabelled_drives += 1;
+            continue;
+        };
+        tracing::info!(drive = %drive.file_list(), form = ?labels.form(), "labels");
+        data.ignore = u16::from(labels.map().ignore_index());
+        let mut cache = ChunkCache::new(4);
+        let mut last: Option<i64> = None;
+        for (s, frame) in lidar.sweeps.iter().enumerate() {
+            let stamp = frame.stamp.nanos();
+            if last.is_some_and(|t| stamp - t < interval_ns) {
+                continue;
+            }
+            let sweep = labels
+                .read(s, &mut cache)
+                .map_err(|e| label_error(&drive.file_list(), &e))?;
+            let point_labels: Vec<u16> = sweep.labels.iter().map(|&l| u16::from(l)).collect();
+            for &l in point_labels.iter().filter(|&&l| l != data.ignore) {
+                largest = Some(largest.map_or(l, |m| m.max(l)));
+            }
+            let mut cloud = sweep.decoded.cloud;
+            if cloud.is_empty() {
+                continue;
+            }
+            if recipe.deskew && cloud.time_offset_secs.is_some() {
+                let map = drive.map_frame.as_deref().unwrap_or_default();
+                cloud = deskew(&cloud, &drive.tf, map).map_err(|e| {
+                    TrainerError::Probe(format!(
+                        "{}: de-skew of {} at {}: {e}",
+                        drive.file_list(),
+                        lidar.topic,
+                        frame.stamp
+                    ))
+                })?;
+            }
+            last = Some(stamp);
+            let time = KeyframeTime {
+                drive: d,
+                stamp_ns: stamp,
+            };
+            data.clouds
+                .push(prepare(cloud, point_labels, recipe, time, s));
+        }
+    }
+    if data.classes == 0 {
+        data.classes = largest.map_or(0, |l| usize::from(l) + 1);
+    }
+    Ok(data)
+}
+
+/// Voxels and maps of one sweep.
+fn prepare(
+    cloud: PointCloud,
+    labels: Vec<u16>,
+    recipe: &SampleConfig,
+    time: KeyframeTime,
+    sweep: usize,
+) -> ProbeCloud {
+    let voxels = voxelize(&cloud.xyz, &recipe.voxel);
+    let voxel_features = voxels
+        .representative
+        .iter()
+        .map(|&i| {
+            let [x, y, z] = cloud.xyz[i as usize];
+            [x, y, z, cloud.intensity[i as usize]]
+        })
+        .collect();
+    let levels = build_levels(&voxels.coords, recipe.unet_levels as usize);
+    ProbeCloud {
+        time,
+        sweep,
+        voxel_features,
+        levels,
+        point_to_voxel: voxels.point_to_voxel,
+        labels,
+    }
+}
+
+impl ProbeCloud {
+    /// The cloud's tensors on `device`: voxel features, level maps, point → voxel.
+    fn tensors(&self, device: &Device) -> (Tensor<2>, Vec<LevelMaps>, Tensor<1, Int>) {
+        let v = self.voxel_features.len();
+        let features = Tensor::from_data(
+            TensorData::new(self.voxel_features.concat(), [v, 4]),
+            device,
+        );
+        let levels = self
+            .levels
+            .iter()
+            .map(|level| {
+                LevelMaps::from_host(
+                    level.coords.len(),
+                    bytemuck::cast_slice(&level.neighbours.pairs),
+                    &level.neighbours.starts,
+                    level
+                        .down
+                        .as_ref()
+                        .map(|d| (bytemuck::cast_slice(&d.pairs), &d.starts[..])),
+                    device,
+                )
+            })
+            .collect();
+        let index: Vec<i64> = self.point_to_voxel.iter().map(|&i| i64::from(i)).collect();
+        let n = index.len();
+        let points = Tensor::from_data(TensorData::new(index, [n]), device);
+        (features, levels, points)
+    }
+}
+
+/// How to probe.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ProbeSettings {
+    /// Classes of the labels (training ids `0..classes`).
+    pub classes: usize,
+    /// Label of unlabelled points.
+    pub ignore: u16,
+    /// Class names for the report.
+    pub names: Vec<String>,
+    /// Share of each drive's span (its end) that is validation.
+    pub val_fraction: f64,
+    /// Clouds from this index on are the validation set (drives of their own); `None`:
+    /// split every drive by time.
+    pub val_from: Option<usize>,
+    /// Keyframes dropped before the validation part, nanoseconds.
+    pub gap_ns: i64,
+    /// Share of the training clouds used (few-label protocols).
+    pub label_fraction: f64,
+    /// Train the whole network instead of a linear classifier on frozen features.
+    pub finetune: bool,
+    /// Passes over the training data.
+    pub epochs: usize,
+    /// Learning rate (linear probe: AdamW on the classifier; fine-tuning: the network).
+    pub lr: f64,
+    /// Most training points the linear probe keeps (evenly strided).
+    pub max_train_points: usize,
+    /// Seed of the classifier and the shuffles.
+    pub seed: u64,
+}
+
+/// Probes `unet` (an autodiff-device module, as trained) on `clouds`.
+pub fn probe(
+    unet: SparseUNet,
+    clouds: &[ProbeCloud],
+    settings: &ProbeSettings,
+    device: &Device,
+) -> Result<ProbeReport, TrainerError> {
+    let split = match settings.val_from {
+        // Validation drives of their own (the official val scenes).
+        Some(first) => probe::Split {
+            train: (0..first.min(clouds.len())).collect(),
+            val: (first.min(clouds.len())..clouds.len()).collect(),
+            dropped: Vec::new(),
+        },
+        None => {
+            let times: Vec<KeyframeTime> = clouds.iter().map(|c| c.time).collect();
+            probe::split_by_time(&times, settings.val_fraction, settings.gap_ns)
+        }
+    };
+    let train = probe::label_fraction(&split.train, settings.label_fraction);
+    if train.is_empty() || split.val.is_empty() {
+        return Err(TrainerError::Probe(format!(
+            "{} labelled clouds give {} training and {} validation clouds: record more, or change the split",
+            clouds.len(),
+            train.len(),
+            split.val.len()
+        )));
+    }
+    let counts = SplitCounts {
+        train: train.len(),
+        val: split.val.len(),
+        dropped: split.dropped.len() + split.train.len() - train.len(),
+    };
+    tracing::info!(
+        train = counts.train,
+        val = counts.val,
+        dropped = counts.dropped,
+        finetune = settings.finetune,
+        "probing"
+    );
+    let mut matrix = ConfusionMatrix::new(settings.classes, settings.ignore);
+    let mut points = PointCounts::default();
+    let inner = device.clone().inner();
+    if settings.finetune {
+        let (unet, classifier) = finetune(unet, clouds, &train, settings, device, &mut points)?;
+        let (unet, classifier) = (unet.valid(), classifier.valid());
+        for &i in &split.val {
+            let (features, levels, index) = clouds[i].tensors(&inner);
+            let logits = classifier.forward(unet.backbone(features, &levels).select(0, index));
+            let predicted = classes_of(logits.argmax(1));
+            matrix.add(&clouds[i].labels, &predicted)?;
+        }
+    } else {
+        let frozen = unet.valid();
+        let dim = frozen.backbone_dim();
+        let features_of = |c: &ProbeCloud| -> Vec<f32> {
+            let (features, levels, index) = c.tensors(&inner);
+            let f = frozen
+                .backbone(features, &levels)
+                .select(0, index)
+                .into_data();
+            f.convert::<f32>().try_into_vec::<f32>().unwrap_or_default()
+        };
+        let (mut x, mut y) = (Vec::new(), Vec::new());
+        for &i in &train {
+            x.extend(features_of(&clouds[i]));
+            y.extend_from_slice(&clouds[i].labels);
+        }
+        let (x, y) = stride_points(x, y, dim, settings.max_train_points);
+        points.train = y.iter().filter(|&&l| l != settings.ignore).count() as u64;
+        let training = ProbeTraining {
+            epochs: settings.epochs,
+            lr: settings.lr,
+            seed: settings.seed,
+            ..ProbeTraining::default()
+        };
+        let classifier = LinearProbe::train(
+            &x,
+            &y,
+            dim,
+            settings.classes,
+            settings.ignore,
+            &training,
+            &inner,
+        )?;
+        for &i in &split.val {
+            let predicted = classifier.predict(&features_of(&clouds[i]), dim, &inner);
+            matrix.add(&clouds[i].labels, &predicted)?;
+        }
+    }
+    points.val = matrix.total();
+    Ok(ProbeReport::new(&matrix, &settings.names, points, counts))
+}
+
+/// Every `n / max`-th point of `(x, y)` when there are more than `max`.
+fn stride_points(x: Vec<f32>, y: Vec<u16>, dim: usize, max: usize) -> (Vec<f32>, Vec<u16>) {
+    if y.len() <= max || max == 0 {
+        return (x, y);
+    }
+    let step = y.len().div_ceil(max);
+    let keep: Vec<usize> = (0..y.len()).step_by(step).collect();
+    let xs = keep
+        .iter()
+        .flat_map(|&i| x[i * dim..(i + 1) * dim].iter().copied())
+        .collect();
+    let ys = keep.iter().map(|&i| y[i]).collect();
+    (xs, ys)
+}
+
+/// The class of each row of an argmax.
+fn classes_of(argmax: Tensor<2, Int>) -> Vec<u16> {
+    argmax
+        .into_data()
+        .convert::<i64>()
+        .try_into_vec::<i64>()
+        .unwrap_or_default()
+        .into_iter()
+        .map(|c| c as u16)
+        .collect()
+}
+
+/// The backbone and a linear classifier trained together on the `train` clouds.
+#[derive(Module, Debug)]
+struct Segmenter {
+    unet: SparseUNet,
+    classifier: Linear,
+}
+
+fn finetune(
+    unet: SparseUNet,
+    clouds: &[ProbeCloud],
+    train: &[usize],
+    settings: &ProbeSettings,
+    device: &Device,
+    points: &mut PointCounts,
+) -> Result<(SparseUNet, Linear), TrainerError> {
+    let device = device.clone().autodiff();
+    let classifier = LinearConfig::new(unet.backbone_dim(), settings.classes)
+        .with_initializer(Initializer::Zeros)
+        .init(&device);
+    let mut model = Segmenter { unet, classifier };
+    let mut optim = AdamWConfig::new().with_weight_decay(1e-4).init();
+    let loss = CrossEntropyLossConfig::new().init(&device);
+    points.train = train
+        .iter()
+        .map(|&i| {
+            clouds[i]
+                .labels
+                .iter()
+                .filter(|&&l| l != settings.ignore)
+                .count() as u64
+        })
+        .sum();
+    for epoch in 0..settings.epochs {
+        let mut total = 0.0;
+        for &i in train {
+            let cloud = &clouds[i];
+            let kept: Vec<usize> = (0..cloud.labels.len())
+                .filter(|&p| cloud.labels[p] != settings.ignore)
+                .collect();
+            if kept.is_empty() {
+                continue;
+            }
+            let (features, levels, _) = cloud.tensors(&device);
+            let voxel: Vec<i64> = kept
+                .iter()
+                .map(|&p| i64::from(cloud.point_to_voxel[p]))
+                .collect();
+            let target: Vec<i64> = kept.iter().map(|&p| i64::from(cloud.labels[p])).collect();
+            let n = kept.len();
+            let index = Tensor::<1, Int>::from_data(TensorData::new(voxel, [n]), &device);
+            let target = Tensor::<1, Int>::from_data(TensorData::new(target, [n]), &device);
+            let logits = model
+                .classifier
+                .forward(model.unet.backbone(features, &levels).select(0, index));
+            let l = loss.forward(logits, target);
+            total += l.clone().into_scalar::<f32>() as f64;
+            let grads = GradientsParams::from_grads(l.backward(), &model);
+            model = optim.step(settings.lr, model, grads);
+        }
+        tracing::info!(
+            epoch = epoch + 1,
+            loss = format_args!("{:.4}", total / train.len() as f64),
+            "fine-tuning"
+        );
+    }
+    Ok((model.unet, model.classifier))
+}
+
+/// The 3D network to probe and where it came from: `checkpoint` is a run's checkpoint
+/// directory (its newest checkpoint), one `step-N` directory, or `random` (a fresh
+/// network of `fresh`'s configuration and seed).
+pub fn load_backbone(
+    checkpoint: &str,
+    fresh: &TrainerConfig,
+    device: &Device,
+) -> Result<(SparseUNet, String), TrainerError> {
+    let device = device.clone().autodiff();
+    let build = |config: &TrainerConfig| {
+        SuperFlowModel::new(
+            &config.model.unet_config(),
+            VitConfig::preset(config.model.vit).dim,
+            config.model.seed,
+            &device,
+        )
+    };
+    if checkpoint == "random" {
+        let model = build(fresh);
+        let what = format!("random {:?} (seed {})", fresh.model.unet, fresh.model.seed);
+        return Ok((model.unet, what));
+    }
+    let path = Path::new(checkpoint);
+    let ckpt = if path.join("state.json").is_file() {
+        checkpoint::read(path)?
+    } else {
+        checkpoint::latest(path)?.ok_or_else(|| {
+            TrainerError::Probe(format!(
+                "{checkpoint}: no checkpoint (neither a step-N directory nor a run's checkpoints/ with `latest`); `random` probes an untrained network"
+            ))
+        })?
+    };
+    let config: TrainerConfig =
+        toml::from_str(&ckpt.state.config).map_err(|error| TrainerError::Toml {
+            path: ckpt.dir.join("state.json"),
+            error,
+        })?;
+    let bytes = std::fs::read(ckpt.model_path())
+        .map_err(|e| TrainerError::io("reading", ckpt.model_path(), e))?;
+    let record = ModuleRecord::from_bytes(Bytes::from_bytes_vec(bytes)).map_err(|error| {
+        TrainerError::Record {
+            path: ckpt.model_path(),
+            error,
+        }
+    })?;
+    let model = build(&config).load_record(record);
+    let what = format!(
+        "{} ({:?}, step {})",
+        ckpt.dir.display(),
+        config.model.unet,
+        ckpt.state.step
+    );
+    Ok((model.unet, what))
+}
