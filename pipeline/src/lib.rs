@@ -14,7 +14,9 @@
 //! 3. [`drive`]: a drive in time — [`drive::Dataset`] opens the inputs (files, rosbag2
 //!    directories, sidecars), finds the channels ([`drive::IngestConfig`] overrides),
 //!    indexes every [`drive::Drive`] and keeps its [`drive::TransformTree`], which
-//!    answers `a_from_b` at any stamp.
+//!    answers `a_from_b` at any stamp; [`drive::DriveLabels`] reads the per-point
+//!    semantic labels of any sweep (a cloud field or a `<drive>.labels.mcap` sidecar),
+//!    for a probe — samples never read them.
 //! 4. [`sample`]: the recipe ([`sample::SampleConfig`]) — a [`sample::Plan`] of
 //!    keyframes and temporal triplets, and the [`sample::SampleBuilder`] that makes one
 //!    [`sample::Sample`]: dense clouds, projection and pairings, images, superpixels,
@@ -27,7 +29,7 @@
 //!    [`publish::Metrics`].
 //!
 //! Beside them: [`config::PipelineConfig`] (`pipeline.toml`: `[ingest]`, `[sample]`,
-//! `[service]`; a setting out of range is an [`invalid::InvalidSetting`]) and
+//! `[service]`, `[labels]`; a setting out of range is an [`invalid::InvalidSetting`]) and
 //! [`inspect`] (what `superflow-pipeline inspect` reports about a drive).
 //!
 //! For example, the transform tree interpolates between recorded poses:

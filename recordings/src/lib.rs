@@ -307,7 +307,8 @@ pub fn simulate(dialect: Dialect) -> Simulation {
 /// Simulates a drive of `options` as `dialect` records it. Sweeps and camera frames
 /// are simulated in parallel (each frame also row band by row band).
 pub fn simulate_with(dialect: Dialect, options: &DriveOptions) -> Simulation {
-    let scene = Scene::street(SCENE_SEED);
+    let travel_m = sim::EGO_SPEED * options.duration_secs();
+    let scene = Scene::street_for(SCENE_SEED, travel_m);
     let (width, height) = options.image_size;
     let mut rig = Rig::new(width, height, dialect.distortion());
     rig.cameras.truncate(options.cameras);

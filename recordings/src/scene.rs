@@ -204,6 +204,9 @@ struct Placed {
 struct StreetBuilder {
     rng: SplitMix,
     boxes: Vec<SceneBox>,
+    /// How much further than the sample drives' street the rows of buildings, trees and
+    /// parked cars go, metres.
+    extra_m: f64,
 }
 
 impl StreetBuilder {
@@ -234,7 +237,7 @@ impl StreetBuilder {
     fn buildings(&mut self, side: &str, sign: f64) {
         let mut x = -45.0;
         let mut index = 0;
-        while x < 95.0 {
+        while x < 95.0 + self.extra_m {
             let length = self.rng.uniform(8.0, 16.0);
             let depth = self.rng.uniform(8.0, 14.0);
             let height = self.rng.uniform(6.0, 18.0);
@@ -260,7 +263,7 @@ impl StreetBuilder {
     fn trees_and_poles(&mut self, side: &str, sign: f64) {
         let mut x = -40.0 + self.rng.uniform(0.0, 6.0);
         let mut index = 0;
-        while x < 90.0 {
+        while x < 90.0 + self.extra_m {
             if index % 3 == 2 {
                 self.add(Placed {
                     name: format!("pole_{side}_{index}"),
@@ -296,7 +299,7 @@ impl StreetBuilder {
     fn parked_cars(&mut self) {
         let mut x = -20.0;
         let mut index = 0;
-        while x < 80.0 {
+        while x < 80.0 + self.extra_m {
             let color = [
                 self.rng.uniform(0.1, 0.9),
                 self.rng.uniform(0.1, 0.9),
@@ -379,12 +382,24 @@ impl StreetBuilder {
     }
 }
 
+/// How far the ego travels along the street of [`Scene::street`] (3 s at
+/// [`crate::sim::EGO_SPEED`]); a longer drive needs [`Scene::street_for`].
+pub const STREET_TRAVEL_M: f64 = 24.0;
+
 impl Scene {
     /// Builds the street from a seed. The ego drives along +x near y = 0.
     pub fn street(seed: u64) -> Self {
+        Self::street_for(seed, STREET_TRAVEL_M)
+    }
+
+    /// The street of [`Scene::street`] with its rows of buildings, trees and parked cars
+    /// as much longer as the ego travels beyond [`STREET_TRAVEL_M`] (`travel_m` metres),
+    /// so that a long drive stays in a street; the same scene for any shorter travel.
+    pub fn street_for(seed: u64, travel_m: f64) -> Self {
         let mut street = StreetBuilder {
             rng: SplitMix::new(seed),
             boxes: Vec::new(),
+            extra_m: (travel_m - STREET_TRAVEL_M).max(0.0),
         };
         for (side, sign) in [("left", 1.0), ("right", -1.0)] {
             street.buildings(side, sign);
@@ -413,6 +428,24 @@ impl Scene {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_longer_drive_gets_a_longer_street_and_a_short_one_the_same() {
+        let street = Scene::street(7);
+        assert_eq!(Scene::street_for(7, 12.0).boxes, street.boxes);
+        let long = Scene::street_for(7, STREET_TRAVEL_M + 200.0);
+        let reach = |scene: &Scene, prefix: &str| {
+            scene
+                .boxes
+                .iter()
+                .filter(|b| b.name.starts_with(prefix))
+                .map(|b| b.center.x)
+                .fold(f64::MIN, f64::max)
+        };
+        for row in ["building_left", "tree_right", "parked_car"] {
+            assert!(reach(&long, row) > reach(&street, row) + 180.0, "{row}");
+        }
+    }
 
     #[test]
     fn rays_hit_ground_boxes_and_sky() {
