@@ -405,7 +405,8 @@ impl<'d> DriveLabels<'d> {
             let file = stream
                 .frames
                 .first()
-                .map_or_else(|| drive.file_list(), |f| drive.frame_at(f, "").file);
+                .and_then(|f| drive.files.get(f.file as usize))
+                .map_or_else(|| drive.file_list(), |f| f.path().display().to_string());
             let form = LabelForm::Sidecar {
                 file,
                 topic: stream.topic.clone(),
@@ -443,45 +444,60 @@ impl<'d> DriveLabels<'d> {
     /// sample builder counts) decoded as [`Drive::read_sweep`] does, with each kept
     /// point's raw id and training class.
     pub fn read(&self, sweep: usize, cache: &mut ChunkCache) -> Result<LabelledSweep, LabelError> {
-        let drive = self.drive;
-        let lidar = self.lidar;
+        let (drive, lidar) = (self.drive, self.lidar);
         let frame = lidar.sweeps.get(sweep).ok_or_else(|| LabelError::NoSweep {
             files: drive.file_list(),
             sweep,
             sweeps: lidar.sweeps.len(),
         })?;
-        let sweep_error = |source| ReadError::Sweep {
-            at: drive.frame_at(frame, &lidar.topic),
-            source: Box::new(source),
-        };
-        let Some(stream) = self.sidecar else {
+        let at = drive.frame_at(frame, &lidar.topic);
+        let decode = |options: &CloudOptions<'_>, cache: &mut ChunkCache| {
             let message = drive.read_raw(frame, cache).map_err(ReadError::from)?;
-            let options = CloudOptions {
-                label: Some(&self.spec),
-                ..CloudOptions::default()
-            };
-            let decoded = decode_message_with(&message, &options).map_err(sweep_error)?;
-            return self.labelled(decoded, drive.frame_at(frame, &lidar.topic));
+            decode_message_with(&message, options).map_err(|source| ReadError::Sweep {
+                at: at.clone(),
+                source: Box::new(source),
+            })
         };
-        let options = CloudOptions {
-            kept_indices: true,
-            ..CloudOptions::default()
-        };
-        let message = drive.read_raw(frame, cache).map_err(ReadError::from)?;
-        let mut decoded = decode_message_with(&message, &options).map_err(sweep_error)?;
-        let file = match &self.form {
-            LabelForm::Sidecar { file, .. } => file.clone(),
-            LabelForm::Field { .. } => drive.file_list(),
-        };
-        let at = stream.frames.partition_point(|f| f.stamp < frame.stamp);
+        match (&self.form, self.sidecar) {
+            (LabelForm::Sidecar { file, .. }, Some(stream)) => {
+                let options = CloudOptions {
+                    kept_indices: true,
+                    ..CloudOptions::default()
+                };
+                let decoded = decode(&options, cache)?;
+                self.with_sidecar_labels(decoded, sweep, (file, stream), cache)
+            }
+            _ => {
+                let options = CloudOptions {
+                    label: Some(&self.spec),
+                    ..CloudOptions::default()
+                };
+                let decoded = decode(&options, cache)?;
+                self.labelled(decoded, at)
+            }
+        }
+    }
+
+    /// Sweep `sweep`, `decoded` with its kept points' message indices, labelled from the
+    /// sidecar `file`'s label cloud of its stamp in `stream`.
+    fn with_sidecar_labels(
+        &self,
+        mut decoded: DecodedCloud,
+        sweep: usize,
+        (file, stream): (&str, &LabelCloudStream),
+        cache: &mut ChunkCache,
+    ) -> Result<LabelledSweep, LabelError> {
+        let (drive, lidar) = (self.drive, self.lidar);
+        let stamp = decoded.cloud.stamp;
+        let at = stream.frames.partition_point(|f| f.stamp < stamp);
         let label_frame = stream
             .frames
             .get(at)
-            .filter(|f| f.stamp == frame.stamp)
+            .filter(|f| f.stamp == stamp)
             .ok_or_else(|| LabelError::MissingLabelCloud {
-                file: file.clone(),
+                file: file.to_string(),
                 topic: stream.topic.clone(),
-                stamp: frame.stamp,
+                stamp,
                 sweep,
                 lidar_topic: lidar.topic.clone(),
             })?;
@@ -489,19 +505,18 @@ impl<'d> DriveLabels<'d> {
         let message = drive
             .read_raw(label_frame, cache)
             .map_err(ReadError::from)?;
-        let label_cloud = decode_labels_message(&message, &self.spec).map_err(|source| {
-            LabelError::LabelCloud {
+        let all = decode_labels_message(&message, &self.spec)
+            .map_err(|source| LabelError::LabelCloud {
                 at: label_at.clone(),
                 source: Box::new(source),
-            }
-        })?;
+            })?
+            .labels;
         let points = decoded.cloud.len() + decoded.dropped_non_finite;
-        let all = label_cloud.labels;
         if all.len() != points {
             return Err(LabelError::PointCount {
-                file,
+                file: file.to_string(),
                 topic: stream.topic.clone(),
-                stamp: frame.stamp,
+                stamp,
                 labels: all.len(),
                 points,
                 lidar_topic: lidar.topic.clone(),
