@@ -300,7 +300,7 @@ fn main() -> anyhow::Result<()> {
         let path = common::root().join("target/superflow-bench-batch.bin");
         train::build_batch(&dataset, &config, &path)?;
         let batch = BatchFile::read(&path)?;
-        let bytes = superflow_schemas::batch::BatchHeader::SIZE + batch.len;
+        let bytes = batch.bytes();
         batch_note = format!(
             "batch: {BATCH_SIZE} samples of {DRIVE} (keyframes 0..{BATCH_SIZE}, default recipe), {bytes} bytes. "
         );

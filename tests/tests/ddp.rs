@@ -25,9 +25,9 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 use superflow_tests::process::{
-    Proc, finish, lines_of, mpirun, no_shared_memory_left, prefix, send_signal, spawn,
+    Proc, finish, lines_of, mpirun, no_shared_memory_left, pipeline, prefix, send_signal, spawn,
 };
-use superflow_tests::{pipeline_binary, workspace_binary, workspace_root};
+use superflow_tests::{workspace_binary, workspace_root};
 use superflow_trainer::ddp::Ddp;
 use superflow_trainer::metrics::{self, StepRecord};
 use superflow_trainer::sync::{GradientBuffer, params_hash};
@@ -281,24 +281,23 @@ const KEYFRAMES: u64 = 6;
 
 /// The pipeline in shard mode for 2 ranks, batches of 1, `epochs` epochs.
 fn shard_pipeline(prefix: &str, run: &str, epochs: u64) -> Proc {
-    spawn(
-        Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-probe")))
-            .args([
-                "--mcap",
-                DRIVE,
-                "--run",
-                run,
-                "--mode",
-                "shard",
-                "--world-size",
-                "2",
-            ])
-            .args(["--batch-size", "1", "--epochs", &epochs.to_string()])
-            .env("SUPERFLOW_IOX_PREFIX", prefix)
-            .env("RUST_LOG", "warn")
-            .current_dir(workspace_root())
-            .stdout(Stdio::null())
-            .stderr(Stdio::null()),
+    let epochs = epochs.to_string();
+    let args = [
+        "--mode",
+        "shard",
+        "--world-size",
+        "2",
+        "--batch-size",
+        "1",
+        "--epochs",
+        &epochs,
+    ];
+    pipeline(
+        env!("CARGO_BIN_EXE_superflow-probe"),
+        DRIVE,
+        prefix,
+        run,
+        &args,
     )
 }
 

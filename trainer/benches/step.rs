@@ -52,7 +52,7 @@ use std::time::Instant;
 use superflow_pipeline::config::PipelineConfig;
 use superflow_pipeline::drive::Dataset;
 use superflow_pipeline::sample::SampleBuilder;
-use superflow_schemas::batch::{BatchHeader, Section};
+use superflow_schemas::batch::Section;
 use train::{BATCH_SIZE, BatchFile, DRIVE, Preset};
 
 #[derive(Debug)]
@@ -209,7 +209,7 @@ fn main() -> anyhow::Result<()> {
         images.first().copied().unwrap_or(0),
         images.get(1).copied().unwrap_or(0),
         images.get(2).copied().unwrap_or(0),
-        BatchHeader::SIZE + batch.len,
+        batch.bytes(),
         batch.path.display()
     );
 

@@ -10,7 +10,7 @@ use super::common::median;
 use anyhow::Context as _;
 use burn::module::{Module, ModuleVisitor, Param};
 use burn::tensor::Tensor;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
@@ -19,7 +19,7 @@ use superflow_pipeline::config::PipelineConfig;
 use superflow_pipeline::drive::Dataset;
 use superflow_pipeline::publish::{self, Metrics, Mode, ServiceConfig};
 use superflow_pipeline::sample::SampleBuilder;
-use superflow_schemas::batch::{BatchHeader, BatchMeta, BatchView};
+use superflow_schemas::batch::BatchMeta;
 use superflow_trainer::config::TrainerConfig;
 use superflow_trainer::sparse::UNetPreset;
 use superflow_trainer::subscribe::{Subscription, Target};
@@ -95,44 +95,9 @@ pub fn presets(names: &str) -> anyhow::Result<Vec<Preset>> {
         .collect()
 }
 
-/// A batch as it travels: header and payload (8-byte aligned, as in shared memory).
-#[derive(Debug)]
-pub struct BatchFile {
-    /// Where it was read from.
-    pub path: PathBuf,
-    /// Its header.
-    pub header: BatchHeader,
-    payload: Vec<u64>,
-    /// Payload bytes.
-    pub len: usize,
-}
-
-impl BatchFile {
-    /// Reads and checks a batch file (`superflow-pipeline batch`, [`build_batch`]).
-    pub fn read(path: &Path) -> anyhow::Result<Self> {
-        let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
-        let header = BatchHeader::from_bytes(&bytes)
-            .with_context(|| format!("{}: shorter than a batch header", path.display()))?;
-        let body = &bytes[BatchHeader::SIZE..];
-        let mut payload = vec![0u64; body.len().div_ceil(8)];
-        bytemuck::cast_slice_mut::<u64, u8>(&mut payload)[..body.len()].copy_from_slice(body);
-        let file = Self {
-            path: path.to_path_buf(),
-            header,
-            payload,
-            len: body.len(),
-        };
-        file.view()
-            .with_context(|| format!("{} is not a valid batch", path.display()))?;
-        Ok(file)
-    }
-
-    /// The batch, as the trainer reads it.
-    pub fn view(&self) -> anyhow::Result<BatchView<'_>> {
-        let bytes = &bytemuck::cast_slice::<u64, u8>(&self.payload)[..self.len];
-        Ok(BatchView::new(&self.header, bytes)?)
-    }
-}
+/// A batch file as it travels (`superflow-pipeline batch`, [`build_batch`]): the
+/// trainer's reader, the one `superflow-trainer check` uses.
+pub use superflow_trainer::check::BatchFile;
 
 /// Builds keyframes 0..4 of the drive at epoch 0 as `superflow-pipeline batch` does and
 /// writes the file.
