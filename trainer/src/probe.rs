@@ -303,7 +303,8 @@ fn shuffle(values: &mut [usize], state: &mut u64) {
 pub struct ProbeReport {
     /// Mean IoU over the classes that occur in the validation split.
     pub miou: f64,
-    /// IoU per class name (classes that occur).
+    /// IoU per class name (classes that occur; `class_NN` when the configuration names
+    /// none).
     pub per_class: BTreeMap<String, f64>,
     /// Overall point accuracy.
     pub accuracy: f64,
@@ -346,7 +347,7 @@ impl ProbeReport {
                 let name = names
                     .get(c)
                     .cloned()
-                    .unwrap_or_else(|| format!("class_{c}"));
+                    .unwrap_or_else(|| format!("class_{c:02}"));
                 matrix.iou(c).map(|iou| (name, iou))
             })
             .collect();
