@@ -159,7 +159,12 @@ fn ms(v: f64) -> String {
     }
 }
 
+/// The `superflow-trainer` binary's allocator (mimalloc keeping freed pages).
+#[global_allocator]
+static ALLOCATOR: superflow_pipeline::memory::Allocator = superflow_pipeline::memory::Allocator;
+
 fn main() -> anyhow::Result<()> {
+    superflow_pipeline::memory::keep_freed_pages();
     let args = Args::parse()?;
     let cores = cores();
     let load = load_average(1);

@@ -1216,7 +1216,14 @@ fn probe(args: &Args, p: &ProbeArgs) -> anyhow::Result<Option<i32>> {
     Ok(None)
 }
 
+/// mimalloc, keeping the pages it frees (as the pipeline does,
+/// `superflow_pipeline::memory`): a step allocates and frees the same hundreds of
+/// megabytes of tensors every time.
+#[global_allocator]
+static ALLOCATOR: superflow_pipeline::memory::Allocator = superflow_pipeline::memory::Allocator;
+
 fn main() -> std::process::ExitCode {
+    superflow_pipeline::memory::keep_freed_pages();
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
         // Colour only on a terminal: logs redirected to files stay plain text.
