@@ -9,6 +9,8 @@
 
 use crate::error::TrainerError;
 use crate::stream::StreamPosition;
+use burn::store::ModuleRecord;
+use burn::tensor::Bytes;
 use serde::{Deserialize, Serialize};
 use std::fs::{self, File};
 use std::io::Write as _;
@@ -68,6 +70,19 @@ impl Checkpoint {
     pub fn optim_path(&self) -> PathBuf {
         self.dir.join("optim.bpk")
     }
+
+    /// The model record, read and decoded.
+    pub fn model_record(&self) -> Result<ModuleRecord, TrainerError> {
+        let path = self.model_path();
+        let bytes = fs::read(&path).map_err(|e| TrainerError::io("reading", &path, e))?;
+        decode_record(bytes, path)
+    }
+}
+
+/// A model record (burnpack) from the bytes of `path` (named in the error).
+pub fn decode_record(bytes: Vec<u8>, path: PathBuf) -> Result<ModuleRecord, TrainerError> {
+    ModuleRecord::from_bytes(Bytes::from_bytes_vec(bytes))
+        .map_err(|error| TrainerError::Record { path, error })
 }
 
 fn write_synced(path: &Path, bytes: &[u8]) -> std::io::Result<()> {

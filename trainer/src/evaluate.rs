@@ -31,8 +31,6 @@ use burn::module::Module;
 use burn::nn::loss::CrossEntropyLossConfig;
 use burn::nn::{Initializer, Linear, LinearConfig};
 use burn::optim::{AdamWConfig, GradientsParams};
-use burn::store::ModuleRecord;
-use burn::tensor::Bytes;
 use burn::tensor::{Device, Int, Tensor, TensorData};
 use std::path::Path;
 use superflow_pipeline::config::PipelineConfig;
@@ -183,8 +181,8 @@ fn prepare(
 }
 
 impl ProbeCloud {
-    /// The cloud's tensors on `device`: voxel features, level maps, point → voxel.
-    fn tensors(&self, device: &Device) -> (Tensor<2>, Vec<LevelMaps>, Tensor<1, Int>) {
+    /// The backbone's inputs on `device`: voxel features and level maps.
+    fn inputs(&self, device: &Device) -> (Tensor<2>, Vec<LevelMaps>) {
         let v = self.voxel_features.len();
         let features = Tensor::from_data(
             TensorData::new(self.voxel_features.concat(), [v, 4]),
@@ -206,10 +204,16 @@ impl ProbeCloud {
                 )
             })
             .collect();
+        (features, levels)
+    }
+
+    /// `unet`'s backbone features of every point (its voxel's), on `device`.
+    fn point_features(&self, unet: &SparseUNet, device: &Device) -> Tensor<2> {
+        let (features, levels) = self.inputs(device);
         let index: Vec<i64> = self.point_to_voxel.iter().map(|&i| i64::from(i)).collect();
         let n = index.len();
-        let points = Tensor::from_data(TensorData::new(index, [n]), device);
-        (features, levels, points)
+        let index = Tensor::from_data(TensorData::new(index, [n]), device);
+        unet.backbone(features, &levels).select(0, index)
     }
 }
 
@@ -290,8 +294,7 @@ pub fn probe(
         let (unet, classifier) = finetune(unet, clouds, &train, settings, device, &mut points)?;
         let (unet, classifier) = (unet.valid(), classifier.valid());
         for &i in &split.val {
-            let (features, levels, index) = clouds[i].tensors(&inner);
-            let logits = classifier.forward(unet.backbone(features, &levels).select(0, index));
+            let logits = classifier.forward(clouds[i].point_features(&unet, &inner));
             let predicted = classes_of(logits.argmax(1));
             matrix.add(&clouds[i].labels, &predicted)?;
         }
@@ -299,11 +302,7 @@ pub fn probe(
         let frozen = unet.valid();
         let dim = frozen.backbone_dim();
         let features_of = |c: &ProbeCloud| -> Vec<f32> {
-            let (features, levels, index) = c.tensors(&inner);
-            let f = frozen
-                .backbone(features, &levels)
-                .select(0, index)
-                .into_data();
+            let f = c.point_features(&frozen, &inner).into_data();
             f.convert::<f32>().try_into_vec::<f32>().unwrap_or_default()
         };
         let (mut x, mut y) = (Vec::new(), Vec::new());
@@ -406,7 +405,7 @@ fn finetune(
             if kept.is_empty() {
                 continue;
             }
-            let (features, levels, _) = cloud.tensors(&device);
+            let (features, levels) = cloud.inputs(&device);
             let voxel: Vec<i64> = kept
                 .iter()
                 .map(|&p| i64::from(cloud.point_to_voxel[p]))
@@ -469,15 +468,7 @@ pub fn load_backbone(
             path: ckpt.dir.join("state.json"),
             error,
         })?;
-    let bytes = std::fs::read(ckpt.model_path())
-        .map_err(|e| TrainerError::io("reading", ckpt.model_path(), e))?;
-    let record = ModuleRecord::from_bytes(Bytes::from_bytes_vec(bytes)).map_err(|error| {
-        TrainerError::Record {
-            path: ckpt.model_path(),
-            error,
-        }
-    })?;
-    let model = build(&config).load_record(record);
+    let model = build(&config).load_record(ckpt.model_record()?);
     let what = format!(
         "{} ({:?}, step {})",
         ckpt.dir.display(),

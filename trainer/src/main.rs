@@ -622,10 +622,7 @@ fn first_rank_start(
             };
             Ok((start, model, optim))
         }
-        Some(_) => anyhow::bail!(
-            "{} already holds checkpoints: pass --resume to continue that run, or choose another --out",
-            paths.checkpoints.display()
-        ),
+        Some(_) => Err(holds_checkpoints(paths)),
         None => {
             if args.resume {
                 tracing::warn!(dir = %paths.checkpoints.display(), "--resume: no checkpoint yet, starting fresh");
@@ -680,14 +677,19 @@ fn drop_redone_metrics(paths: &RunPaths, step: u64) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// Why a fresh run does not start in `paths`: it holds checkpoints.
+fn holds_checkpoints(paths: &RunPaths) -> anyhow::Error {
+    anyhow::anyhow!(
+        "{} already holds checkpoints: pass --resume to continue that run, or choose another --out",
+        paths.checkpoints.display()
+    )
+}
+
 /// A fresh run: refuses an output directory holding checkpoints (`check_checkpoints`:
 /// the process that writes them), drops old metrics.
 fn start_fresh(paths: &RunPaths, check_checkpoints: bool) -> anyhow::Result<()> {
     if check_checkpoints && superflow_trainer::checkpoint::latest(&paths.checkpoints)?.is_some() {
-        anyhow::bail!(
-            "{} already holds checkpoints: pass --resume to continue that run, or choose another --out",
-            paths.checkpoints.display()
-        );
+        return Err(holds_checkpoints(paths));
     }
     if paths.metrics.exists() {
         std::fs::remove_file(&paths.metrics)
@@ -904,6 +906,7 @@ impl Session<'_> {
         self.bar.set_position(record.step);
         let shown = record.ddp.as_ref().map_or(record.loss, |d| d.loss);
         self.bar.set_message(format!("loss {shown:.4}"));
+        let losses = outcome.global.map_or(outcome.losses, |g| g.losses);
         let stopping = self.stop.load(Ordering::SeqCst) != 0;
         let periodic = self.every > 0 && record.step.is_multiple_of(self.every);
         // Data-parallel ranks checkpoint together whatever their signals say (the stop
@@ -911,11 +914,11 @@ impl Session<'_> {
         if periodic
             && record.step < self.steps
             && (!stopping || self.ddp.is_some())
-            && let Some(dir) = self.save_checkpoint(&outcome)?
+            && let Some(dir) = self.save_checkpoint(&losses)?
         {
             tracing::info!(checkpoint = %dir.display(), "checkpoint saved");
         }
-        self.last = Some(outcome.global.map_or(outcome.losses, |g| g.losses));
+        self.last = Some(losses);
         Ok(stopping)
     }
 
@@ -927,17 +930,14 @@ impl Session<'_> {
 
     /// Saves a checkpoint (a data-parallel job: every rank calls this, rank 0 writes it
     /// with every rank's next position); the directory written, if this process wrote.
-    fn save_checkpoint(
-        &self,
-        outcome_or_last: &impl LastLosses,
-    ) -> anyhow::Result<Option<PathBuf>> {
-        let losses = outcome_or_last.losses();
+    /// `losses` are the last step's (over all ranks in a data-parallel job).
+    fn save_checkpoint(&self, losses: &LossValues) -> anyhow::Result<Option<PathBuf>> {
         let run = &self.args.run;
         let Some(ddp) = &self.ddp else {
             let next = self
                 .next_position()
                 .context("a checkpoint before the first step")?;
-            let state = self.trainer.checkpoint_state(run, next, &losses);
+            let state = self.trainer.checkpoint_state(run, next, losses);
             return Ok(Some(
                 self.trainer
                     .save_checkpoint(&self.paths.checkpoints, &state)?,
@@ -949,7 +949,7 @@ impl Session<'_> {
         if ddp.rank() != 0 {
             return Ok(None);
         }
-        let mut state = self.trainer.checkpoint_state(run, next, &losses);
+        let mut state = self.trainer.checkpoint_state(run, next, losses);
         state.ranks = all.chunks(2).map(|p| [p[0], p[1]]).collect();
         Ok(Some(
             self.trainer
@@ -1000,23 +1000,6 @@ impl Session<'_> {
             "done training"
         );
         Ok(None)
-    }
-}
-
-/// The losses a checkpoint records: those of a step just taken, or the last ones.
-trait LastLosses {
-    fn losses(&self) -> LossValues;
-}
-
-impl LastLosses for StepOutcome {
-    fn losses(&self) -> LossValues {
-        self.global.as_ref().map_or(self.losses, |g| g.losses)
-    }
-}
-
-impl LastLosses for LossValues {
-    fn losses(&self) -> LossValues {
-        *self
     }
 }
 

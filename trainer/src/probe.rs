@@ -251,7 +251,9 @@ impl LinearProbe {
     pub fn predict(&self, features: &[f32], dim: usize, device: &Device) -> Vec<u16> {
         let n = features.len() / dim.max(1);
         let mut out = Vec::with_capacity(n);
-        let device = device.clone().autodiff();
+        // Inference: the plain device, no autodiff graph.
+        let probe = self.valid();
+        let device = device.clone().inner();
         for start in (0..n).step_by(65_536) {
             let end = (start + 65_536).min(n);
             let x = Tensor::<2>::from_data(
@@ -261,7 +263,7 @@ impl LinearProbe {
                 ),
                 &device,
             );
-            let classes = self.linear.forward(x).argmax(1).into_data();
+            let classes = probe.linear.forward(x).argmax(1).into_data();
             let classes = classes.convert::<i64>();
             out.extend(
                 classes

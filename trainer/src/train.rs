@@ -13,7 +13,6 @@ use crate::sync::{GradientBuffer, params_hash};
 use crate::vit::{DinoVit, VitConfig, imagenet_normalize};
 use burn::module::Module;
 use burn::optim::{AdamWConfig, GradientsParams, ModuleOptimizer};
-use burn::store::ModuleRecord;
 use burn::tensor::{Bytes, Device};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -416,12 +415,7 @@ impl Trainer {
         step: u64,
         source: &Path,
     ) -> Result<(), TrainerError> {
-        let record = ModuleRecord::from_bytes(Bytes::from_bytes_vec(model)).map_err(|error| {
-            TrainerError::Record {
-                path: source.join("model.bpk"),
-                error,
-            }
-        })?;
+        let record = checkpoint::decode_record(model, source.join("model.bpk"))?;
         let current = self
             .model
             .take()
