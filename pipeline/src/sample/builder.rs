@@ -12,7 +12,7 @@ use super::load::{FrameInputs, SampleContext};
 use super::plan::{KeyframeRef, Plan};
 use super::recipe::{SampleConfig, SuperpixelSource};
 use super::rng::{Purpose, SampleRng};
-use super::types::{Cloud, Frame, Sample, SampleId, StageTimes};
+use super::types::{Cloud, Frame, Pair, Sample, SampleId, StageTimes};
 use crate::drive::dataset::{Dataset, Drive};
 use rayon::prelude::*;
 
@@ -225,20 +225,36 @@ fn finish_frames(
 ) -> (Vec<Frame>, Cloud, StageTimes) {
     let n_frames = frames.len() as u32;
     let dense_source = std::mem::take(&mut dense.source_sweep);
-    let key_images = &frames[key_frame].images;
-    let (frame_clouds, (dense_cloud, dense_times)) = rayon::join(
+    let key_inputs = &frames[key_frame];
+    let finish_frame = |f: usize, fr: &FrameInputs, known: Option<(&[Pair], usize)>| {
+        let source = vec![0u8; fr.sweep.cloud.len()];
+        ctx.finish_cloud(f as u32, &fr.sweep.cloud, source, &fr.images, known)
+    };
+    // The dense cloud starts with the keyframe's points, paired with the same images:
+    // it reuses the keyframe cloud's pairings and projects only the earlier sweeps.
+    let (other_clouds, (key_cloud, (dense_cloud, dense_times))) = rayon::join(
         || {
             frames
                 .par_iter()
                 .enumerate()
-                .map(|(f, fr)| {
-                    let source = vec![0u8; fr.sweep.cloud.len()];
-                    ctx.finish_cloud(f as u32, &fr.sweep.cloud, source, &fr.images)
-                })
+                .filter(|(f, _)| *f != key_frame)
+                .map(|(f, fr)| finish_frame(f, fr, None))
                 .collect::<Vec<_>>()
         },
-        || ctx.finish_cloud(n_frames, &dense.cloud, dense_source, key_images),
+        || {
+            let key_cloud = finish_frame(key_frame, key_inputs, None);
+            let dense = ctx.finish_cloud(
+                n_frames,
+                &dense.cloud,
+                dense_source,
+                &key_inputs.images,
+                Some((&key_cloud.0.pairings, key_inputs.sweep.cloud.len())),
+            );
+            (key_cloud, dense)
+        },
     );
+    let mut frame_clouds = other_clouds;
+    frame_clouds.insert(key_frame.min(frame_clouds.len()), key_cloud);
     let mut times = dense.times;
     times.add(&dense_times);
     let offsets = ctx.config.frame_offsets();

@@ -77,13 +77,16 @@ impl SampleContext<'_> {
     /// Pairs `cloud` with `images` (the cloud must be in the LiDAR frame at the sweep
     /// stamp the images' `camera_from_lidar` was computed for), then augments it with the
     /// draw of cloud `number` (frames in order, then the dense cloud; all share draw 0
-    /// when the recipe says so), voxelizes it and builds the maps.
+    /// when the recipe says so), voxelizes it and builds the maps. `known`: the pairings
+    /// of the first points of `cloud` and how many points they cover (a cloud that
+    /// `cloud` begins with, paired with the same `images`), reused.
     pub(super) fn finish_cloud(
         &self,
         number: u32,
         cloud: &PointCloud,
         source_sweep: Vec<u8>,
         images: &[SampleImage],
+        known: Option<(&[Pair], usize)>,
     ) -> (Cloud, StageTimes) {
         let cfg = self.config;
         let stream = if cfg.augment.shared { 0 } else { number };
@@ -96,7 +99,7 @@ impl SampleContext<'_> {
         let augmentation = Augmentation::draw(cfg, &mut rng);
         let mut times = StageTimes::default();
         let t = Instant::now();
-        let pairings = self.pair(cloud, images);
+        let pairings = self.pair(cloud, images, known);
         times.projection += elapsed(t);
 
         let t = Instant::now();
@@ -126,19 +129,31 @@ impl SampleContext<'_> {
         (cloud, times)
     }
 
-    /// The points of `cloud` seen by each of `images`, camera slot by slot.
-    fn pair(&self, cloud: &PointCloud, images: &[SampleImage]) -> Vec<Pair> {
+    /// The points of `cloud` seen by each of `images`, camera slot by slot (in point
+    /// order within a slot). `known` holds the pairings of the cloud's first points (a
+    /// keyframe cloud the dense cloud begins with, paired with the same images): they are
+    /// taken as they are and only the points after them are projected.
+    fn pair(
+        &self,
+        cloud: &PointCloud,
+        images: &[SampleImage],
+        known: Option<(&[Pair], usize)>,
+    ) -> Vec<Pair> {
         let cfg = self.config;
         let out_size = (cfg.image_width, cfg.image_height);
-        let mut pairings = Vec::new();
+        let (known, skip) = known.unwrap_or((&[], 0));
+        let skip = skip.min(cloud.xyz.len());
+        let mut pairings = Vec::with_capacity(known.len() * 2);
         for (slot, image) in images.iter().enumerate() {
+            pairings.extend(known.iter().filter(|p| usize::from(p.camera) == slot));
             let view = CameraView::new(&image.calibration, image.camera_from_lidar);
             let first = pairings.len();
-            pairings.extend(pair_points(&cloud.xyz, &view).into_iter().map(|p| {
+            let seen = pair_points(&cloud.xyz[skip..], &view);
+            pairings.extend(seen.into_iter().map(|p| {
                 let (row, col) =
                     image_ops::resized_pixel(p.u, p.v, image.native_size, out_size, image.flipped);
                 Pair {
-                    point: p.point,
+                    point: p.point + skip as u32,
                     camera: slot as u8,
                     u: p.u,
                     v: p.v,

@@ -53,13 +53,18 @@ fn atan2(y: f64, x: f64) -> f64 {
     if y < 0.0 { -r } else { r }
 }
 
-/// `floor(q)` when every value within `margin` of `q` has the same floor.
+/// `floor(q)`, and whether every value within `margin` of `q` has that floor, branch-free
+/// so that a loop of it runs in vector lanes: `q.floor()` would call libm (x86-64 has no
+/// floor instruction before SSE4.1) and `q as i64` has no packed form before AVX-512;
+/// the truncation to `i32` does, and [`LARGE`] keeps a clear `q` within its range.
 #[inline(always)]
-fn clear_floor(q: f64, margin: f64) -> Option<i32> {
-    // `q.floor()` would call libm (x86-64 has no floor instruction before SSE4.1).
-    let t = q as i64;
-    let f = (t - i64::from(q < t as f64)) as f64;
-    (q.abs() < LARGE && q - f >= margin && f + 1.0 - q >= margin).then_some(f as i32)
+fn clear_floor(q: f64, margin: f64) -> (i32, bool) {
+    let t = f64::from(q as i32);
+    let f = t - if q < t { 1.0 } else { 0.0 };
+    (
+        f as i32,
+        q.abs() < LARGE && q - f >= margin && f + 1.0 - q >= margin,
+    )
 }
 
 /// Points per batch of the arithmetic pass (kept in registers and L1).
@@ -108,22 +113,39 @@ fn cylindrical_cells_inline(
     // Cells of 180° and beyond: the fold's cells.
     let fold = 179.9f64.to_radians() * per_phi;
     let mut out = Vec::with_capacity(xyz.len());
+    let mut near_boundary = Vec::new();
     let (mut rho, mut phi) = ([0f64; CHUNK], [0f64; CHUNK]);
-    for chunk in xyz.chunks(CHUNK) {
-        // Branch-free arithmetic, one point per lane: the compiler vectorizes it.
+    let mut cells = [[0i32; 3]; CHUNK];
+    let mut clear = [false; CHUNK];
+    for (c, chunk) in xyz.chunks(CHUNK).enumerate() {
+        // Branch-free arithmetic, one point per lane: the compiler vectorizes both loops.
         for ((p, r), a) in chunk.iter().zip(&mut rho).zip(&mut phi) {
             let (x, y) = (f64::from(p[0]), f64::from(p[1]));
             *r = (x * x + y * y).sqrt() * per_rho;
             *a = atan2(y, x) * per_phi;
         }
-        for ((p, &r), &a) in chunk.iter().zip(&rho).zip(&phi) {
-            let cells = clear_floor(r, r.abs() * F32_RELATIVE + 1e-12)
-                .zip(clear_floor(a, a.abs() * F32_RELATIVE + phi_error).filter(|_| a.abs() < fold));
-            out.push(match cells {
-                Some((r, a)) => [r, a, super::voxel::floor_i32(p[2] / z_m)],
-                None => exact(*p),
-            });
+        for ((((p, &r), &a), cell), ok) in chunk
+            .iter()
+            .zip(&rho)
+            .zip(&phi)
+            .zip(&mut cells)
+            .zip(&mut clear)
+        {
+            let (r_cell, r_clear) = clear_floor(r, r.abs() * F32_RELATIVE + 1e-12);
+            let (a_cell, a_clear) = clear_floor(a, a.abs() * F32_RELATIVE + phi_error);
+            *cell = [r_cell, a_cell, super::voxel::floor_i32(p[2] / z_m)];
+            *ok = r_clear & a_clear & (a.abs() < fold);
         }
+        out.extend_from_slice(&cells[..chunk.len()]);
+        // Points near a boundary get their cell after the pass.
+        for (j, ok) in clear[..chunk.len()].iter().enumerate() {
+            if !ok {
+                near_boundary.push(c * CHUNK + j);
+            }
+        }
+    }
+    for i in near_boundary {
+        out[i] = exact(xyz[i]);
     }
     out
 }

@@ -12,7 +12,7 @@ use super::rng::{Purpose, SampleRng};
 use super::sidecar;
 use super::slic::slic;
 use super::types::{SampleImage, StageTimes};
-use crate::decode::image::{ScaledImage, Target};
+use crate::decode::image::{ScaledImage, Target, buffers};
 use crate::drive::dataset::{CameraStream, FrameRef, nearest};
 use nalgebra::Isometry3;
 use std::time::Instant;
@@ -54,9 +54,10 @@ impl SampleContext<'_> {
         let mut times = StageTimes::default();
         let camera = &self.drive.cameras[camera_index];
         let moments = &self.scan.offsets_nanos[camera_index];
-        let raw = self.read_camera(camera, moments, lidar_stamp, &mut times)?;
+        let mut raw = self.read_camera(camera, moments, lidar_stamp, &mut times)?;
         let t = Instant::now();
         let (rgb, flipped) = self.resize_and_flip(&raw.image, frame_pos, slot);
+        buffers::give_back(std::mem::take(&mut raw.image.data));
         times.images += elapsed(t);
 
         let t_sp = Instant::now();
@@ -241,13 +242,12 @@ impl SampleContext<'_> {
                 classes.width, classes.height, raw.native.0, raw.native.1
             )));
         }
-        if let Some(bad) = classes
-            .data
-            .iter()
-            .find(|&&c| u32::from(c) >= cfg.num_classes)
-        {
+        // The largest id (a reduction in vector lanes) is checked; the first offending
+        // one is looked for only when there is one.
+        let largest = classes.data.iter().copied().fold(0u8, u8::max);
+        if u32::from(largest) >= cfg.num_classes {
             return Err(sp_error(format!(
-                "class id {bad} is outside the configured {} classes",
+                "class id {largest} is outside the configured {} classes",
                 cfg.num_classes
             )));
         }
@@ -255,6 +255,7 @@ impl SampleContext<'_> {
         let (out_w, out_h) = (cfg.image_width as usize, cfg.image_height as usize);
         let (w, h) = (classes.width as usize, classes.height as usize);
         let mut small = image_ops::resize_nearest(&classes.data, w, h, out_w, out_h);
+        buffers::give_back(classes.data);
         if flipped {
             image_ops::flip_horizontal(&mut small, out_w, 1);
         }

@@ -128,7 +128,7 @@ fn decode_with(
     tj.set_scan_limit(SCAN_LIMIT).map_err(tj_err)?;
     let out = header.scaled(factor);
     let channels = format.channels();
-    let mut pixels = vec![0u8; out.width * out.height * channels];
+    let mut pixels = super::buffers::take(out.width * out.height * channels);
     let image = TjImage {
         pixels: &mut pixels[..],
         width: out.width,

@@ -83,10 +83,12 @@
 //! without an end-of-image marker after its scan data counts as truncated), and a panic
 //! inside a third-party codec is caught and reported as [`ImageError::Corrupt`].
 
+pub mod buffers;
 mod error;
 mod format;
 mod jpeg;
 mod png;
+mod png_grey;
 mod raw;
 #[cfg(test)]
 mod tests;

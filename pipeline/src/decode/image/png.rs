@@ -54,8 +54,19 @@ pub(super) fn decode_png(data: &[u8], target: Target, ctx: Ctx<'_>) -> Result<De
     let format = output_format(target, header, ctx)?;
     let (w, h) = (u64::from(header.width), u64::from(header.height));
     let out_len = ctx.checked_size(w, h, format.channels() as u64)?;
+    if format == PixelFormat::Mono8
+        && let Some((width, height, pixels)) = super::png_grey::decode_grey8(data, MAX_IMAGE_BYTES)
+    {
+        return Ok(Decoded {
+            width,
+            height,
+            native: (width, height),
+            format,
+            data: pixels,
+        });
+    }
     let frame = read_frame(decoder, header, ctx)?;
-    let pixels = frame.pixels(format, out_len, ctx)?;
+    let pixels = frame.into_pixels(format, out_len, ctx)?;
     Ok(Decoded {
         width: header.width,
         height: header.height,
@@ -126,7 +137,7 @@ fn read_frame(
     let line = reader
         .output_line_size(header.width)
         .ok_or_else(|| ctx.too_large(w, h, u64::MAX))?;
-    let mut raw = vec![0u8; raw_len];
+    let mut raw = super::buffers::take(raw_len);
     reader.next_frame(&mut raw).map_err(|e| png_error(ctx, e))?;
     Ok(Frame {
         header,
@@ -137,6 +148,30 @@ fn read_frame(
 }
 
 impl Frame {
+    /// [`Frame::pixels`], taking the decoder's buffer itself when its rows are already
+    /// the output (8-bit grey as `Mono8`, 8-bit RGB as `Rgb8`: rows without padding).
+    fn into_pixels(
+        mut self,
+        format: PixelFormat,
+        out_len: usize,
+        ctx: Ctx<'_>,
+    ) -> Result<Vec<u8>, ImageError> {
+        let Header { color, depth, .. } = self.header;
+        let same = matches!(
+            (color, depth, format),
+            (ColorType::Rgb, BitDepth::Eight, PixelFormat::Rgb8)
+                | (ColorType::Grayscale, BitDepth::Eight, PixelFormat::Mono8)
+        );
+        let height = self.header.height as usize;
+        if same && self.line * height == out_len && self.raw.len() >= out_len {
+            self.raw.truncate(out_len);
+            return Ok(self.raw);
+        }
+        let pixels = self.pixels(format, out_len, ctx);
+        super::buffers::give_back(self.raw);
+        pixels
+    }
+
     /// The pixels in `format`, `out_len` bytes (checked).
     fn pixels(
         &self,
