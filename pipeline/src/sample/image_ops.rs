@@ -73,6 +73,8 @@ fn resize_bilinear_n<const C: usize>(data: &[u8], size: [usize; 4]) -> Vec<u8> {
     // Vertical blend of the two source rows into f32, then horizontal taps. Four spare
     // lanes let every pixel read four floats.
     let mut blended = vec![0f32; stride + 4];
+    // One output row before truncation, with room for the last pixel's fourth lane.
+    let mut horizontal = vec![0f32; out_width * C + 4];
     for (y, &(y0, y1, wy)) in ys.iter().enumerate() {
         let (r0, r1) = (
             &data[y0 * stride..][..stride],
@@ -90,22 +92,22 @@ fn resize_bilinear_n<const C: usize>(data: &[u8], size: [usize; 4]) -> Vec<u8> {
             }
             continue;
         }
-        // Every pixel but the last stores all four lanes (the fourth byte is the next
-        // pixel's, which overwrites it), so the four lanes stay one vector.
-        let blend4 = |&(x0, x1, wx): &(usize, usize, f32)| {
+        // Every pixel stores all four lanes (the fourth is the next pixel's first
+        // channel, which overwrites it), so the four lanes stay one vector; the
+        // truncation to bytes then runs over the whole row in full vector lanes (done per
+        // pixel, packing four lanes into four bytes cost more than the blend).
+        for (x, &(x0, x1, wx)) in xs.iter().enumerate() {
             let p0: [f32; 4] = blended[x0 * C..][..4].try_into().unwrap_or([0.0; 4]);
             let p1: [f32; 4] = blended[x1 * C..][..4].try_into().unwrap_or([0.0; 4]);
-            let mut v = [0u8; 4];
+            let mut v = [0f32; 4];
             for k in 0..4 {
-                v[k] = truncate_to_u8(p0[k] + (p1[k] - p0[k]) * wx + 0.5);
+                v[k] = p0[k] + (p1[k] - p0[k]) * wx + 0.5;
             }
-            v
-        };
-        let (body, last) = xs.split_at(xs.len() - 1);
-        for (x, tap) in body.iter().enumerate() {
-            row[x * C..][..4].copy_from_slice(&blend4(tap));
+            horizontal[x * C..][..4].copy_from_slice(&v);
         }
-        row[body.len() * C..].copy_from_slice(&blend4(&last[0])[..C]);
+        for (px, &t) in row.iter_mut().zip(&horizontal) {
+            *px = truncate_to_u8(t);
+        }
     }
     out
 }
