@@ -254,7 +254,7 @@ fn finish_frames(
         },
     );
     let mut frame_clouds = other_clouds;
-    frame_clouds.insert(key_frame.min(frame_clouds.len()), key_cloud);
+    frame_clouds.insert(key_frame, key_cloud);
     let mut times = dense.times;
     times.add(&dense_times);
     let offsets = ctx.config.frame_offsets();

@@ -144,8 +144,13 @@ impl SampleContext<'_> {
         let (known, skip) = known.unwrap_or((&[], 0));
         let skip = skip.min(cloud.xyz.len());
         let mut pairings = Vec::with_capacity(known.len() * 2);
+        let mut known = known;
         for (slot, image) in images.iter().enumerate() {
-            pairings.extend(known.iter().filter(|p| usize::from(p.camera) == slot));
+            // Known pairings are in slot order: this slot's come first.
+            let (this_slot, later) =
+                known.split_at(known.partition_point(|p| usize::from(p.camera) <= slot));
+            pairings.extend_from_slice(this_slot);
+            known = later;
             let view = CameraView::new(&image.calibration, image.camera_from_lidar);
             let first = pairings.len();
             let seen = pair_points(&cloud.xyz[skip..], &view);

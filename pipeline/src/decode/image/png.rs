@@ -54,19 +54,15 @@ pub(super) fn decode_png(data: &[u8], target: Target, ctx: Ctx<'_>) -> Result<De
     let format = output_format(target, header, ctx)?;
     let (w, h) = (u64::from(header.width), u64::from(header.height));
     let out_len = ctx.checked_size(w, h, format.channels() as u64)?;
-    if format == PixelFormat::Mono8
-        && let Some((width, height, pixels)) = super::png_grey::decode_grey8(data, MAX_IMAGE_BYTES)
-    {
-        return Ok(Decoded {
-            width,
-            height,
-            native: (width, height),
-            format,
-            data: pixels,
-        });
-    }
-    let frame = read_frame(decoder, header, ctx)?;
-    let pixels = frame.into_pixels(format, out_len, ctx)?;
+    // Class maps (8-bit grey as Mono8) mostly take the fast path; the png crate decodes
+    // everything else, and anything that path does not expect.
+    let fast = (format == PixelFormat::Mono8)
+        .then(|| super::png_grey::decode_grey8(data, MAX_IMAGE_BYTES))
+        .flatten();
+    let pixels = match fast {
+        Some(pixels) => pixels,
+        None => read_frame(decoder, header, ctx)?.into_pixels(format, out_len, ctx)?,
+    };
     Ok(Decoded {
         width: header.width,
         height: header.height,
