@@ -2,7 +2,7 @@
 //! [`ChunkCache`] of a few decompressed chunks (memory stays bounded whatever the file
 //! size).
 
-use super::chunk::{ChunkError, ChunkMessages, decode_chunk};
+use super::chunk::{ChunkError, ChunkMessages, MESSAGE_HEADER_LEN, decode_chunk};
 use super::framing::record_len;
 use super::{MAX_RECORD_BYTES, McapFile, MessageLoc, MessageRef, SourceError};
 use mcap::records::{self, op};
@@ -67,6 +67,7 @@ impl McapFile {
         }
         let (_, _, messages) = cache.entries.back().ok_or_else(missing)?;
         let (channel_id, header, data) = messages.get(index).ok_or_else(missing)?;
+        let channel_id = &channel_id;
         let channel = self.channels.get(channel_id).ok_or_else(missing)?;
         Ok(MessageRef::new(channel, header, data, loc))
     }
@@ -87,8 +88,8 @@ impl McapFile {
                     .read_exact_at(offset + 9, body_len)
                     .map_err(LoadError::Source)?;
                 match mcap::parse_record(op::MESSAGE, &body) {
-                    Ok(records::Record::Message { header, data }) => {
-                        Ok(vec![(header.channel_id, header, data.into_owned())])
+                    Ok(records::Record::Message { header, .. }) => {
+                        Ok(ChunkMessages::single(header, body, MESSAGE_HEADER_LEN))
                     }
                     _ => Err(LoadError::Missing),
                 }
@@ -110,7 +111,7 @@ impl McapFile {
                 else {
                     return Err(chunk_error(ChunkError::NotAChunk));
                 };
-                let decoded = decode_chunk(&header, &data, &body).map_err(chunk_error)?;
+                let decoded = decode_chunk(&header, &data).map_err(chunk_error)?;
                 Ok(decoded.messages)
             }
         }

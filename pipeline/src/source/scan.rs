@@ -193,7 +193,7 @@ impl McapFile {
                 self.deliver(header, &data, MessageLoc::Direct { offset: pos }, visit);
             }
             Ok(records::Record::Chunk { header, data }) => {
-                self.read_chunk(pos, body_len, &header, &data, &body, visit)
+                self.read_chunk(pos, body_len, &header, &data, visit)
             }
             Ok(_) => {}
             Err(e) => self.damage.push(Damage::BadRecord {
@@ -212,7 +212,6 @@ impl McapFile {
         body_len: u64,
         header: &ChunkHeader,
         records: &[u8],
-        body: &[u8],
         visit: &mut impl FnMut(MessageRef<'_>),
     ) {
         let chunk = self.chunks.len() as u32;
@@ -220,7 +219,7 @@ impl McapFile {
             offset: pos,
             record_len: 9 + body_len,
         });
-        let decoded = match decode_chunk(header, records, body) {
+        let decoded = match decode_chunk(header, records) {
             Ok(decoded) => decoded,
             Err(e) => {
                 self.damage.push(Damage::BadChunk {
@@ -242,12 +241,15 @@ impl McapFile {
                 &c.metadata,
             );
         }
-        for (index, (_, header, data)) in decoded.messages.into_iter().enumerate() {
+        for index in 0..decoded.messages.len() {
+            let Some((_, header, data)) = decoded.messages.get(index) else {
+                continue;
+            };
             let loc = MessageLoc::Chunk {
                 chunk,
                 index: index as u32,
             };
-            self.deliver(header, &data, loc, visit);
+            self.deliver(*header, data, loc, visit);
         }
     }
 
