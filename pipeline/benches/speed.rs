@@ -12,9 +12,9 @@
 //! The drives come from the generator (`superflow-recordings --preset nuscenes`): the
 //! nuscenes2mcap layout (Foxglove protobuf), a 32-beam LiDAR at 20 Hz (~33 k returns a
 //! sweep), six JPEG cameras at ~12 Hz triggered as the beam passes them, class maps as
-//! PNG in a `<drive>.superpixels.mcap` sidecar. They are written once under
-//! `target/bench-drives/` (a few seconds each) and reused while the generator version
-//! is the same.
+//! PNG in a `<drive>.superpixels.mcap` sidecar, zstd chunks. They are written once under
+//! `target/bench-drives/v<generator version>-<compression>/` (a few seconds each) and
+//! reused while the generator version and the chunk compression are the same.
 
 #[allow(dead_code)]
 #[path = "../../tests/src/bench/common.rs"]
@@ -47,7 +47,10 @@ fn drive(width: u32, height: u32, regenerate: bool) -> anyhow::Result<PathBuf> {
     let dialect = Dialect::Foxglove;
     let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
         .join("../target/bench-drives")
-        .join(format!("v{GENERATOR_VERSION}"));
+        .join(format!(
+            "v{GENERATOR_VERSION}-{}",
+            options.foxglove_compression.name()
+        ));
     std::fs::create_dir_all(&dir)?;
     let path = dir.join(format!("{}.mcap", options.drive_name(dialect)));
     if path.exists() && !regenerate {

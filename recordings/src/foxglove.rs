@@ -253,13 +253,14 @@ pub fn write(sim: &Simulation) -> Result<GeneratedDrive> {
         ],
     );
 
-    let (mcap, channels) = out.finish("", Some(mcap::Compression::Lz4))?;
+    let compression = sim.options.foxglove_compression;
+    let (mcap, channels) = out.finish("", Some(compression.mcap()))?;
     let (sidecar, sidecar_channels) = sidecar
-        .map(|side| side.finish("", Some(mcap::Compression::Lz4)))
+        .map(|side| side.finish("", Some(compression.mcap())))
         .transpose()?
         .unzip();
     let (labels_sidecar, labels_channels) = labels_sidecar
-        .map(|side| side.finish("", Some(mcap::Compression::Lz4)))
+        .map(|side| side.finish("", Some(compression.mcap())))
         .transpose()?
         .unzip();
     let labels = sim.labels_truth(
@@ -271,7 +272,7 @@ pub fn write(sim: &Simulation) -> Result<GeneratedDrive> {
     let truth = sim.ground_truth(WrittenDrive {
         dialect: Dialect::Foxglove,
         profile: "",
-        compression: "lz4",
+        compression: compression.name(),
         frames: FramesTruth {
             map: MAP_FRAME.into(),
             ego: EGO_FRAME.into(),

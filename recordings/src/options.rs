@@ -26,6 +26,37 @@ impl CameraTrigger {
     }
 }
 
+/// How the chunks of a Foxglove drive are compressed (ROS 2 drives are always zstd, as
+/// `ros2 bag record` writes them).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum ChunkCompression {
+    /// LZ4 frames (the sample drives).
+    #[default]
+    Lz4,
+    /// zstd frames (the nuScenes-sized bench drives): what mcap's writers default to, so
+    /// what nuscenes2mcap writes since it moved to foxglove-sdk (the 2022–24 converter
+    /// asked for LZ4).
+    Zstd,
+}
+
+impl ChunkCompression {
+    /// The compression as mcap's writer takes it.
+    pub fn mcap(self) -> mcap::Compression {
+        match self {
+            ChunkCompression::Lz4 => mcap::Compression::Lz4,
+            ChunkCompression::Zstd => mcap::Compression::Zstd,
+        }
+    }
+
+    /// Its name in a chunk record (`lz4`, `zstd`).
+    pub fn name(self) -> &'static str {
+        match self {
+            ChunkCompression::Lz4 => "lz4",
+            ChunkCompression::Zstd => "zstd",
+        }
+    }
+}
+
 /// Where the per-pixel class maps ("superpixels") go.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum ClassMapStorage {
@@ -121,6 +152,8 @@ pub struct DriveOptions {
     pub labels: LidarLabels,
     /// MCAP chunk size, bytes (512 KiB for the sample drives).
     pub chunk_size: u64,
+    /// Chunk compression of a Foxglove drive and its sidecars (LZ4 for the sample drives).
+    pub foxglove_compression: ChunkCompression,
 }
 
 impl Default for DriveOptions {
@@ -137,6 +170,7 @@ impl Default for DriveOptions {
             class_maps: ClassMapStorage::InDrive,
             labels: LidarLabels::Native,
             chunk_size: 512 * 1024,
+            foxglove_compression: ChunkCompression::Lz4,
         }
     }
 }
@@ -159,8 +193,9 @@ impl DriveOptions {
 
     /// A nuScenes-sized drive for benchmarks: 2 s (4 keyframes at 2 Hz), a 32-beam LiDAR
     /// with 1084 firings per 20 Hz revolution, six cameras at `width × height` triggered
-    /// as the beam passes them, class maps as PNGs in a sidecar, no labels, 4 MiB chunks.
-    /// Its stem is `nuscenes_{dialect}_<width>x<height>`.
+    /// as the beam passes them, class maps as PNGs in a sidecar, no labels, 4 MiB chunks,
+    /// zstd-compressed as the current nuscenes2mcap writes them. Its stem is
+    /// `nuscenes_{dialect}_<width>x<height>`.
     pub fn nuscenes(width: u32, height: u32) -> Self {
         Self {
             name: format!("nuscenes_{{dialect}}_{width}x{height}"),
@@ -173,6 +208,7 @@ impl DriveOptions {
             class_maps: ClassMapStorage::PngSidecar,
             labels: LidarLabels::None,
             chunk_size: 4 * 1024 * 1024,
+            foxglove_compression: ChunkCompression::Zstd,
         }
     }
 
