@@ -2,7 +2,7 @@
 //! [`ChunkCache`] of a few decompressed chunks (memory stays bounded whatever the file
 //! size).
 
-use super::chunk::{ChunkError, ChunkMessages, MESSAGE_HEADER_LEN, decode_chunk};
+use super::chunk::{ChunkError, ChunkMessages, decode_chunk};
 use super::framing::record_len;
 use super::{MAX_RECORD_BYTES, McapFile, MessageLoc, MessageRef, SourceError};
 use mcap::records::{self, op};
@@ -66,9 +66,8 @@ impl McapFile {
             }
         }
         let (_, _, messages) = cache.entries.back().ok_or_else(missing)?;
-        let (channel_id, header, data) = messages.get(index).ok_or_else(missing)?;
-        let channel_id = &channel_id;
-        let channel = self.channels.get(channel_id).ok_or_else(missing)?;
+        let (header, data) = messages.get(index).ok_or_else(missing)?;
+        let channel = self.channels.get(&header.channel_id).ok_or_else(missing)?;
         Ok(MessageRef::new(channel, header, data, loc))
     }
 
@@ -89,7 +88,7 @@ impl McapFile {
                     .map_err(LoadError::Source)?;
                 match mcap::parse_record(op::MESSAGE, &body) {
                     Ok(records::Record::Message { header, .. }) => {
-                        Ok(ChunkMessages::single(header, body, MESSAGE_HEADER_LEN))
+                        Ok(ChunkMessages::single(header, body))
                     }
                     _ => Err(LoadError::Missing),
                 }

@@ -60,34 +60,37 @@ pub enum ChunkError {
 }
 
 /// The messages of one decompressed chunk: its records' bytes, and per message its
-/// channel id, header and where its payload lies in those bytes (no copy per message).
+/// header and where its payload lies in those bytes (no copy per message).
 #[derive(Debug, Default)]
 pub(super) struct ChunkMessages {
     /// The bytes the payloads lie in.
     bytes: Vec<u8>,
-    /// Channel id, header, payload range in `bytes`; in record order.
-    messages: Vec<(u16, records::MessageHeader, Range<usize>)>,
+    /// Header and payload range in `bytes` of each message, in record order.
+    messages: Vec<(records::MessageHeader, Range<usize>)>,
 }
 
 impl ChunkMessages {
-    /// One message outside any chunk: its record's body `body`, payload from `payload`.
-    pub(super) fn single(header: records::MessageHeader, body: Vec<u8>, payload: usize) -> Self {
-        let range = payload.min(body.len())..body.len();
+    /// One message outside any chunk, from its record's body.
+    pub(super) fn single(header: records::MessageHeader, body: Vec<u8>) -> Self {
+        let range = MESSAGE_HEADER_LEN.min(body.len())..body.len();
         Self {
-            messages: vec![(header.channel_id, header, range)],
+            messages: vec![(header, range)],
             bytes: body,
         }
     }
 
-    /// Message `index`: channel id, header, payload.
-    pub(super) fn get(&self, index: usize) -> Option<(u16, &records::MessageHeader, &[u8])> {
-        let (id, header, range) = self.messages.get(index)?;
-        Some((*id, header, self.bytes.get(range.clone())?))
+    /// Message `index`: header and payload.
+    pub(super) fn get(&self, index: usize) -> Option<(&records::MessageHeader, &[u8])> {
+        let (header, range) = self.messages.get(index)?;
+        Some((header, self.bytes.get(range.clone())?))
     }
 
-    /// How many messages.
-    pub(super) fn len(&self) -> usize {
-        self.messages.len()
+    /// Every message's header and payload, in record order (the position is the index
+    /// [`get`](Self::get) takes).
+    pub(super) fn iter(&self) -> impl Iterator<Item = (&records::MessageHeader, &[u8])> {
+        self.messages
+            .iter()
+            .map(|(header, range)| (header, self.bytes.get(range.clone()).unwrap_or_default()))
     }
 }
 
@@ -104,7 +107,7 @@ pub(super) struct DecodedChunk {
 
 /// Bytes of a message record's body before its payload: channel id (2), sequence (4),
 /// log time (8), publish time (8).
-pub(super) const MESSAGE_HEADER_LEN: usize = 22;
+const MESSAGE_HEADER_LEN: usize = 22;
 
 /// Decompresses a chunk and splits it into records. `header` and `records` are the
 /// parsed chunk record (`records` still compressed).
@@ -129,7 +132,7 @@ pub(super) fn decode_chunk(
     let size = header.uncompressed_size as usize;
     let checked = header.uncompressed_crc != 0;
     let bytes = decompress(&header.compression, records, size, checked)?;
-    if header.uncompressed_crc != 0 {
+    if checked {
         let actual = crc32fast::hash(&bytes);
         if actual != header.uncompressed_crc {
             return Err(ChunkError::Crc {
@@ -152,10 +155,7 @@ pub(super) fn decode_chunk(
         match mcap::parse_record(opcode, &bytes[body.clone()])? {
             records::Record::Message { header, .. } => {
                 let payload = body.start + MESSAGE_HEADER_LEN..body.end;
-                chunk
-                    .messages
-                    .messages
-                    .push((header.channel_id, header, payload));
+                chunk.messages.messages.push((header, payload));
             }
             records::Record::Schema { header, data } => {
                 chunk

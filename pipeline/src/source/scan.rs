@@ -241,10 +241,7 @@ impl McapFile {
                 &c.metadata,
             );
         }
-        for index in 0..decoded.messages.len() {
-            let Some((_, header, data)) = decoded.messages.get(index) else {
-                continue;
-            };
+        for (index, (header, data)) in decoded.messages.iter().enumerate() {
             let loc = MessageLoc::Chunk {
                 chunk,
                 index: index as u32,

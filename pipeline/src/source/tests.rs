@@ -6,20 +6,32 @@ use mcap::records::{self, op};
 use std::collections::BTreeMap;
 use std::io::Cursor;
 
+/// An in-memory writer with `options` and one raw channel per topic (their ids).
+fn raw_writer(
+    options: mcap::WriteOptions,
+    topics: &[&str],
+) -> (mcap::Writer<Cursor<Vec<u8>>>, Vec<u16>) {
+    let mut writer = options.create(Cursor::new(Vec::new())).unwrap();
+    let schema = writer.add_schema("test.Msg", "raw", b"bytes").unwrap();
+    let channels = topics
+        .iter()
+        .map(|topic| {
+            writer
+                .add_channel(schema, topic, "raw", &BTreeMap::new())
+                .unwrap()
+        })
+        .collect();
+    (writer, channels)
+}
+
 /// Writes `n` messages on two channels; chunked or not.
 fn sample_file(chunked: bool, n: u32) -> Vec<u8> {
     let options = mcap::WriteOptions::new()
         .use_chunks(chunked)
         .chunk_size(Some(64))
         .compression(Some(mcap::Compression::Zstd));
-    let mut writer = options.create(Cursor::new(Vec::new())).unwrap();
-    let schema = writer.add_schema("test.Msg", "raw", b"bytes").unwrap();
-    let a = writer
-        .add_channel(schema, "/a", "raw", &BTreeMap::new())
-        .unwrap();
-    let b = writer
-        .add_channel(schema, "/b", "raw", &BTreeMap::new())
-        .unwrap();
+    let (mut writer, channels) = raw_writer(options, &["/a", "/b"]);
+    let (a, b) = (channels[0], channels[1]);
     for i in 0..n {
         let channel_id = if i % 3 == 0 { b } else { a };
         let header = records::MessageHeader {
@@ -366,11 +378,8 @@ fn lz4_chunks_round_trip_and_a_flipped_byte_is_a_bad_chunk() {
         .use_chunks(true)
         .chunk_size(Some(100_000))
         .compression(Some(mcap::Compression::Lz4));
-    let mut writer = options.create(Cursor::new(Vec::new())).unwrap();
-    let schema = writer.add_schema("test.Msg", "raw", b"bytes").unwrap();
-    let a = writer
-        .add_channel(schema, "/a", "raw", &BTreeMap::new())
-        .unwrap();
+    let (mut writer, channels) = raw_writer(options, &["/a"]);
+    let a = channels[0];
     for i in 0..n {
         let header = records::MessageHeader {
             channel_id: a,
