@@ -53,18 +53,38 @@ fn atan2(y: f64, x: f64) -> f64 {
     if y < 0.0 { -r } else { r }
 }
 
-/// `floor(q)`, and whether every value within `margin` of `q` has that floor, branch-free
-/// so that a loop of it runs in vector lanes: `q.floor()` would call libm (x86-64 has no
-/// floor instruction before SSE4.1) and `q as i64` has no packed form before AVX-512;
-/// the truncation to `i32` does, and [`LARGE`] keeps a clear `q` within its range.
+/// `1.5·2⁵²`: adding it to an `f64` of magnitude under 2⁵¹ rounds it to an integer, held
+/// in the low bits of the sum's mantissa (two's complement, offset by 2⁵¹).
+const ROUND_F64: f64 = 6_755_399_441_055_744.0;
+
+/// `1.5·2²³`, the same for `f32` under 2²².
+const ROUND_F32: f32 = 12_582_912.0;
+
+/// `floor(q)`, and whether every value within `margin` of `q` has that floor, in plain
+/// float arithmetic so that a loop of it runs in vector lanes: `q.floor()` would call
+/// libm (x86-64 has no floor instruction before SSE4.1) and `as` casts saturate, which
+/// the compiler does lane by lane. `q` is rounded by adding and removing
+/// [`ROUND_F64`], stepped down if that rounded up, and the integer read from the low
+/// bits of the floor plus [`ROUND_F64`]. Only a clear `q` (under [`LARGE`], finite)
+/// needs the right cell; any other gets the exact formula.
 #[inline(always)]
 fn clear_floor(q: f64, margin: f64) -> (i32, bool) {
-    let t = f64::from(q as i32);
-    let f = t - if q < t { 1.0 } else { 0.0 };
+    let r = (q + ROUND_F64) - ROUND_F64;
+    let f = if r > q { r - 1.0 } else { r };
     (
-        f as i32,
+        (f + ROUND_F64).to_bits() as i32,
         q.abs() < LARGE && q - f >= margin && f + 1.0 - q >= margin,
     )
+}
+
+/// `floor(v)` as [`clear_floor`] finds it, for an `f32` under 2²², and whether `v` is
+/// (finite and) that small.
+#[inline(always)]
+fn small_floor(v: f32) -> (i32, bool) {
+    let r = (v + ROUND_F32) - ROUND_F32;
+    let f = if r > v { r - 1.0 } else { r };
+    let bits = (f + ROUND_F32).to_bits() as i32;
+    ((bits & 0x7F_FFFF) - 0x40_0000, v.abs() < 4_194_304.0)
 }
 
 /// Points per batch of the arithmetic pass (kept in registers and L1).
@@ -133,11 +153,17 @@ fn cylindrical_cells_inline(
         {
             let (r_cell, r_clear) = clear_floor(r, r.abs() * F32_RELATIVE + 1e-12);
             let (a_cell, a_clear) = clear_floor(a, a.abs() * F32_RELATIVE + phi_error);
-            *cell = [r_cell, a_cell, super::voxel::floor_i32(p[2] / z_m)];
-            *ok = r_clear & a_clear & (a.abs() < fold);
+            // The formula's own f32 quotient, floored: exact wherever it is small.
+            let (z_cell, z_clear) = small_floor(p[2] / z_m);
+            *cell = [r_cell, a_cell, z_cell];
+            *ok = r_clear & a_clear & z_clear & (a.abs() < fold);
         }
         out.extend_from_slice(&cells[..chunk.len()]);
-        // Points near a boundary get their cell after the pass.
+        // Points near a boundary get their cell after the pass (a reduction first: in
+        // most chunks there is none).
+        if clear[..chunk.len()].iter().fold(true, |all, &ok| all & ok) {
+            continue;
+        }
         for (j, ok) in clear[..chunk.len()].iter().enumerate() {
             if !ok {
                 near_boundary.push(c * CHUNK + j);
@@ -170,6 +196,45 @@ mod tests {
             let exact = |p| grid.cell(p);
             let baseline = super::cylindrical_cells_inline(points, [rho_m, phi_deg, z_m], &exact);
             assert_eq!(baseline, fast, "{grid:?}: baseline copy");
+        }
+    }
+
+    #[test]
+    fn floors_in_lanes_are_floor() {
+        let mut state = 0x9E37_79B9u32;
+        let mut values = vec![
+            0.0f32,
+            -0.0,
+            0.5,
+            -0.5,
+            -1.0,
+            2.999_999_8,
+            -2.999_999_8,
+            1e-30,
+            -1e-30,
+            4_194_303.5,
+            -4_194_303.5,
+            -4_194_303.7,
+            4_194_303.9,
+        ];
+        for _ in 0..1_000_000 {
+            state = state.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            values.push(f32::from_bits(state));
+            values.push((state as i32) as f32 / 1000.0);
+        }
+        for v in values {
+            let (cell, small) = super::small_floor(v);
+            assert_eq!(small, v.abs() < 4_194_304.0, "{v}");
+            if small {
+                assert_eq!(cell, v.floor() as i32, "{v}");
+            }
+            let q = f64::from(v) * 7.3;
+            let (cell, clear) = super::clear_floor(q, 0.0);
+            if clear {
+                assert_eq!(cell, q.floor() as i32, "{q}");
+            } else {
+                assert!(q.is_nan() || q.abs() >= super::LARGE, "{q}");
+            }
         }
     }
 

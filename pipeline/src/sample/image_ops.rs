@@ -63,10 +63,11 @@ fn resize_bilinear_avx2<const C: usize>(data: &[u8], size: [usize; 4]) -> Vec<u8
 #[inline(always)]
 fn resize_bilinear_n<const C: usize>(data: &[u8], size: [usize; 4]) -> Vec<u8> {
     let [width, height, out_width, out_height] = size;
-    let mut out = vec![0u8; out_width * out_height * C];
     if width == 0 || height == 0 || out_width == 0 || data.len() < width * height * C {
-        return out;
+        return vec![0u8; out_width * out_height * C];
     }
+    // Filled row by row (a zeroed buffer would be written twice).
+    let mut out = Vec::with_capacity(out_width * out_height * C);
     let xs = linear_taps(width, out_width);
     let ys = linear_taps(height, out_height);
     let stride = width * C;
@@ -75,7 +76,7 @@ fn resize_bilinear_n<const C: usize>(data: &[u8], size: [usize; 4]) -> Vec<u8> {
     let mut blended = vec![0f32; stride + 4];
     // One output row before truncation, with room for the last pixel's fourth lane.
     let mut horizontal = vec![0f32; out_width * C + 4];
-    for (y, &(y0, y1, wy)) in ys.iter().enumerate() {
+    for &(y0, y1, wy) in &ys {
         let (r0, r1) = (
             &data[y0 * stride..][..stride],
             &data[y1 * stride..][..stride],
@@ -84,12 +85,11 @@ fn resize_bilinear_n<const C: usize>(data: &[u8], size: [usize; 4]) -> Vec<u8> {
             let a = f32::from(*a);
             *b = a + (f32::from(*c) - a) * wy;
         }
-        let row = &mut out[y * out_width * C..][..out_width * C];
         if C == 1 {
-            for (px, &(x0, x1, wx)) in row.iter_mut().zip(&xs) {
+            out.extend(xs.iter().map(|&(x0, x1, wx)| {
                 let (p0, p1) = (blended[x0], blended[x1]);
-                *px = (p0 + (p1 - p0) * wx + 0.5) as u8;
-            }
+                (p0 + (p1 - p0) * wx + 0.5) as u8
+            }));
             continue;
         }
         // Every pixel stores all four lanes (the fourth is the next pixel's first
@@ -105,9 +105,11 @@ fn resize_bilinear_n<const C: usize>(data: &[u8], size: [usize; 4]) -> Vec<u8> {
             }
             horizontal[x * C..][..4].copy_from_slice(&v);
         }
-        for (px, &t) in row.iter_mut().zip(&horizontal) {
-            *px = truncate_to_u8(t);
-        }
+        out.extend(
+            horizontal[..out_width * C]
+                .iter()
+                .map(|&t| truncate_to_u8(t)),
+        );
     }
     out
 }
@@ -186,8 +188,11 @@ pub fn resized_pixel(
     (out_width, out_height): (u32, u32),
     flipped: bool,
 ) -> (u16, u16) {
+    // The floor of the scaled position, clamped to the image: clamping first and
+    // truncating after (`as`) gives the same for every value, NaN included, without
+    // libm's `floor` (x86-64 has no floor instruction before SSE4.1).
     let scale = |p: f32, n_in: u32, n_out: u32| {
-        let x = ((f64::from(p) + 0.5) * f64::from(n_out) / f64::from(n_in)).floor();
+        let x = (f64::from(p) + 0.5) * f64::from(n_out) / f64::from(n_in);
         x.clamp(0.0, f64::from(n_out.max(1) - 1)) as u16
     };
     let row = scale(v, height, out_height);
@@ -223,6 +228,39 @@ mod tests {
             }
         }
         out
+    }
+
+    #[test]
+    fn resized_pixels_are_the_clamped_floor() {
+        let floored = |p: f32, n_in: u32, n_out: u32| {
+            let x = ((f64::from(p) + 0.5) * f64::from(n_out) / f64::from(n_in)).floor();
+            x.clamp(0.0, f64::from(n_out.max(1) - 1)) as u16
+        };
+        let mut values = vec![f32::NAN, f32::INFINITY, f32::NEG_INFINITY, -0.5, -0.7, -1.5];
+        values.extend((-400..4000).map(|i| i as f32 * 0.437));
+        values.extend((0..1600).map(|i| i as f32 - 0.5));
+        for (size, out) in [
+            ((1600, 900), (448, 224)),
+            ((800, 450), (448, 224)),
+            ((7, 5), (1, 1)),
+        ] {
+            for &u in &values {
+                for flipped in [false, true] {
+                    let (row, col) = resized_pixel(u, u * 0.6, size, out, flipped);
+                    let want_col = floored(u, size.0, out.0);
+                    let want_col = if flipped {
+                        out.0 as u16 - 1 - want_col
+                    } else {
+                        want_col
+                    };
+                    assert_eq!(
+                        (row, col),
+                        (floored(u * 0.6, size.1, out.1), want_col),
+                        "{u}"
+                    );
+                }
+            }
+        }
     }
 
     #[test]
