@@ -4,15 +4,17 @@
 
 use crate::JPEG_QUALITY;
 use crate::error::{GenerateError, Result};
+use crate::options::JpegCoding;
 use crate::sim::CameraFrame;
 use rayon::prelude::*;
 use superflow_schemas::sensor::{Image, PixelFormat};
 
-/// Encodes an RGB8 image as a baseline JPEG (deterministic: scalar code path).
-pub fn encode_jpeg(image: &Image) -> Result<Vec<u8>> {
+/// Encodes an RGB8 image as a baseline JPEG coded as `coding` says (deterministic:
+/// scalar code path).
+pub fn encode_jpeg(image: &Image, coding: JpegCoding) -> Result<Vec<u8>> {
     let mut out = Vec::new();
     let mut encoder = jpeg_encoder::Encoder::new(&mut out, JPEG_QUALITY);
-    encoder.set_optimized_huffman_tables(true);
+    encoder.set_optimized_huffman_tables(coding == JpegCoding::OptimizedPerComponent);
     let (Ok(w), Ok(h)) = (u16::try_from(image.width), u16::try_from(image.height)) else {
         return Err(GenerateError::ImageTooLarge {
             frame_id: image.frame_id.clone(),
@@ -52,8 +54,11 @@ pub fn encode_png_mono(image: &Image) -> Result<Vec<u8>> {
 }
 
 /// The JPEG of every frame's colour image, in order.
-pub fn jpegs(frames: &[CameraFrame]) -> Result<Vec<Vec<u8>>> {
-    frames.par_iter().map(|f| encode_jpeg(&f.image)).collect()
+pub fn jpegs(frames: &[CameraFrame], coding: JpegCoding) -> Result<Vec<Vec<u8>>> {
+    frames
+        .par_iter()
+        .map(|f| encode_jpeg(&f.image, coding))
+        .collect()
 }
 
 /// The PNG of every frame's class map, in order.
@@ -67,7 +72,7 @@ pub fn class_map_pngs(frames: &[CameraFrame]) -> Result<Vec<Vec<u8>>> {
 #[cfg(test)]
 mod tests {
     #![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
-    use crate::options::{ClassMapStorage, DriveOptions};
+    use crate::options::{ClassMapStorage, DriveOptions, JpegCoding};
     use crate::{Dialect, generate_with};
     use prost::Message as _;
     use superflow_schemas::ros2;
@@ -133,6 +138,45 @@ mod tests {
             ));
         }
         out
+    }
+
+    /// The markers of a JPEG up to its end (entropy-coded `FF` bytes are stuffed, so
+    /// every `FF xx` with `xx` not 0 or a restart is a marker).
+    fn markers(jpeg: &[u8]) -> Vec<u8> {
+        jpeg.windows(2)
+            .filter(|w| w[0] == 0xFF && w[1] != 0 && !(0xD0..=0xD7).contains(&w[1]))
+            .map(|w| w[1])
+            .collect()
+    }
+
+    #[test]
+    fn jpeg_codings_write_one_scan_or_one_per_component() {
+        let (width, height) = (64u32, 48u32);
+        let image = superflow_schemas::sensor::Image::new(
+            superflow_schemas::Stamp::from_nanos(0),
+            "camera",
+            width,
+            height,
+            superflow_schemas::sensor::PixelFormat::Rgb8,
+            (0..width * height * 3).map(|i| (i * 7 % 251) as u8).collect(),
+        )
+        .unwrap();
+        for (coding, scans) in [
+            (JpegCoding::StandardInterleaved, 1),
+            (JpegCoding::OptimizedPerComponent, 3),
+        ] {
+            let jpeg = super::encode_jpeg(&image, coding).unwrap();
+            let markers = markers(&jpeg);
+            assert_eq!(markers.first(), Some(&0xD8), "{coding:?}: starts with SOI");
+            assert_eq!(markers.last(), Some(&0xD9), "{coding:?}: ends with EOI");
+            assert_eq!(
+                markers.iter().filter(|&&m| m == 0xC0).count(),
+                1,
+                "{coding:?}: one baseline frame"
+            );
+            let sos = markers.iter().filter(|&&m| m == 0xDA).count();
+            assert_eq!(sos, scans, "{coding:?}");
+        }
     }
 
     #[test]

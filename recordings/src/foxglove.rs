@@ -409,7 +409,7 @@ fn write_camera(
         p.push(0.0);
     }
     let frames = &sim.frames[i];
-    let mut jpegs = jpegs(frames)?.into_iter();
+    let mut jpegs = jpegs(frames, sim.options.jpeg_coding)?.into_iter();
     let mut pngs = match files.sidecar {
         Some(_) => class_map_pngs(frames)?,
         None => Vec::new(),

@@ -43,7 +43,9 @@ pub mod truth;
 pub use encode::{encode_jpeg, encode_png_mono};
 pub use error::GenerateError;
 use nalgebra::{Isometry3, Point3};
-pub use options::{CameraTrigger, ChunkCompression, ClassMapStorage, DriveOptions, LidarLabels};
+pub use options::{
+    CameraTrigger, ChunkCompression, ClassMapStorage, DriveOptions, JpegCoding, LidarLabels,
+};
 use rayon::prelude::*;
 use scene::Scene;
 use sim::{CameraFrame, DriveTiming, Return, Rig};

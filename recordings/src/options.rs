@@ -26,6 +26,29 @@ impl CameraTrigger {
     }
 }
 
+/// How the camera images are coded as JPEG.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum JpegCoding {
+    /// Huffman tables optimized per image, which the encoder (jpeg-encoder) writes as one
+    /// scan per colour component (the sample drives). A decoder then holds the whole
+    /// image's coefficients before the first pixel.
+    #[default]
+    OptimizedPerComponent,
+    /// The standard Huffman tables in one interleaved scan: what libjpeg, OpenCV and
+    /// camera drivers write by default (the nuScenes-sized bench drives).
+    StandardInterleaved,
+}
+
+impl JpegCoding {
+    /// A short name (`optimized`, `interleaved`), for file and directory names.
+    pub fn name(self) -> &'static str {
+        match self {
+            JpegCoding::OptimizedPerComponent => "optimized",
+            JpegCoding::StandardInterleaved => "interleaved",
+        }
+    }
+}
+
 /// How the chunks of a Foxglove drive are compressed (ROS 2 drives are always zstd, as
 /// `ros2 bag record` writes them).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -154,6 +177,9 @@ pub struct DriveOptions {
     pub chunk_size: u64,
     /// Chunk compression of a Foxglove drive and its sidecars (LZ4 for the sample drives).
     pub foxglove_compression: ChunkCompression,
+    /// How camera images are coded (optimized tables, one scan per component, for the
+    /// sample drives).
+    pub jpeg_coding: JpegCoding,
 }
 
 impl Default for DriveOptions {
@@ -171,6 +197,7 @@ impl Default for DriveOptions {
             labels: LidarLabels::Native,
             chunk_size: 512 * 1024,
             foxglove_compression: ChunkCompression::Lz4,
+            jpeg_coding: JpegCoding::OptimizedPerComponent,
         }
     }
 }
@@ -209,6 +236,7 @@ impl DriveOptions {
             labels: LidarLabels::None,
             chunk_size: 4 * 1024 * 1024,
             foxglove_compression: ChunkCompression::Zstd,
+            jpeg_coding: JpegCoding::StandardInterleaved,
         }
     }
 

@@ -447,7 +447,7 @@ fn write_camera(
     let intrinsics = Intrinsics::of(calibration);
     let stamps = &sim.camera_stamps[i];
     let frames = &sim.frames[i];
-    let mut jpegs = jpegs(frames)?.into_iter();
+    let mut jpegs = jpegs(frames, sim.options.jpeg_coding)?.into_iter();
     let mut pngs = match sidecar {
         Some(_) => class_map_pngs(frames)?,
         None => Vec::new(),
