@@ -13,9 +13,9 @@
 //! nuscenes2mcap layout (Foxglove protobuf), a 32-beam LiDAR at 20 Hz (~33 k returns a
 //! sweep), six JPEG cameras at ~12 Hz triggered as the beam passes them, class maps as
 //! PNG in a `<drive>.superpixels.mcap` sidecar, zstd chunks. They are written once under
-//! `target/bench-drives/v<generator version>-<compression>-<JPEG coding>/` (a few
-//! seconds each) and reused while the generator version, the chunk compression and the
-//! JPEG coding are the same.
+//! `target/bench-drives/v<generator version>-<compression>-<JPEG coding>-<chunk
+//! size>-<length>/` (20 s at 800×450, a minute at 1600×900) and reused while all of
+//! these are the same.
 
 #[allow(dead_code)]
 #[path = "../../tests/src/bench/common.rs"]
@@ -49,9 +49,11 @@ fn drive(width: u32, height: u32, regenerate: bool) -> anyhow::Result<PathBuf> {
     let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
         .join("../target/bench-drives")
         .join(format!(
-            "v{GENERATOR_VERSION}-{}-{}",
+            "v{GENERATOR_VERSION}-{}-{}-{}k-{}s",
             options.foxglove_compression.name(),
-            options.jpeg_coding.name()
+            options.jpeg_coding.name(),
+            options.chunk_size / 1024,
+            options.duration_secs()
         ));
     std::fs::create_dir_all(&dir)?;
     let path = dir.join(format!("{}.mcap", options.drive_name(dialect)));

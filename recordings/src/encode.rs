@@ -158,7 +158,9 @@ mod tests {
             width,
             height,
             superflow_schemas::sensor::PixelFormat::Rgb8,
-            (0..width * height * 3).map(|i| (i * 7 % 251) as u8).collect(),
+            (0..width * height * 3)
+                .map(|i| (i * 7 % 251) as u8)
+                .collect(),
         )
         .unwrap();
         for (coding, scans) in [

@@ -218,15 +218,17 @@ impl DriveOptions {
         }
     }
 
-    /// A nuScenes-sized drive for benchmarks: 2 s (4 keyframes at 2 Hz), a 32-beam LiDAR
+    /// A nuScenes-sized drive for benchmarks: 8 s (16 keyframes at 2 Hz), a 32-beam LiDAR
     /// with 1084 firings per 20 Hz revolution, six cameras at `width × height` triggered
-    /// as the beam passes them, class maps as PNGs in a sidecar, no labels, 4 MiB chunks,
-    /// zstd-compressed as the current nuscenes2mcap writes them. Its stem is
-    /// `nuscenes_{dialect}_<width>x<height>`.
+    /// as the beam passes them, class maps as PNGs in a sidecar, no labels, chunks of
+    /// 1 MiB (the Python mcap writer's default, which nuscenes2mcap 2022–24 and
+    /// mcap_ros2 use) compressed with zstd as the current nuscenes2mcap writes them. Long
+    /// enough that samples in shuffled order read most of their chunks afresh, as they do
+    /// on a real drive. Its stem is `nuscenes_{dialect}_<width>x<height>`.
     pub fn nuscenes(width: u32, height: u32) -> Self {
         Self {
             name: format!("nuscenes_{{dialect}}_{width}x{height}"),
-            duration_nanos: 2_000_000_000,
+            duration_nanos: 8_000_000_000,
             cameras: 6,
             image_size: (width, height),
             lidar_columns: 1084,
@@ -234,7 +236,7 @@ impl DriveOptions {
             camera_trigger: CameraTrigger::Staggered,
             class_maps: ClassMapStorage::PngSidecar,
             labels: LidarLabels::None,
-            chunk_size: 4 * 1024 * 1024,
+            chunk_size: 1024 * 1024,
             foxglove_compression: ChunkCompression::Zstd,
             jpeg_coding: JpegCoding::StandardInterleaved,
         }

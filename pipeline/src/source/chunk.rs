@@ -184,6 +184,9 @@ fn decompress(
         compression: compression.to_string(),
         source,
     };
+    if compression == "zstd" {
+        return zstd_frames(records, size).map_err(unreadable);
+    }
     let mut out = vec![0u8; size];
     match compression {
         "" => {
@@ -197,10 +200,35 @@ fn decompress(
         "lz4" => lz4::Decoder::new(records)
             .and_then(|mut d| d.read_exact(&mut out))
             .map_err(unreadable)?,
-        "zstd" => zstd::stream::read::Decoder::with_buffer(records)
-            .and_then(|mut d| d.read_exact(&mut out))
-            .map_err(unreadable)?,
         other => return Err(ChunkError::Unsupported(other.to_string())),
+    }
+    Ok(out)
+}
+
+thread_local! {
+    /// One zstd decompression context per thread, reused from chunk to chunk.
+    static ZSTD: std::cell::RefCell<Option<zstd::bulk::Decompressor<'static>>> =
+        const { std::cell::RefCell::new(None) };
+}
+
+/// The zstd frames of `src`, decompressed in one call straight into a buffer of `size`
+/// bytes (no streaming window to copy out of, no zeroing first); they must fill it
+/// exactly.
+pub(super) fn zstd_frames(src: &[u8], size: usize) -> std::io::Result<Vec<u8>> {
+    let mut out = Vec::with_capacity(size);
+    let written = ZSTD.with(|cell| {
+        let mut slot = cell.borrow_mut();
+        let context = match slot.as_mut() {
+            Some(context) => context,
+            None => slot.insert(zstd::bulk::Decompressor::new()?),
+        };
+        context.decompress_to_buffer(src, &mut out)
+    })?;
+    if written != size {
+        return Err(std::io::Error::new(
+            std::io::ErrorKind::UnexpectedEof,
+            format!("{written} bytes decompressed, {size} declared"),
+        ));
     }
     Ok(out)
 }

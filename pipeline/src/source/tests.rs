@@ -372,6 +372,34 @@ fn lz4_frames_decode_without_their_checksums_and_stop_at_the_size() {
 }
 
 #[test]
+fn zstd_frames_decode_in_one_call_and_must_fill_the_declared_size() {
+    let content: Vec<u8> = (0..300_000u32).map(|i| (i * 7 % 251) as u8).collect();
+    let frame = zstd::bulk::compress(&content, 3).unwrap();
+    assert_eq!(chunk::zstd_frames(&frame, content.len()).unwrap(), content);
+    // Frames one after another (as a writer may split a chunk) decode as one.
+    let mut two = zstd::bulk::compress(&content[..100_000], 3).unwrap();
+    two.extend(zstd::bulk::compress(&content[100_000..], 1).unwrap());
+    assert_eq!(chunk::zstd_frames(&two, content.len()).unwrap(), content);
+    // Stored blocks too.
+    assert_eq!(chunk::zstd_frames(&zstd_stored(b"abc"), 3).unwrap(), b"abc");
+    // A declared size the frames do not fill, or overflow: an error either way.
+    for size in [content.len() + 1, content.len() - 1, 0] {
+        let err = chunk::zstd_frames(&frame, size).unwrap_err();
+        assert!(!err.to_string().is_empty(), "size {size}");
+    }
+    // Every truncation and a damaged header: errors, never a panic.
+    for cut in [0, 3, 4, 9, frame.len() / 2, frame.len() - 1] {
+        assert!(
+            chunk::zstd_frames(&frame[..cut], content.len()).is_err(),
+            "cut {cut}"
+        );
+    }
+    let mut bad = frame.clone();
+    bad[0] ^= 0xFF;
+    assert!(chunk::zstd_frames(&bad, content.len()).is_err());
+}
+
+#[test]
 fn lz4_chunks_round_trip_and_a_flipped_byte_is_a_bad_chunk() {
     let n = 40;
     let options = mcap::WriteOptions::new()
