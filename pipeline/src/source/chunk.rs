@@ -70,6 +70,11 @@ pub(super) struct ChunkMessages {
 }
 
 impl ChunkMessages {
+    /// Bytes held.
+    pub(super) fn byte_len(&self) -> usize {
+        self.bytes.len()
+    }
+
     /// One message outside any chunk, from its record's body.
     pub(super) fn single(header: records::MessageHeader, body: Vec<u8>) -> Self {
         let range = MESSAGE_HEADER_LEN.min(body.len())..body.len();

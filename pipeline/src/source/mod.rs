@@ -174,6 +174,9 @@ struct ChunkLoc {
 #[derive(Debug)]
 pub struct McapFile {
     path: PathBuf,
+    /// Unique to this opening of the file: what chunk caches key on (a file rewritten at
+    /// the same path and opened again never gets the old one's chunks).
+    id: u64,
     file: File,
     len: u64,
     /// Header profile (`ros2`, `""`, ...).

@@ -67,8 +67,10 @@ impl McapFile {
                 path: path.to_path_buf(),
             });
         }
+        static OPENED: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
         Ok(McapFile {
             path: path.to_path_buf(),
+            id: OPENED.fetch_add(1, std::sync::atomic::Ordering::Relaxed),
             file,
             len,
             profile: String::new(),

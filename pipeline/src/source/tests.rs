@@ -108,6 +108,59 @@ fn scans_and_reads_back_chunked_and_unchunked_files() {
     }
 }
 
+#[test]
+fn threads_share_chunks_and_a_rewritten_file_is_read_afresh() {
+    let (file, seen) = scan_bytes("shared.mcap", &sample_file(true, 60));
+    assert!(seen.len() == 60 && file.chunks.len() > 4);
+    // Four threads read every message at once, each through a one-chunk cache of its
+    // own, in orders that meet on the same chunks: each gets every message right.
+    std::thread::scope(|scope| {
+        for t in 0..4 {
+            let (file, seen) = (&file, &seen);
+            scope.spawn(move || {
+                let mut cache = ChunkCache::new(1);
+                for (topic, log_time, data, loc) in seen.iter().cycle().skip(t * 7).take(60) {
+                    let m = file.read_message(*loc, &mut cache).unwrap();
+                    assert_eq!(
+                        (&m.channel.topic, m.log_time, m.data),
+                        (topic, *log_time, &data[..])
+                    );
+                }
+            });
+        }
+    });
+    // The same path rewritten with other payloads and opened again: its chunks are its
+    // own, not the first file's from a cache, on this thread and through the shared
+    // table alike.
+    let options = mcap::WriteOptions::new()
+        .chunk_size(Some(64))
+        .compression(Some(mcap::Compression::Zstd));
+    let (mut writer, channels) = raw_writer(options, &["/a", "/b"]);
+    for i in 0..60u32 {
+        let header = records::MessageHeader {
+            channel_id: channels[usize::from(i % 3 == 0)],
+            sequence: i,
+            log_time: 1_000 + u64::from(i),
+            publish_time: 1_000 + u64::from(i),
+        };
+        writer
+            .write_to_known_channel(&header, format!("rewrite {i}").as_bytes())
+            .unwrap();
+    }
+    writer.finish().unwrap();
+    let mut cache = ChunkCache::new(8);
+    let first = file
+        .read_message(seen[5].3, &mut cache)
+        .unwrap()
+        .data
+        .to_vec();
+    assert_eq!(first, b"message 5");
+    let (again, seen_again) = scan_bytes("shared.mcap", &writer.into_inner().into_inner());
+    assert_eq!(seen_again[5].3, seen[5].3, "the same chunk and index");
+    let m = again.read_message(seen_again[5].3, &mut cache).unwrap();
+    assert_eq!(m.data, b"rewrite 5");
+}
+
 /// A zstd frame holding `content` in one stored (raw) block.
 fn zstd_stored(content: &[u8]) -> Vec<u8> {
     let size = u8::try_from(content.len()).unwrap();
