@@ -54,6 +54,14 @@ class SuperFlowNet(nn.Module):
         return ref.superflow_losses(vox[batch["pairing_voxel"]], pixel, batch["ix"])
 
 
+def emit(record: dict) -> None:
+    """Prints `record` as one JSON line in a single write: ranks share stdout, and with
+    unbuffered output (`python -u`, PYTHONUNBUFFERED) `print` writes the line and its
+    newline separately, so two ranks' lines could run together."""
+    sys.stdout.write(json.dumps(record) + "\n")
+    sys.stdout.flush()
+
+
 def params_hash(module: nn.Module) -> str:
     """A hash of every parameter (not the batch-norm statistics, which each rank keeps
     from its own last batch)."""
@@ -106,14 +114,12 @@ def main() -> int:
         opt.zero_grad(set_to_none=True)
         losses["total"].backward()
         opt.step()
-        print(json.dumps({"rank": rank, "step": step, "epoch": position[0],
-                          "stream_step": position[1], "sample_ids": position[2],
-                          **{k: losses[k].item() for k in ("total", "l_sc", "l_tc", "l_d2s")}}),
-              flush=True)
+        emit({"rank": rank, "step": step, "epoch": position[0],
+              "stream_step": position[1], "sample_ids": position[2],
+              **{k: losses[k].item() for k in ("total", "l_sc", "l_tc", "l_d2s")}})
     elapsed = time.perf_counter() - started
-    print(json.dumps({"rank": rank, "world_size": world, "steps": args.steps,
-                      "steps_per_s": args.steps / elapsed, "params_hash": params_hash(net)}),
-          flush=True)
+    emit({"rank": rank, "world_size": world, "steps": args.steps,
+          "steps_per_s": args.steps / elapsed, "params_hash": params_hash(net)})
     stream.close()
     if world > 1:
         dist.destroy_process_group()
