@@ -54,16 +54,18 @@ fn shared_slot(file: u64, key: CacheKey) -> SharedSlot {
     }
     let slot = SharedSlot::default();
     table.push_back((file, key, Arc::clone(&slot)));
-    let held = |table: &VecDeque<(u64, CacheKey, SharedSlot)>| -> usize {
-        table
-            .iter()
-            .filter_map(|(_, _, slot)| slot.get().and_then(Option::as_ref))
-            .map(|messages| messages.byte_len())
-            .sum()
+    let bytes = |slot: &SharedSlot| {
+        slot.get()
+            .and_then(Option::as_ref)
+            .map_or(0, |messages| messages.byte_len())
     };
+    let mut held: usize = table.iter().map(|(_, _, slot)| bytes(slot)).sum();
     let most = SHARED_CHUNKS_PER_THREAD * rayon::current_num_threads().max(1);
-    while table.len() > 1 && (table.len() > most || held(&table) > SHARED_BYTES) {
-        table.pop_front();
+    while table.len() > 1 && (table.len() > most || held > SHARED_BYTES) {
+        if let Some((_, _, oldest)) = table.pop_front() {
+            // Saturating: a slot may be filled (outside the lock) after the count.
+            held = held.saturating_sub(bytes(&oldest));
+        }
     }
     slot
 }

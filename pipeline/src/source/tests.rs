@@ -26,6 +26,11 @@ fn raw_writer(
 
 /// Writes `n` messages on two channels; chunked or not.
 fn sample_file(chunked: bool, n: u32) -> Vec<u8> {
+    sample_file_saying(chunked, n, "message")
+}
+
+/// [`sample_file`] with payloads `"<word> <i>"`.
+fn sample_file_saying(chunked: bool, n: u32, word: &str) -> Vec<u8> {
     let options = mcap::WriteOptions::new()
         .use_chunks(chunked)
         .chunk_size(Some(64))
@@ -41,7 +46,7 @@ fn sample_file(chunked: bool, n: u32) -> Vec<u8> {
             publish_time: 1_000 + u64::from(i),
         };
         writer
-            .write_to_known_channel(&header, format!("message {i}").as_bytes())
+            .write_to_known_channel(&header, format!("{word} {i}").as_bytes())
             .unwrap();
     }
     writer.finish().unwrap();
@@ -132,22 +137,6 @@ fn threads_share_chunks_and_a_rewritten_file_is_read_afresh() {
     // The same path rewritten with other payloads and opened again: its chunks are its
     // own, not the first file's from a cache, on this thread and through the shared
     // table alike.
-    let options = mcap::WriteOptions::new()
-        .chunk_size(Some(64))
-        .compression(Some(mcap::Compression::Zstd));
-    let (mut writer, channels) = raw_writer(options, &["/a", "/b"]);
-    for i in 0..60u32 {
-        let header = records::MessageHeader {
-            channel_id: channels[usize::from(i % 3 == 0)],
-            sequence: i,
-            log_time: 1_000 + u64::from(i),
-            publish_time: 1_000 + u64::from(i),
-        };
-        writer
-            .write_to_known_channel(&header, format!("rewrite {i}").as_bytes())
-            .unwrap();
-    }
-    writer.finish().unwrap();
     let mut cache = ChunkCache::new(8);
     let first = file
         .read_message(seen[5].3, &mut cache)
@@ -155,7 +144,7 @@ fn threads_share_chunks_and_a_rewritten_file_is_read_afresh() {
         .data
         .to_vec();
     assert_eq!(first, b"message 5");
-    let (again, seen_again) = scan_bytes("shared.mcap", &writer.into_inner().into_inner());
+    let (again, seen_again) = scan_bytes("shared.mcap", &sample_file_saying(true, 60, "rewrite"));
     assert_eq!(seen_again[5].3, seen[5].3, "the same chunk and index");
     let m = again.read_message(seen_again[5].3, &mut cache).unwrap();
     assert_eq!(m.data, b"rewrite 5");
