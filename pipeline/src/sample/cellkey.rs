@@ -116,6 +116,14 @@ pub(crate) fn sort_cells(cells: &[[i32; 3]]) -> (Vec<u32>, Option<(CellKeys, Vec
     (order, Some((keys, sorted)))
 }
 
+/// The number of runs of equal values in `sorted` (the unique cells of sorted keys):
+/// what a pass keeping each run's first will keep, so that it can allocate that once
+/// instead of growing (and copying) as it goes.
+pub(crate) fn count_runs<T: PartialEq>(sorted: &[T]) -> usize {
+    let changes = sorted.windows(2).filter(|w| w[0] != w[1]).count();
+    changes + usize::from(!sorted.is_empty())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -184,6 +192,9 @@ mod tests {
             let mut expected: Vec<u32> = (0..cells.len() as u32).collect();
             expected.sort_by_key(|&i| (cells[i as usize], i));
             assert_eq!(order, expected);
+            let unique: std::collections::BTreeSet<[i32; 3]> = cells.iter().copied().collect();
+            assert_eq!(count_runs(&sorted), unique.len());
+            assert_eq!(count_runs::<u64>(&[]), 0);
             assert!(sorted.windows(2).all(|w| w[0] <= w[1]));
         }
     }

@@ -53,29 +53,162 @@ fn resize_bilinear_dispatch<const C: usize>(data: &[u8], size: [usize; 4]) -> Ve
     resize_bilinear_n::<C>(data, size)
 }
 
-/// [`resize_bilinear_n`] compiled with AVX2 enabled (not FMA: no contraction).
+/// [`resize_bilinear_n`] compiled with AVX2 enabled (not FMA: no contraction); colour
+/// rows take their horizontal taps two pixels to a vector ([`horizontal_rgb_avx2`]).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 fn resize_bilinear_avx2<const C: usize>(data: &[u8], size: [usize; 4]) -> Vec<u8> {
+    if C == 3 {
+        return resize_bilinear_with::<C>(data, size, |blended, xs, out| {
+            horizontal_rgb_avx2(blended, xs, out)
+        });
+    }
     resize_bilinear_n::<C>(data, size)
+}
+
+/// The horizontal taps of one colour row, two output pixels to an 8-lane vector: each
+/// half holds a pixel's three channels and a spare lane, blended as in
+/// [`horizontal_taps`] (`p0 + (p1 − p0)·wx + 0.5`, the same operations in the same order,
+/// so the same floats), then the two spare lanes are squeezed out and the six floats
+/// stored together (the two lanes after them are overwritten by the next pair).
+///
+/// `blended` holds the row's `3·width` floats and four spare ones, `out` the output
+/// row's `3·xs.len()` floats and four spare ones, and every tap is below `width`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+#[allow(unsafe_code)]
+fn horizontal_rgb_avx2(blended: &[f32], xs: &HorizontalTaps, out: &mut [f32]) {
+    use std::arch::x86_64::{
+        __m128, _mm_loadu_ps, _mm256_add_ps, _mm256_loadu_ps, _mm256_mul_ps,
+        _mm256_permutevar8x32_ps, _mm256_set_m128, _mm256_set1_ps, _mm256_setr_epi32,
+        _mm256_storeu_ps, _mm256_sub_ps,
+    };
+    let pairs = xs.first.len() / 2;
+    // Every read below ends by `blended[3·tap + 4]` and every write by
+    // `out[6·pairs + 2]`: checked once here, not per pixel.
+    let last_tap = xs
+        .first
+        .iter()
+        .chain(&xs.second)
+        .copied()
+        .max()
+        .unwrap_or(0);
+    if blended.len() < last_tap as usize + 4 || out.len() < 6 * pairs + 2 {
+        return horizontal_taps::<3>(blended, xs, out);
+    }
+    let half = _mm256_set1_ps(0.5);
+    let squeeze = _mm256_setr_epi32(0, 1, 2, 4, 5, 6, 7, 7);
+    let load = |at: u32| -> __m128 {
+        // SAFETY: `at + 4 <= blended.len()` for every tap (checked above).
+        unsafe { _mm_loadu_ps(blended.as_ptr().add(at as usize)) }
+    };
+    for p in 0..pairs {
+        let (a, b) = (2 * p, 2 * p + 1);
+        let p0 = _mm256_set_m128(load(xs.first[b]), load(xs.first[a]));
+        let p1 = _mm256_set_m128(load(xs.second[b]), load(xs.second[a]));
+        // SAFETY: `weights` holds 8 floats per pair of output pixels.
+        let w = unsafe { _mm256_loadu_ps(xs.pair_weights.as_ptr().add(8 * p)) };
+        let v = _mm256_add_ps(
+            _mm256_add_ps(p0, _mm256_mul_ps(_mm256_sub_ps(p1, p0), w)),
+            half,
+        );
+        let v = _mm256_permutevar8x32_ps(v, squeeze);
+        // SAFETY: `6·p + 8 <= 6·pairs + 2 <= out.len()` (checked above).
+        unsafe { _mm256_storeu_ps(out.as_mut_ptr().add(6 * p), v) };
+    }
+    if xs.first.len() % 2 == 1 {
+        let x = xs.first.len() - 1;
+        horizontal_pixel::<3>(blended, xs, x, out);
+    }
+}
+
+/// The horizontal taps of an output row, as offsets into a blended row of floats.
+struct HorizontalTaps {
+    /// Offset of each output pixel's first source pixel (`C·x0`).
+    first: Vec<u32>,
+    /// Offset of its second source pixel (`C·x1`).
+    second: Vec<u32>,
+    /// Weight of the second source pixel.
+    weights: Vec<f32>,
+    /// The weights two pixels to eight lanes (four of each), for the vector passes.
+    pair_weights: Vec<f32>,
+}
+
+impl HorizontalTaps {
+    fn new(width: usize, out_width: usize, channels: usize) -> Self {
+        let taps = linear_taps(width, out_width);
+        let offset = |x: usize| (x * channels) as u32;
+        let weights: Vec<f32> = taps.iter().map(|t| t.2).collect();
+        Self {
+            first: taps.iter().map(|t| offset(t.0)).collect(),
+            second: taps.iter().map(|t| offset(t.1)).collect(),
+            pair_weights: weights
+                .chunks_exact(2)
+                .flat_map(|w| [w[0], w[0], w[0], w[0], w[1], w[1], w[1], w[1]])
+                .collect(),
+            weights,
+        }
+    }
+}
+
+/// Output pixel `x` of a row: its four lanes (the fourth is the next pixel's first
+/// channel, overwritten by it) from the blended row into `out`.
+#[inline(always)]
+fn horizontal_pixel<const C: usize>(
+    blended: &[f32],
+    xs: &HorizontalTaps,
+    x: usize,
+    out: &mut [f32],
+) {
+    let (x0, x1, wx) = (xs.first[x] as usize, xs.second[x] as usize, xs.weights[x]);
+    let p0: [f32; 4] = blended[x0..][..4].try_into().unwrap_or([0.0; 4]);
+    let p1: [f32; 4] = blended[x1..][..4].try_into().unwrap_or([0.0; 4]);
+    let mut v = [0f32; 4];
+    for k in 0..4 {
+        v[k] = p0[k] + (p1[k] - p0[k]) * wx + 0.5;
+    }
+    out[x * C..][..4].copy_from_slice(&v);
+}
+
+/// The horizontal taps of one row of `C ≥ 2` channels, pixel by pixel.
+///
+/// Every pixel stores all four lanes (the fourth is the next pixel's first channel,
+/// which overwrites it), so the four lanes stay one vector; the truncation to bytes then
+/// runs over the whole row in full vector lanes (done per pixel, packing four lanes into
+/// four bytes cost more than the blend).
+#[inline(always)]
+fn horizontal_taps<const C: usize>(blended: &[f32], xs: &HorizontalTaps, out: &mut [f32]) {
+    for x in 0..xs.first.len() {
+        horizontal_pixel::<C>(blended, xs, x, out);
+    }
 }
 
 #[inline(always)]
 fn resize_bilinear_n<const C: usize>(data: &[u8], size: [usize; 4]) -> Vec<u8> {
+    resize_bilinear_with::<C>(data, size, horizontal_taps::<C>)
+}
+
+/// The resize with `horizontal` taking the horizontal taps of each colour row.
+#[inline(always)]
+fn resize_bilinear_with<const C: usize>(
+    data: &[u8],
+    size: [usize; 4],
+    horizontal: impl Fn(&[f32], &HorizontalTaps, &mut [f32]),
+) -> Vec<u8> {
     let [width, height, out_width, out_height] = size;
     if width == 0 || height == 0 || out_width == 0 || data.len() < width * height * C {
         return vec![0u8; out_width * out_height * C];
     }
     // Filled row by row (a zeroed buffer would be written twice).
     let mut out = Vec::with_capacity(out_width * out_height * C);
-    let xs = linear_taps(width, out_width);
+    let xs = HorizontalTaps::new(width, out_width, C);
     let ys = linear_taps(height, out_height);
     let stride = width * C;
     // Vertical blend of the two source rows into f32, then horizontal taps. Four spare
     // lanes let every pixel read four floats.
     let mut blended = vec![0f32; stride + 4];
     // One output row before truncation, with room for the last pixel's fourth lane.
-    let mut horizontal = vec![0f32; out_width * C + 4];
+    let mut horizontal_row = vec![0f32; out_width * C + 4];
     for &(y0, y1, wy) in &ys {
         let (r0, r1) = (
             &data[y0 * stride..][..stride],
@@ -86,27 +219,16 @@ fn resize_bilinear_n<const C: usize>(data: &[u8], size: [usize; 4]) -> Vec<u8> {
             *b = a + (f32::from(*c) - a) * wy;
         }
         if C == 1 {
-            out.extend(xs.iter().map(|&(x0, x1, wx)| {
+            out.extend((0..out_width).map(|x| {
+                let (x0, x1, wx) = (xs.first[x] as usize, xs.second[x] as usize, xs.weights[x]);
                 let (p0, p1) = (blended[x0], blended[x1]);
                 (p0 + (p1 - p0) * wx + 0.5) as u8
             }));
             continue;
         }
-        // Every pixel stores all four lanes (the fourth is the next pixel's first
-        // channel, which overwrites it), so the four lanes stay one vector; the
-        // truncation to bytes then runs over the whole row in full vector lanes (done per
-        // pixel, packing four lanes into four bytes cost more than the blend).
-        for (x, &(x0, x1, wx)) in xs.iter().enumerate() {
-            let p0: [f32; 4] = blended[x0 * C..][..4].try_into().unwrap_or([0.0; 4]);
-            let p1: [f32; 4] = blended[x1 * C..][..4].try_into().unwrap_or([0.0; 4]);
-            let mut v = [0f32; 4];
-            for k in 0..4 {
-                v[k] = p0[k] + (p1[k] - p0[k]) * wx + 0.5;
-            }
-            horizontal[x * C..][..4].copy_from_slice(&v);
-        }
+        horizontal(&blended, &xs, &mut horizontal_row);
         out.extend(
-            horizontal[..out_width * C]
+            horizontal_row[..out_width * C]
                 .iter()
                 .map(|&t| truncate_to_u8(t)),
         );

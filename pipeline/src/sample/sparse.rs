@@ -4,7 +4,7 @@
 //! kernel offset, `(input row, output row)` pairs: the trainer gathers input rows,
 //! multiplies by that offset's weights and scatter-adds into output rows.
 
-use super::cellkey::{CellKeys, sort_cells};
+use super::cellkey::{CellKeys, count_runs, sort_cells};
 use rustc_hash::FxHashMap as HashMap;
 
 /// `(input row, output row)` pairs grouped by kernel offset.
@@ -209,7 +209,8 @@ pub fn downsample(coords: &[[i32; 3]]) -> (Vec<[i32; 3]>, KernelMap) {
         Some((_, keys)) => keys[s] == keys[t],
         None => parents[order[s] as usize] == parents[order[t] as usize],
     };
-    let mut coarse = Vec::new();
+    let unique = keyed.as_ref().map_or(0, |(_, keys)| count_runs(keys));
+    let mut coarse = Vec::with_capacity(unique);
     let mut parent = vec![0u32; coords.len()];
     for (s, &row) in order.iter().enumerate() {
         if s == 0 || !same(s - 1, s) {

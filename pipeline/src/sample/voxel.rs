@@ -1,7 +1,7 @@
 //! Voxelization: points → unique integer cells, one representative point per cell, and
 //! the map from every point to its cell.
 
-use super::cellkey::sort_cells;
+use super::cellkey::{count_runs, sort_cells};
 use crate::invalid::InvalidSetting;
 use serde::{Deserialize, Serialize};
 
@@ -138,8 +138,10 @@ pub fn voxelize(xyz: &[[f32; 3]], grid: &VoxelGrid) -> Voxelized {
         Some((_, keys)) => keys[s] == keys[t],
         None => cells[order[s] as usize] == cells[order[t] as usize],
     };
-    let mut coords = Vec::new();
-    let mut representative = Vec::new();
+    // Without a packing (cells thousands of kilometres apart) the vectors grow instead.
+    let unique = keyed.as_ref().map_or(0, |(_, keys)| count_runs(keys));
+    let mut coords = Vec::with_capacity(unique);
+    let mut representative = Vec::with_capacity(unique);
     let mut point_to_voxel = vec![0u32; xyz.len()];
     for (s, &point) in order.iter().enumerate() {
         if s == 0 || !same(s - 1, s) {
