@@ -5,6 +5,11 @@
 //! `cargo bench -p superflow-pipeline --bench speed` (options: `-- --samples N` (48),
 //! `--slic-samples N` (12), `--sizes 800x450,1600x900`, `--regenerate`).
 //!
+//! A last table sets a sample's decoding beside what the libraries alone cost for the same
+//! work (`speed/floor.rs`): the chunks and bytes a sample decompresses (counted) at
+//! libzstd's speed on the drive's chunks, and its JPEGs and PNG class maps decoded by
+//! libjpeg-turbo and the `png` crate on their own.
+//!
 //! SLIC is measured twice: computed per sample, and read from the `<drive>.slic.mcap`
 //! sidecar that `superflow-pipeline superpixels` writes (written once into
 //! `target/bench-drives/…/slic/`, beside a link to the drive).
@@ -20,12 +25,14 @@
 #[allow(dead_code)]
 #[path = "../../tests/src/bench/common.rs"]
 mod common;
+#[path = "speed/floor.rs"]
+mod floor;
 #[allow(dead_code)]
 #[path = "../../tests/src/bench/sample.rs"]
 mod sample;
 
 use common::{arg_count, arg_value, cores, flag, load_average};
-use sample::{one_and_all, stage_cells};
+use sample::{one_and_all, stage_cells, throughput};
 use std::path::PathBuf;
 use std::time::Instant;
 use superflow_pipeline::batch::{BatchPlan, BatchShape};
@@ -106,6 +113,51 @@ fn slic_sidecar_drive(path: &std::path::Path, regenerate: bool) -> anyhow::Resul
     Ok(dataset)
 }
 
+/// A sample's decoding on one core beside the libraries alone: a run of `n` samples on
+/// one core, the chunks and bytes its files decompressed per sample, and the cost of
+/// that work and of the sample's images with libzstd, libjpeg-turbo and `png` alone.
+fn floor_row(
+    name: &str,
+    builder: &SampleBuilder<'_>,
+    dataset: &Dataset,
+    path: &std::path::Path,
+    n: usize,
+) -> anyhow::Result<String> {
+    let counted = || -> (u64, u64) {
+        let files = dataset.drives.iter().flat_map(|d| &d.files);
+        files.fold((0, 0), |(c, b), f| {
+            let d = f.decompressed();
+            (c + d.chunks, b + d.bytes)
+        })
+    };
+    let before = counted();
+    let (_, times) = throughput(builder, n, 1)?;
+    let after = counted();
+    let per_sample = |v: u64| v as f64 / n as f64;
+    let chunks = per_sample(after.0 - before.0);
+    let mb = per_sample(after.1 - before.1) / 1e6;
+    let config = builder.config();
+    let images = f64::from(config.temporal_frames * config.cameras);
+    let (w, h) = (config.image_width as usize, config.image_height as usize);
+    let zstd = floor::zstd_ms_per_mb(path)?.map(|ms| ms * mb);
+    let jpeg = floor::jpeg_ms(path, w, h)?.map(|ms| ms * images);
+    let pngs = floor::png_ms(&path.with_extension("superpixels.mcap"))?;
+    let png = pngs.map(|(png_crate, own)| png_crate.min(own) * images);
+    let sum: f64 = [zstd, jpeg, png].iter().flatten().sum();
+    let cell = |v: Option<f64>| v.map_or("–".into(), |v| format!("{v:.1}"));
+    let decode = times.decode as f64 / 1e6 / n as f64;
+    let png_cell = match pngs {
+        Some((png_crate, _)) => format!("{} ({:.1})", cell(png), png_crate * images),
+        None => cell(None),
+    };
+    Ok(format!(
+        "| {name} | {chunks:.1} | {mb:.1} | {} | {} | {png_cell} | {sum:.1} | {decode:.1} | {:.2}× |",
+        cell(zstd),
+        cell(jpeg),
+        decode / sum
+    ))
+}
+
 /// Rounds of the batch-write measurement.
 const WRITE_ROUNDS: usize = 31;
 
@@ -160,6 +212,7 @@ fn main() -> anyhow::Result<()> {
     );
     println!("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     let mut batch_rows = Vec::new();
+    let mut floor_rows = Vec::new();
     for size in sizes.split(',') {
         let (w, h) = size
             .split_once('x')
@@ -198,6 +251,7 @@ fn main() -> anyhow::Result<()> {
                     .collect::<Result<Vec<_>, _>>()?;
                 let shape = BatchShape::of(builder.config());
                 batch_rows.push((format!("{w}×{h}"), batch_write(&samples, shape)?));
+                floor_rows.push(floor_row(&format!("{w}×{h}"), &builder, data, &path, n)?);
             }
         }
     }
@@ -217,6 +271,17 @@ fn main() -> anyhow::Result<()> {
     }
     println!(
         "producer write: plan + every section into a zeroed payload (a fresh loan); copy: one memcpy of as many bytes; medians of {WRITE_ROUNDS} rounds, each a write then a copy (ratio: median of the rounds' ratios)"
+    );
+    println!();
+    println!(
+        "| cameras | chunks a sample | MB decompressed | libzstd alone ms | JPEGs, libjpeg-turbo alone ms | PNG class maps alone ms | sum ms | decode stage ms | decode / sum |"
+    );
+    println!("|---|---:|---:|---:|---:|---:|---:|---:|---:|");
+    for row in floor_rows {
+        println!("{row}");
+    }
+    println!(
+        "a run of {n} class-map samples on 1 core: chunks and bytes its files decompressed per sample, that many MB at libzstd's speed on the drive's chunks, the sample's JPEGs decoded by libjpeg-turbo at the scale the recipe decodes them, its PNG class maps by the faster of the png crate and the pipeline's grey reader (the png crate's in brackets); fastest of 3 rounds"
     );
     Ok(())
 }

@@ -14,6 +14,7 @@ use super::{MAX_RECORD_BYTES, McapFile, MessageLoc, MessageRef, SourceError};
 use mcap::records::{self, op};
 use std::collections::VecDeque;
 use std::os::unix::fs::FileExt;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
 
 /// A few decompressed chunks, most recent last, for random access.
@@ -32,6 +33,22 @@ const SHARED_CHUNKS_PER_THREAD: usize = 4;
 /// Decompressed bytes the shared table keeps at most (chunks of the usual 0.5–4 MiB
 /// leave by number first; larger ones by size).
 const SHARED_BYTES: usize = 64 << 20;
+
+/// What random access has decompressed from one file so far (all threads).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Decompressed {
+    /// Chunks decompressed (a chunk served from a cache is not counted again).
+    pub chunks: u64,
+    /// Their decompressed bytes.
+    pub bytes: u64,
+}
+
+/// The counters behind [`McapFile::decompressed`].
+#[derive(Debug, Default)]
+pub(super) struct DecompressCounters {
+    chunks: AtomicU64,
+    bytes: AtomicU64,
+}
 
 /// A chunk in the shared table: set once by the thread that decompresses it (`None` if
 /// that failed: each thread then reads it itself and reports its own error).
@@ -121,6 +138,15 @@ impl McapFile {
         Ok(MessageRef::new(channel, header, data, loc))
     }
 
+    /// The chunks [`read_message`](Self::read_message) has decompressed from this file so
+    /// far, and their bytes (the speed bench divides them by the samples it built).
+    pub fn decompressed(&self) -> Decompressed {
+        Decompressed {
+            chunks: self.decompressed.chunks.load(Ordering::Relaxed),
+            bytes: self.decompressed.bytes.load(Ordering::Relaxed),
+        }
+    }
+
     /// [`load`](Self::load) through the shared table: a chunk another thread has
     /// decompressed lately (or is decompressing: this thread waits for it) is not
     /// decompressed again.
@@ -182,6 +208,11 @@ impl McapFile {
                     return Err(chunk_error(ChunkError::NotAChunk));
                 };
                 let decoded = decode_chunk(&header, &data).map_err(chunk_error)?;
+                let counters = &self.decompressed;
+                counters.chunks.fetch_add(1, Ordering::Relaxed);
+                counters
+                    .bytes
+                    .fetch_add(header.uncompressed_size, Ordering::Relaxed);
                 Ok(decoded.messages)
             }
         }

@@ -22,7 +22,7 @@ mod framing;
 mod scan;
 mod summary;
 
-pub use cache::ChunkCache;
+pub use cache::{ChunkCache, Decompressed};
 pub use chunk::ChunkError;
 pub use damage::Damage;
 pub use framing::FramingError;
@@ -190,6 +190,8 @@ pub struct McapFile {
     pub damage: Vec<Damage>,
     /// Messages read per channel id.
     pub message_counts: BTreeMap<u16, u64>,
+    /// Chunks random access has decompressed.
+    decompressed: cache::DecompressCounters,
 }
 
 impl McapFile {

@@ -80,6 +80,7 @@ impl McapFile {
             chunks: Vec::new(),
             damage: Vec::new(),
             message_counts: BTreeMap::new(),
+            decompressed: Default::default(),
         })
     }
 

@@ -105,6 +105,35 @@ fn scans_and_reads_back_chunked_and_unchunked_files() {
             assert_eq!(matches!(loc, MessageLoc::Chunk { .. }), chunked);
         }
         assert!(cache.entries.len() <= 1);
+        // Counted per file: in reverse order each chunk holding messages was decompressed
+        // once, and the bytes are those chunk headers' uncompressed sizes.
+        let decompressed = file.decompressed();
+        if chunked {
+            let bytes = sample_file(true, 30);
+            let sizes: Vec<u64> = mcap::read::LinearReader::new(&bytes)
+                .unwrap()
+                .filter_map(|r| match r.unwrap() {
+                    records::Record::Chunk { header, .. } => Some(header.uncompressed_size),
+                    _ => None,
+                })
+                .collect();
+            assert_eq!(sizes.len(), file.chunks.len());
+            let read: std::collections::BTreeSet<usize> = seen
+                .iter()
+                .filter_map(|s| match s.3 {
+                    MessageLoc::Chunk { chunk, .. } => Some(chunk as usize),
+                    MessageLoc::Direct { .. } => None,
+                })
+                .collect();
+            assert!(read.len() > 2);
+            let want = Decompressed {
+                chunks: read.len() as u64,
+                bytes: read.iter().map(|&c| sizes[c]).sum(),
+            };
+            assert_eq!(decompressed, want);
+        } else {
+            assert_eq!(decompressed, Decompressed::default());
+        }
         let missing = MessageLoc::Chunk {
             chunk: 999,
             index: 0,
