@@ -172,6 +172,9 @@ fn paeth_row(row: &[u8], previous: &[u8], out: &mut [u8]) {
     let n = row.len();
     // The first byte: no left or upper-left neighbour (both 0).
     out[0] = row[0].wrapping_add(paeth(0, previous[0], 0));
+    // The last byte written, kept in a register: read back from `out`, each plain span
+    // waited for the store of the one before it.
+    let mut left = out[0];
     let mut i = 1;
     while i < n {
         if i + SPAN <= n {
@@ -184,7 +187,6 @@ fn paeth_row(row: &[u8], previous: &[u8], out: &mut [u8]) {
                 .zip(b.iter().zip(c))
                 .fold(0u8, |acc, (&f, (&b, &c))| acc | f | (b ^ c));
             if busy == 0 {
-                let left = out[i - 1];
                 out[i..i + SPAN].fill(left);
                 i += SPAN;
                 continue;
@@ -193,7 +195,8 @@ fn paeth_row(row: &[u8], previous: &[u8], out: &mut [u8]) {
         // Byte by byte to the end of this span (or of the row).
         let end = (i + SPAN).min(n);
         while i < end {
-            out[i] = row[i].wrapping_add(paeth(out[i - 1], previous[i], previous[i - 1]));
+            left = row[i].wrapping_add(paeth(left, previous[i], previous[i - 1]));
+            out[i] = left;
             i += 1;
         }
     }
