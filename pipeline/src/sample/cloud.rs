@@ -143,17 +143,24 @@ impl SampleContext<'_> {
         let out_size = (cfg.image_width, cfg.image_height);
         let (known, skip) = known.unwrap_or((&[], 0));
         let skip = skip.min(cloud.xyz.len());
-        let mut pairings = Vec::with_capacity(known.len() * 2);
+        // Every slot's points first, so that the pairings are allocated once.
+        let seen: Vec<_> = images
+            .iter()
+            .map(|image| {
+                let view = CameraView::new(&image.calibration, image.camera_from_lidar);
+                pair_points(&cloud.xyz[skip..], &view)
+            })
+            .collect();
+        let mut pairings =
+            Vec::with_capacity(known.len() + seen.iter().map(Vec::len).sum::<usize>());
         let mut known = known;
-        for (slot, image) in images.iter().enumerate() {
+        for (slot, (image, seen)) in images.iter().zip(seen).enumerate() {
             // Known pairings are in slot order: this slot's come first.
             let (this_slot, later) =
                 known.split_at(known.partition_point(|p| usize::from(p.camera) <= slot));
             pairings.extend_from_slice(this_slot);
             known = later;
-            let view = CameraView::new(&image.calibration, image.camera_from_lidar);
             let first = pairings.len();
-            let seen = pair_points(&cloud.xyz[skip..], &view);
             pairings.extend(seen.into_iter().map(|p| {
                 let (row, col) =
                     image_ops::resized_pixel(p.u, p.v, image.native_size, out_size, image.flipped);
