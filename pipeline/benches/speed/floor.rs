@@ -13,7 +13,7 @@ use superflow_pipeline::decode::image::{Target, decode_foxglove_compressed};
 use turbojpeg::{Decompressor, Image, PixelFormat, ScalingFactor};
 
 /// Rounds of each measurement; the fastest counts (the VM drifts by 10–30 %).
-const ROUNDS: usize = 3;
+pub const ROUNDS: usize = 3;
 
 /// Images of each kind decoded per round.
 const IMAGES: usize = 48;
