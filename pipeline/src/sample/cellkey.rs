@@ -190,13 +190,8 @@ mod tests {
 
     #[test]
     fn ranges_in_lanes_are_each_axis_min_and_max() {
-        let mut state = 0x2545_F491u32;
-        let mut next = move || {
-            state ^= state << 13;
-            state ^= state >> 17;
-            state ^= state << 5;
-            state as i32
-        };
+        let mut rng = crate::test_rng::TestRng(0x2545_F491);
+        let mut next = move || rng.next() as i32;
         // Every remainder of the eight-cell blocks, extremes included; both compiled copies.
         for n in 1..=25 {
             let mut cells: Vec<[i32; 3]> = (0..n)

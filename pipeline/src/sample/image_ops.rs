@@ -86,14 +86,7 @@ fn horizontal_rgb_avx2(blended: &[f32], xs: &HorizontalTaps, out: &mut [f32]) {
     let pairs = xs.first.len() / 2;
     // Every read below ends by `blended[3·tap + 4]` and every write by
     // `out[6·pairs + 2]`: checked once here, not per pixel.
-    let last_tap = xs
-        .first
-        .iter()
-        .chain(&xs.second)
-        .copied()
-        .max()
-        .unwrap_or(0);
-    if blended.len() < last_tap as usize + 4 || out.len() < 6 * pairs + 2 {
+    if blended.len() < xs.last as usize + 4 || out.len() < 6 * pairs + 2 {
         return horizontal_taps::<3>(blended, xs, out);
     }
     let half = _mm256_set1_ps(0.5);
@@ -132,6 +125,8 @@ struct HorizontalTaps {
     weights: Vec<f32>,
     /// The weights two pixels to eight lanes (four of each), for the vector passes.
     pair_weights: Vec<f32>,
+    /// The largest offset of either source pixel.
+    last: u32,
 }
 
 impl HorizontalTaps {
@@ -139,7 +134,10 @@ impl HorizontalTaps {
         let taps = linear_taps(width, out_width);
         let offset = |x: usize| (x * channels) as u32;
         let weights: Vec<f32> = taps.iter().map(|t| t.2).collect();
+        // Taps move right along the row, and a pixel's second is never before its first.
+        let last = taps.last().map_or(0, |t| offset(t.1));
         Self {
+            last,
             first: taps.iter().map(|t| offset(t.0)).collect(),
             second: taps.iter().map(|t| offset(t.1)).collect(),
             pair_weights: weights
