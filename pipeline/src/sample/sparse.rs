@@ -79,10 +79,12 @@ fn cube_index(o: [i32; 3]) -> usize {
 /// [`build_levels`] are sorted, which is the fast path). Pairs of each offset are in
 /// output-row order.
 ///
-/// The cells are sorted as packed keys ([`CellKeys`]); for each of the 13 offsets `o`
-/// after the centre in lexicographic order one merge of the sorted keys with themselves
-/// shifted by `o` finds every pair `c + o = d`, which is also the pair `d − o = c` of the
-/// opposite offset: 13 linear passes instead of 27 hash lookups per cell.
+/// The cells are sorted as packed keys ([`CellKeys`]); the 13 offsets `o` after the
+/// centre in lexicographic order are found by five linear passes over the sorted keys,
+/// one per column `(dx, dy)` of offsets (a merge of the keys with themselves shifted by
+/// the column's `dz = −1` offset; in the cell's own column a look at the next key). Each
+/// pair `c + o = d` is also the pair `d − o = c` of the opposite offset: five passes
+/// instead of 27 hash lookups per cell.
 pub fn neighbour_map(coords: &[[i32; 3]]) -> KernelMap {
     let offsets = cube_offsets();
     let sorted_input = coords.windows(2).all(|w| w[0] < w[1]);
@@ -100,17 +102,14 @@ pub fn neighbour_map(coords: &[[i32; 3]]) -> KernelMap {
     let n = coords.len();
     let centre = cube_index([0, 0, 0]);
     // The pairs of the 13 offsets after the centre, by column (dx, dy): one pass finds
-    // every dz.
+    // every dz. In the cell's own column only dz = +1 comes after the centre, and that
+    // neighbour can only be the next key.
     let mut after: Vec<Vec<[u32; 2]>> = vec![Vec::new(); offsets.len()];
-    for (dx, dy) in [(0, 0), (0, 1), (1, -1), (1, 0), (1, 1)] {
-        let dz_first = if (dx, dy) == (0, 0) { 1 } else { -1 };
-        let found = merge_column(
-            &sorted,
-            keys.delta([dx, dy, dz_first]),
-            (2 - dz_first) as u64,
-        );
-        for (j, pairs) in found.into_iter().enumerate() {
-            after[cube_index([dx, dy, dz_first + j as i32])] = pairs;
+    after[cube_index([0, 0, 1])] = next_in_column(&sorted);
+    for (dx, dy) in [(0, 1), (1, -1), (1, 0), (1, 1)] {
+        let found = merge_column(&sorted, keys.delta([dx, dy, -1]));
+        for (dz, pairs) in (-1..=1).zip(found) {
+            after[cube_index([dx, dy, dz])] = pairs;
         }
     }
     let total = n + 2 * after.iter().map(Vec::len).sum::<usize>();
@@ -146,27 +145,84 @@ pub fn neighbour_map(coords: &[[i32; 3]]) -> KernelMap {
     map
 }
 
+/// For sorted unique keys, the pairs `[a + 1, a]` with `key[a + 1] = key[a] + 1` (the
+/// offset `(0, 0, 1)`), in `a` order. Branch-free: every step writes its pair at the end
+/// of the list and counts it only if it is one.
+#[allow(unsafe_code)]
+fn next_in_column(sorted: &[u64]) -> Vec<[u32; 2]> {
+    let steps = sorted.len().saturating_sub(1);
+    let mut out: Vec<[u32; 2]> = Vec::with_capacity(steps);
+    let spare = out.spare_capacity_mut();
+    let mut len = 0;
+    for (a, w) in sorted.windows(2).enumerate() {
+        // `len <= a < steps`: in bounds.
+        spare[len].write([a as u32 + 1, a as u32]);
+        len += usize::from(w[1] == w[0].wrapping_add(1));
+    }
+    // SAFETY: the first `len` slots were written in the loop (slot `len` at every step
+    // before `len` grew past it).
+    unsafe { out.set_len(len) };
+    out
+}
+
 /// For sorted unique keys, the pairs `[b, a]` with `key[b] = key[a] + delta + j`, for
-/// each `j` in `0..count` (`delta > 0`: offsets of one column, consecutive in z), in `a`
-/// order, which is also `b` order (for a given `j`, `b` grows with `a`).
-fn merge_column(sorted: &[u64], delta: u64, count: u64) -> Vec<Vec<[u32; 2]>> {
-    let mut out: Vec<Vec<[u32; 2]>> = (0..count)
-        .map(|_| Vec::with_capacity(sorted.len() / 2))
-        .collect();
+/// `j` = 0, 1, 2 (`delta > 0`: the offsets `dz` = −1, 0, 1 of one column), in `a` order,
+/// which is also `b` order (for a given `j`, `b` grows with `a`).
+///
+/// Each list gets room for one pair per cell (a cell has at most one neighbour per
+/// offset) and is written through its spare capacity, its length kept in a register
+/// (pushing to a `Vec<Vec<_>>` kept the lengths in memory, and measured slower).
+#[allow(unsafe_code)]
+fn merge_column(sorted: &[u64], delta: u64) -> [Vec<[u32; 2]>; 3] {
+    let n = sorted.len();
+    let mut out: [Vec<[u32; 2]>; 3] = std::array::from_fn(|_| Vec::with_capacity(n));
+    let [o0, o1, o2] = &mut out;
+    let (s0, s1, s2) = (
+        o0.spare_capacity_mut(),
+        o1.spare_capacity_mut(),
+        o2.spare_capacity_mut(),
+    );
+    let (mut l0, mut l1, mut l2) = (0, 0, 0);
     let mut b = 0;
-    for (a, key) in sorted.iter().enumerate() {
+    'cells: for (a, &key) in sorted.iter().enumerate() {
         let first = key.wrapping_add(delta);
-        while b < sorted.len() && sorted[b] < first {
-            b += 1;
+        loop {
+            match sorted.get(b) {
+                Some(&k) if k < first => b += 1,
+                Some(_) => break,
+                None => break 'cells,
+            }
         }
         let mut c = b;
-        while c < sorted.len() && sorted[c] - first < count {
-            out[(sorted[c] - first) as usize].push([c as u32, a as u32]);
+        while let Some(&k) = sorted.get(c) {
+            // `k >= first`; each `j` is met at most once per cell, so no list outgrows
+            // `n` (the indexing checks it anyway).
+            let j = k - first;
+            if j > 2 {
+                break;
+            }
+            let pair = [c as u32, a as u32];
+            match j {
+                0 => {
+                    s0[l0].write(pair);
+                    l0 += 1;
+                }
+                1 => {
+                    s1[l1].write(pair);
+                    l1 += 1;
+                }
+                _ => {
+                    s2[l2].write(pair);
+                    l2 += 1;
+                }
+            }
             c += 1;
         }
-        if b == sorted.len() {
-            break;
-        }
+    }
+    let lens = [l0, l1, l2];
+    for (list, len) in out.iter_mut().zip(lens) {
+        // SAFETY: the first `len` slots of each list were written in the loop.
+        unsafe { list.set_len(len) };
     }
     out
 }
@@ -333,6 +389,9 @@ mod tests {
         wide[2] = [i32::MAX - 1, 0, 0];
         assert_brute_force(&wide);
         assert_brute_force(&[]);
+        assert_brute_force(&[[0, 0, 0]]);
+        assert_brute_force(&[[0, 0, 0], [0, 0, 1]]);
+        assert_brute_force(&[[0, 0, 0], [0, 0, 2], [0, 1, 1], [1, -1, 3]]);
     }
 
     #[test]
