@@ -33,7 +33,23 @@ pub fn resize_bilinear(
     out_width: usize,
     out_height: usize,
 ) -> Vec<u8> {
-    let size = [width, height, out_width, out_height];
+    resize_bilinear_mirrored(data, [width, height, channels], [out_width, out_height], false)
+}
+
+/// [`resize_bilinear`] of `[width, height, channels]` to `[out_width, out_height]`,
+/// mirrored left to right when `mirrored`: output column `x` takes the taps of column
+/// `out_width − 1 − x`, so the bytes are those of the resize followed by
+/// [`flip_horizontal`], without the second pass over the image.
+pub fn resize_bilinear_mirrored(
+    data: &[u8],
+    [width, height, channels]: [usize; 3],
+    [out_width, out_height]: [usize; 2],
+    mirrored: bool,
+) -> Vec<u8> {
+    let size = Size {
+        dims: [width, height, out_width, out_height],
+        mirrored,
+    };
     match channels {
         1 => resize_bilinear_dispatch::<1>(data, size),
         3 => resize_bilinear_dispatch::<3>(data, size),
@@ -42,8 +58,16 @@ pub fn resize_bilinear(
     }
 }
 
+/// Input and output sizes of a resize (`[width, height, out_width, out_height]`), and
+/// whether the output is mirrored.
+#[derive(Debug, Clone, Copy)]
+struct Size {
+    dims: [usize; 4],
+    mirrored: bool,
+}
+
 #[allow(unsafe_code)]
-fn resize_bilinear_dispatch<const C: usize>(data: &[u8], size: [usize; 4]) -> Vec<u8> {
+fn resize_bilinear_dispatch<const C: usize>(data: &[u8], size: Size) -> Vec<u8> {
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
         // SAFETY: the CPU runs AVX2 (checked just above), the only requirement of calling
@@ -57,7 +81,7 @@ fn resize_bilinear_dispatch<const C: usize>(data: &[u8], size: [usize; 4]) -> Ve
 /// rows take their horizontal taps two pixels to a vector ([`horizontal_rgb_avx2`]).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
-fn resize_bilinear_avx2<const C: usize>(data: &[u8], size: [usize; 4]) -> Vec<u8> {
+fn resize_bilinear_avx2<const C: usize>(data: &[u8], size: Size) -> Vec<u8> {
     if C == 3 {
         return resize_bilinear_with::<C>(data, size, |blended, xs, out| {
             horizontal_rgb_avx2(blended, xs, out)
@@ -130,12 +154,17 @@ struct HorizontalTaps {
 }
 
 impl HorizontalTaps {
-    fn new(width: usize, out_width: usize, channels: usize) -> Self {
-        let taps = linear_taps(width, out_width);
+    /// The taps of `width → out_width` for `channels`-channel rows, in reverse order when
+    /// `mirrored`.
+    fn new(width: usize, out_width: usize, channels: usize, mirrored: bool) -> Self {
+        let mut taps = linear_taps(width, out_width);
+        if mirrored {
+            taps.reverse();
+        }
         let offset = |x: usize| (x * channels) as u32;
         let weights: Vec<f32> = taps.iter().map(|t| t.2).collect();
-        // Taps move right along the row, and a pixel's second is never before its first.
-        let last = taps.last().map_or(0, |t| offset(t.1));
+        // A pixel's second source pixel is never before its first.
+        let last = taps.iter().map(|t| offset(t.1)).max().unwrap_or(0);
         Self {
             last,
             first: taps.iter().map(|t| offset(t.0)).collect(),
@@ -182,7 +211,7 @@ fn horizontal_taps<const C: usize>(blended: &[f32], xs: &HorizontalTaps, out: &m
 }
 
 #[inline(always)]
-fn resize_bilinear_n<const C: usize>(data: &[u8], size: [usize; 4]) -> Vec<u8> {
+fn resize_bilinear_n<const C: usize>(data: &[u8], size: Size) -> Vec<u8> {
     resize_bilinear_with::<C>(data, size, horizontal_taps::<C>)
 }
 
@@ -190,16 +219,16 @@ fn resize_bilinear_n<const C: usize>(data: &[u8], size: [usize; 4]) -> Vec<u8> {
 #[inline(always)]
 fn resize_bilinear_with<const C: usize>(
     data: &[u8],
-    size: [usize; 4],
+    size: Size,
     horizontal: impl Fn(&[f32], &HorizontalTaps, &mut [f32]),
 ) -> Vec<u8> {
-    let [width, height, out_width, out_height] = size;
+    let [width, height, out_width, out_height] = size.dims;
     if width == 0 || height == 0 || out_width == 0 || data.len() < width * height * C {
         return vec![0u8; out_width * out_height * C];
     }
     // Filled row by row (a zeroed buffer would be written twice).
     let mut out = Vec::with_capacity(out_width * out_height * C);
-    let xs = HorizontalTaps::new(width, out_width, C);
+    let xs = HorizontalTaps::new(width, out_width, C, size.mirrored);
     let ys = linear_taps(height, out_height);
     let stride = width * C;
     // Vertical blend of the two source rows into f32, then horizontal taps. Four spare
@@ -255,24 +284,29 @@ fn nearest_tap(i: usize, n_in: usize, n_out: usize) -> usize {
     (((i as f64 + 0.5) * n_in as f64 / n_out as f64) as usize).min(n_in - 1)
 }
 
-/// Nearest-neighbour resize of a single-channel map (labels must not be blended).
-pub fn resize_nearest<T: Copy + Default>(
+/// Nearest-neighbour resize of a single-channel map (labels must not be blended) to
+/// `out_width × out_height`, widened to `U`, and mirrored left to right when `mirrored`
+/// (the same values as resizing, flipping with [`flip_horizontal`] and widening, in one
+/// pass).
+pub fn resize_nearest<T: Copy, U: From<T> + Default + Clone>(
     data: &[T],
-    width: usize,
-    height: usize,
-    out_width: usize,
-    out_height: usize,
-) -> Vec<T> {
+    [width, height]: [usize; 2],
+    [out_width, out_height]: [usize; 2],
+    mirrored: bool,
+) -> Vec<U> {
     if width == 0 || height == 0 || data.len() < width * height {
-        return vec![T::default(); out_width * out_height];
+        return vec![U::default(); out_width * out_height];
     }
-    let xs: Vec<usize> = (0..out_width)
+    let mut xs: Vec<usize> = (0..out_width)
         .map(|x| nearest_tap(x, width, out_width))
         .collect();
+    if mirrored {
+        xs.reverse();
+    }
     let mut out = Vec::with_capacity(out_width * out_height);
     for y in 0..out_height {
         let row = &data[nearest_tap(y, height, out_height) * width..][..width];
-        out.extend(xs.iter().map(|&x| row[x]));
+        out.extend(xs.iter().map(|&x| U::from(row[x])));
     }
     out
 }
@@ -471,21 +505,39 @@ mod tests {
                 want,
                 "{size:?}"
             );
-            let inline = match channels {
-                1 => resize_bilinear_n::<1>(&data, size),
-                3 => resize_bilinear_n::<3>(&data, size),
-                _ => resize_bilinear_n::<4>(&data, size),
+            let inline = |mirrored| {
+                let size = Size {
+                    dims: size,
+                    mirrored,
+                };
+                match channels {
+                    1 => resize_bilinear_n::<1>(&data, size),
+                    3 => resize_bilinear_n::<3>(&data, size),
+                    _ => resize_bilinear_n::<4>(&data, size),
+                }
             };
-            assert_eq!(inline, want, "{size:?}, baseline copy");
+            assert_eq!(inline(false), want, "{size:?}, baseline copy");
+            // Mirrored: the same bytes as resizing, then flipping.
+            let mut flipped = want.clone();
+            flip_horizontal(&mut flipped, ow, channels);
+            let mirrored = resize_bilinear_mirrored(&data, [w, h, channels], [ow, oh], true);
+            assert_eq!(mirrored, flipped, "{size:?}, mirrored");
+            assert_eq!(inline(true), flipped, "{size:?}, mirrored baseline copy");
         }
     }
 
     #[test]
     fn nearest_keeps_labels_and_flip_mirrors() {
-        let labels: Vec<u32> = (0..4 * 2).collect();
-        let up = resize_nearest(&labels, 4, 2, 8, 4);
+        let labels: Vec<u8> = (0..4 * 2).collect();
+        let up: Vec<u32> = resize_nearest(&labels, [4, 2], [8, 4], false);
         assert_eq!(&up[..8], &[0, 0, 1, 1, 2, 2, 3, 3]);
         assert_eq!(&up[16..24], &[4, 4, 5, 5, 6, 6, 7, 7]);
+        // Mirrored in the same pass: resized, flipped and widened.
+        let mirrored: Vec<u32> = resize_nearest(&labels, [4, 2], [8, 4], true);
+        let mut flipped = up.clone();
+        flip_horizontal(&mut flipped, 8, 1);
+        assert_eq!(mirrored, flipped);
+        assert_eq!(&mirrored[..8], &[3, 3, 2, 2, 1, 1, 0, 0]);
         let mut img = vec![1u8, 2, 3, 4, 5, 6, 7, 8, 9];
         flip_horizontal(&mut img, 3, 1);
         assert_eq!(img, [3, 2, 1, 6, 5, 4, 9, 8, 7]);
@@ -505,7 +557,7 @@ mod tests {
         assert_eq!(resized_pixel(0.2, 0.3, size, out, true), (0, 447));
         // A pixel lands in the same place as the nearest-resized label map says.
         let labels: Vec<u32> = (0..480 * 270).collect();
-        let small = resize_nearest(&labels, 480, 270, 448, 224);
+        let small: Vec<u32> = resize_nearest(&labels, [480, 270], [448, 224], false);
         for (u, v) in [(10.0f32, 20.0f32), (300.0, 100.0), (479.0, 269.0)] {
             let (r, c) = resized_pixel(u, v, size, out, false);
             let src = small[r as usize * 448 + c as usize];

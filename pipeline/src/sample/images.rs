@@ -183,11 +183,10 @@ impl SampleContext<'_> {
         })
     }
 
-    /// `image` resized to the recipe's size and flipped when the draw of frame
-    /// `frame_pos`, slot `slot` says so; also whether it was.
+    /// `image` resized to the recipe's size and flipped (in the same pass) when the draw
+    /// of frame `frame_pos`, slot `slot` says so; also whether it was.
     fn resize_and_flip(&self, image: &Image, frame_pos: u32, slot: usize) -> (Vec<u8>, bool) {
         let cfg = self.config;
-        let mut rgb = cfg.resized_rgb(image);
         let flipped = SampleRng::new(
             cfg.seed,
             self.id.epoch,
@@ -198,10 +197,7 @@ impl SampleContext<'_> {
             },
         )
         .bernoulli(cfg.image_flip_probability);
-        if flipped {
-            image_ops::flip_horizontal(&mut rgb, cfg.image_width as usize, 3);
-        }
-        (rgb, flipped)
+        (cfg.resized_rgb(image, flipped), flipped)
     }
 
     /// The class map of `raw` (within [`CLASS_MAP_TOLERANCE_NANOS`] of it) as
@@ -251,14 +247,11 @@ impl SampleContext<'_> {
                 cfg.num_classes
             )));
         }
-        // Resize the u8 map, then widen only the resized pixels.
-        let (out_w, out_h) = (cfg.image_width as usize, cfg.image_height as usize);
-        let (w, h) = (classes.width as usize, classes.height as usize);
-        let mut small = image_ops::resize_nearest(&classes.data, w, h, out_w, out_h);
+        // Resized, flipped and widened in one pass.
+        let out_size = [cfg.image_width as usize, cfg.image_height as usize];
+        let size = [classes.width as usize, classes.height as usize];
+        let small = image_ops::resize_nearest(&classes.data, size, out_size, flipped);
         buffers::give_back(classes.data);
-        if flipped {
-            image_ops::flip_horizontal(&mut small, out_w, 1);
-        }
-        Ok((small.into_iter().map(u32::from).collect(), decode))
+        Ok((small, decode))
     }
 }

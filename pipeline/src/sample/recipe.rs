@@ -1,7 +1,7 @@
 //! `[sample]` of `pipeline.toml`: the sample recipe. Every default is the paper's (or its
 //! official code's where the two differ; see `pipeline/docs/RECIPE.md`).
 
-use super::image_ops::resize_bilinear;
+use super::image_ops::resize_bilinear_mirrored;
 use super::slic::SlicParams;
 use super::voxel::VoxelGrid;
 use crate::decode::image::Scale;
@@ -173,16 +173,14 @@ impl Default for SampleConfig {
 }
 
 impl SampleConfig {
-    /// A decoded `Rgb8` camera image resized (bilinear) to the recipe's size, unflipped:
-    /// what samples show and segment.
-    pub fn resized_rgb(&self, image: &Image) -> Vec<u8> {
-        resize_bilinear(
+    /// A decoded `Rgb8` camera image resized (bilinear) to the recipe's size, mirrored
+    /// left to right when `flipped`: what samples show and segment.
+    pub fn resized_rgb(&self, image: &Image, flipped: bool) -> Vec<u8> {
+        resize_bilinear_mirrored(
             &image.data,
-            image.width as usize,
-            image.height as usize,
-            3,
-            self.image_width as usize,
-            self.image_height as usize,
+            [image.width as usize, image.height as usize, 3],
+            [self.image_width as usize, self.image_height as usize],
+            flipped,
         )
     }
 

@@ -132,7 +132,7 @@ fn resized_image(
             reason: "not decoded as RGB".into(),
         });
     }
-    Ok(config.resized_rgb(&image))
+    Ok(config.resized_rgb(&image, false))
 }
 
 /// `labels` (`width × height`, each below 2¹⁶) as a 16-bit grey PNG.
