@@ -41,9 +41,33 @@ impl DenseCloud {
         missing: u32,
         keyframe: usize,
     ) -> Self {
+        // Sized for every point at once (a clone of the keyframe's cloud, extended sweep by
+        // sweep, was copied again each time it grew). Ring, time and labels stay with the
+        // sweeps: the dense cloud carries positions and intensities only.
+        let total = key.cloud.len()
+            + earlier
+                .iter()
+                .filter_map(|part| part.as_ref().ok())
+                .map(|sweep| sweep.cloud.len())
+                .sum::<usize>();
+        fn with_key<T: Copy>(first: &[T], total: usize) -> Vec<T> {
+            let mut column = Vec::with_capacity(total);
+            column.extend_from_slice(first);
+            column
+        }
+        let mut source_sweep = Vec::with_capacity(total);
+        source_sweep.resize(key.cloud.len(), 0u8);
         let mut dense = DenseCloud {
-            cloud: key.cloud.clone(),
-            source_sweep: vec![0u8; key.cloud.len()],
+            cloud: PointCloud {
+                stamp: key.cloud.stamp,
+                frame_id: key.cloud.frame_id.clone(),
+                xyz: with_key(&key.cloud.xyz, total),
+                intensity: with_key(&key.cloud.intensity, total),
+                ring: None,
+                time_offset_secs: None,
+                label: None,
+            },
+            source_sweep,
             stamps: vec![key.cloud.stamp],
             missing,
             dropped_non_finite: 0,

@@ -33,7 +33,12 @@ pub fn resize_bilinear(
     out_width: usize,
     out_height: usize,
 ) -> Vec<u8> {
-    resize_bilinear_mirrored(data, [width, height, channels], [out_width, out_height], false)
+    resize_bilinear_mirrored(
+        data,
+        [width, height, channels],
+        [out_width, out_height],
+        false,
+    )
 }
 
 /// [`resize_bilinear`] of `[width, height, channels]` to `[out_width, out_height]`,
