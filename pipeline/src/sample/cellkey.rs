@@ -113,6 +113,10 @@ impl CellKeys {
     }
 }
 
+/// Sorted cells' packing and their keys, in the cells' order: what a level's neighbour map
+/// merges, handed on from the sort that found the cells so it is not computed twice.
+pub(crate) type Keyed = (CellKeys, Vec<u64>);
+
 /// The order of `cells` sorted lexicographically, as indices, with the sorted cells'
 /// keys when there is a packing. Ties (equal cells) keep index order.
 pub(crate) fn sort_cells(cells: &[[i32; 3]]) -> (Vec<u32>, Option<(CellKeys, Vec<u64>)>) {

@@ -8,9 +8,9 @@ use super::image_ops;
 use super::load::{LoadedSweep, SampleContext, elapsed};
 use super::project::{CameraView, pair_points};
 use super::rng::{Purpose, SampleRng};
-use super::sparse::build_levels;
+use super::sparse::build_levels_keyed;
 use super::types::{Cloud, Pair, SampleImage, StageTimes};
-use super::voxel::voxelize;
+use super::voxel::voxelize_keyed;
 use std::time::Instant;
 use superflow_schemas::Stamp;
 use superflow_schemas::sensor::PointCloud;
@@ -129,7 +129,7 @@ impl SampleContext<'_> {
         let t = Instant::now();
         let mut xyz = cloud.xyz.clone();
         augmentation.apply(&mut xyz);
-        let voxels = voxelize(&xyz, &cfg.voxel);
+        let (voxels, voxel_keys) = voxelize_keyed(&xyz, &cfg.voxel);
         let voxel_features = voxels
             .representative
             .iter()
@@ -138,7 +138,7 @@ impl SampleContext<'_> {
                 [x, y, z, cloud.intensity[i as usize]]
             })
             .collect();
-        let levels = build_levels(&voxels.coords, cfg.unet_levels as usize);
+        let levels = build_levels_keyed(&voxels.coords, voxel_keys, cfg.unet_levels as usize);
         times.voxels += elapsed(t);
         let cloud = Cloud {
             xyz,

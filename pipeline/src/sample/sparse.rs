@@ -4,7 +4,7 @@
 //! kernel offset, `(input row, output row)` pairs: the trainer gathers input rows,
 //! multiplies by that offset's weights and scatter-adds into output rows.
 
-use super::cellkey::{CellKeys, count_runs, sort_cells};
+use super::cellkey::{CellKeys, Keyed, count_runs, sort_cells};
 use rustc_hash::FxHashMap as HashMap;
 
 /// `(input row, output row)` pairs grouped by kernel offset.
@@ -86,15 +86,24 @@ fn cube_index(o: [i32; 3]) -> usize {
 /// pair `c + o = d` is also the pair `d − o = c` of the opposite offset: five passes
 /// instead of 27 hash lookups per cell.
 pub fn neighbour_map(coords: &[[i32; 3]]) -> KernelMap {
+    neighbour_map_keyed(coords, None)
+}
+
+/// [`neighbour_map`], given the packed keys of `coords` when they are sorted and unique
+/// and the sort that found them packed them (`known`); else they are computed here.
+fn neighbour_map_keyed(coords: &[[i32; 3]], known: Option<Keyed>) -> KernelMap {
     let offsets = cube_offsets();
-    let sorted_input = coords.windows(2).all(|w| w[0] < w[1]);
-    let (order, keyed) = if sorted_input {
-        let keyed = CellKeys::covering(coords)
-            .map(|keys| (keys, coords.iter().map(|c| keys.key(*c)).collect()));
-        (None, keyed)
-    } else {
-        let (order, keyed) = sort_cells(coords);
-        (Some(order), keyed)
+    let (order, keyed) = match known.filter(|(_, keys)| keys.len() == coords.len()) {
+        Some(known) => (None, Some(known)),
+        None if coords.windows(2).all(|w| w[0] < w[1]) => {
+            let keyed = CellKeys::covering(coords)
+                .map(|keys| (keys, coords.iter().map(|c| keys.key(*c)).collect()));
+            (None, keyed)
+        }
+        None => {
+            let (order, keyed) = sort_cells(coords);
+            (Some(order), keyed)
+        }
     };
     let Some((keys, sorted)) = keyed else {
         return hashed_neighbour_map(coords);
@@ -256,6 +265,12 @@ fn hashed_neighbour_map(coords: &[[i32; 3]]) -> KernelMap {
 /// lexicographically, and the kernel-2 stride-2 map whose offset is the position of the
 /// input cell inside its 2×2×2 block (pairs of each offset in input-row order).
 pub fn downsample(coords: &[[i32; 3]]) -> (Vec<[i32; 3]>, KernelMap) {
+    let (coarse, map, _) = downsample_keyed(coords);
+    (coarse, map)
+}
+
+/// [`downsample`], and the coarse cells' packed keys when they have a packing.
+fn downsample_keyed(coords: &[[i32; 3]]) -> (Vec<[i32; 3]>, KernelMap, Option<Keyed>) {
     let parents: Vec<[i32; 3]> = coords
         .iter()
         .map(|c| [c[0] >> 1, c[1] >> 1, c[2] >> 1])
@@ -267,10 +282,14 @@ pub fn downsample(coords: &[[i32; 3]]) -> (Vec<[i32; 3]>, KernelMap) {
     };
     let unique = keyed.as_ref().map_or(0, |(_, keys)| count_runs(keys));
     let mut coarse = Vec::with_capacity(unique);
+    let mut coarse_keys = Vec::with_capacity(unique);
     let mut parent = vec![0u32; coords.len()];
     for (s, &row) in order.iter().enumerate() {
         if s == 0 || !same(s - 1, s) {
             coarse.push(parents[row as usize]);
+            if let Some((_, keys)) = &keyed {
+                coarse_keys.push(keys[s]);
+            }
         }
         parent[row as usize] = (coarse.len() - 1) as u32;
     }
@@ -293,6 +312,7 @@ pub fn downsample(coords: &[[i32; 3]]) -> (Vec<[i32; 3]>, KernelMap) {
         pairs[cursor[k]] = [in_row as u32, parent[in_row]];
         cursor[k] += 1;
     }
+    let coarse_keys = keyed.map(|(packing, _)| (packing, coarse_keys));
     (
         coarse,
         KernelMap {
@@ -300,18 +320,32 @@ pub fn downsample(coords: &[[i32; 3]]) -> (Vec<[i32; 3]>, KernelMap) {
             pairs,
             starts,
         },
+        coarse_keys,
     )
 }
 
 /// Every level of a UNet with `levels` resolutions (MinkUNet: 5, strides 1 to 16),
 /// starting from the unique voxel `coords`.
 pub fn build_levels(coords: &[[i32; 3]], levels: usize) -> Vec<Level> {
+    build_levels_keyed(coords, None, levels)
+}
+
+/// [`build_levels`] from voxels whose packed keys their sort already found (`keys`, from
+/// `voxel::voxelize_keyed`): each level's neighbour map takes the keys its cells were
+/// sorted by (the voxels', then each down-sampling's) instead of packing them again.
+pub(crate) fn build_levels_keyed(
+    coords: &[[i32; 3]],
+    keys: Option<Keyed>,
+    levels: usize,
+) -> Vec<Level> {
     let mut out: Vec<Level> = Vec::with_capacity(levels);
     let mut current = coords.to_vec();
+    let mut current_keys = keys;
     for l in 0..levels {
-        let neighbours = neighbour_map(&current);
+        let neighbours = neighbour_map_keyed(&current, current_keys.take());
         let (down, next) = if l + 1 < levels {
-            let (coarse, map) = downsample(&current);
+            let (coarse, map, coarse_keys) = downsample_keyed(&current);
+            current_keys = coarse_keys;
             (Some(map), coarse)
         } else {
             (None, Vec::new())
@@ -436,6 +470,31 @@ mod tests {
                 .iter()
                 .zip(&map.pairs)
                 .all(|(u, d)| *u == [d[1], d[0]])
+        );
+    }
+
+    #[test]
+    fn levels_from_the_sorts_keys_equal_maps_packed_afresh() {
+        // Keys handed on from voxelization and each down-sampling give the maps that
+        // packing each level's cells again gives, level by level.
+        let mut rng = crate::test_rng::TestRng(0x51_7cc1_b727_220a);
+        let mut coord = move |span: f32| (rng.next() >> 40) as f32 / (1u64 << 24) as f32 * span;
+        let points: Vec<[f32; 3]> = (0..20_000)
+            .map(|_| [coord(80.0) - 40.0, coord(80.0) - 40.0, coord(6.0) - 2.0])
+            .collect();
+        let grid = super::super::voxel::VoxelGrid::default();
+        let (voxels, keys) = super::super::voxel::voxelize_keyed(&points, &grid);
+        assert!(keys.is_some());
+        let levels = build_levels_keyed(&voxels.coords, keys, 5);
+        assert_eq!(levels, build_levels(&voxels.coords, 5));
+        for level in &levels {
+            assert_eq!(level.neighbours, neighbour_map(&level.coords));
+        }
+        // Keys that do not match the cells are not used.
+        let short = Some((CellKeys::covering(&voxels.coords).unwrap(), vec![0u64; 3]));
+        assert_eq!(
+            neighbour_map_keyed(&voxels.coords, short),
+            neighbour_map(&voxels.coords)
         );
     }
 

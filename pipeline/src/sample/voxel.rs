@@ -1,7 +1,7 @@
 //! Voxelization: points → unique integer cells, one representative point per cell, and
 //! the map from every point to its cell.
 
-use super::cellkey::{count_runs, sort_cells};
+use super::cellkey::{Keyed, count_runs, sort_cells};
 use crate::invalid::InvalidSetting;
 use serde::{Deserialize, Serialize};
 
@@ -131,6 +131,12 @@ pub struct Voxelized {
 /// Bins `xyz` (finite points) into `grid`. Deterministic: cells are sorted, and the
 /// first point of each cell (lowest index) represents it.
 pub fn voxelize(xyz: &[[f32; 3]], grid: &VoxelGrid) -> Voxelized {
+    voxelize_keyed(xyz, grid).0
+}
+
+/// [`voxelize`], and the voxels' packed keys when the cells have a packing (for the
+/// first level's neighbour map: see `sparse::build_levels_keyed`).
+pub(crate) fn voxelize_keyed(xyz: &[[f32; 3]], grid: &VoxelGrid) -> (Voxelized, Option<Keyed>) {
     let cells = grid.cells(xyz);
     // Equal cells end up next to each other, in point order.
     let (order, keyed) = sort_cells(&cells);
@@ -142,19 +148,25 @@ pub fn voxelize(xyz: &[[f32; 3]], grid: &VoxelGrid) -> Voxelized {
     let unique = keyed.as_ref().map_or(0, |(_, keys)| count_runs(keys));
     let mut coords = Vec::with_capacity(unique);
     let mut representative = Vec::with_capacity(unique);
+    let mut voxel_keys = Vec::with_capacity(unique);
     let mut point_to_voxel = vec![0u32; xyz.len()];
     for (s, &point) in order.iter().enumerate() {
         if s == 0 || !same(s - 1, s) {
             coords.push(cells[point as usize]);
             representative.push(point);
+            if let Some((_, keys)) = &keyed {
+                voxel_keys.push(keys[s]);
+            }
         }
         point_to_voxel[point as usize] = (coords.len() - 1) as u32;
     }
-    Voxelized {
+    let voxel_keys = keyed.map(|(packing, _)| (packing, voxel_keys));
+    let voxels = Voxelized {
         coords,
         representative,
         point_to_voxel,
-    }
+    };
+    (voxels, voxel_keys)
 }
 
 #[cfg(test)]
