@@ -127,8 +127,7 @@ impl SampleContext<'_> {
         times.projection += elapsed(t);
 
         let t = Instant::now();
-        let mut xyz = cloud.xyz.clone();
-        augmentation.apply(&mut xyz);
+        let xyz = augmentation.applied(&cloud.xyz);
         let (voxels, voxel_keys) = voxelize_keyed(&xyz, &cfg.voxel);
         let voxel_features = voxels
             .representative
