@@ -119,7 +119,7 @@ pub(crate) type Keyed = (CellKeys, Vec<u64>);
 
 /// The order of `cells` sorted lexicographically, as indices, with the sorted cells'
 /// keys when there is a packing. Ties (equal cells) keep index order.
-pub(crate) fn sort_cells(cells: &[[i32; 3]]) -> (Vec<u32>, Option<(CellKeys, Vec<u64>)>) {
+pub(crate) fn sort_cells(cells: &[[i32; 3]]) -> (Vec<u32>, Option<Keyed>) {
     let Some(keys) = CellKeys::covering(cells) else {
         let mut order: Vec<u32> = (0..cells.len() as u32).collect();
         order.sort_unstable_by_key(|&i| (cells[i as usize], i));

@@ -75,10 +75,9 @@ const ROUND_F32: f32 = 12_582_912.0;
 /// needs the right cell; any other gets the exact formula.
 #[inline(always)]
 fn clear_floor(q: f32, margin: f32) -> (i32, bool) {
-    let (cell, _) = small_floor(q);
     let f = floor_of(q);
     (
-        cell,
+        cell_of(f),
         q.abs() < LARGE && q - f >= margin && f + 1.0 - q >= margin,
     )
 }
@@ -90,13 +89,19 @@ fn floor_of(v: f32) -> f32 {
     if r > v { r - 1.0 } else { r }
 }
 
+/// The integer `f` (a floor from [`floor_of`]), read from the low bits of `f` plus
+/// [`ROUND_F32`].
+#[inline(always)]
+fn cell_of(f: f32) -> i32 {
+    let bits = (f + ROUND_F32).to_bits() as i32;
+    (bits & 0x7F_FFFF) - 0x40_0000
+}
+
 /// `floor(v)` as [`clear_floor`] finds it, for an `f32` under 2²², and whether `v` is
 /// (finite and) that small.
 #[inline(always)]
 fn small_floor(v: f32) -> (i32, bool) {
-    let f = floor_of(v);
-    let bits = (f + ROUND_F32).to_bits() as i32;
-    ((bits & 0x7F_FFFF) - 0x40_0000, v.abs() < 4_194_304.0)
+    (cell_of(floor_of(v)), v.abs() < 4_194_304.0)
 }
 
 /// Points per batch of the arithmetic pass (kept in registers and L1).
