@@ -147,15 +147,16 @@ fn pair_points_inline(xyz: &[[f32; 3]], view: &CameraView<'_>) -> Vec<Pairing> {
     // The cone, widened by far more than the f32 and f64 roundings of both tests.
     let cone = (view.max_ideal_radius_sq * (1.0 + 1e-5)) as f32;
     let mut out = Vec::new();
+    // The block's coordinates axis by axis, so that the test runs in full lanes; made
+    // once (a short last block leaves stale lanes behind, which are never read).
+    let mut axes = [[0f32; BLOCK]; 3];
+    let mut maybe = [false; BLOCK];
     for (b, block) in xyz.chunks(BLOCK).enumerate() {
-        // The block's coordinates axis by axis, so that the test runs in full lanes.
-        let mut axes = [[0f32; BLOCK]; 3];
         for (i, p) in block.iter().enumerate() {
             for a in 0..3 {
                 axes[a][i] = p[a];
             }
         }
-        let mut maybe = [false; BLOCK];
         for (i, m) in maybe.iter_mut().enumerate() {
             *m = might_be_seen([axes[0][i], axes[1][i], axes[2][i]], &rows, cone);
         }

@@ -192,9 +192,6 @@ impl McapFile {
             }
             CacheKey::Chunk(chunk) => {
                 let loc = self.chunks.get(chunk as usize).ok_or(LoadError::Missing)?;
-                let body = self
-                    .read_exact_at(loc.offset + 9, loc.record_len - 9)
-                    .map_err(LoadError::Source)?;
                 let chunk_error = |source: ChunkError| {
                     LoadError::Source(SourceError::Chunk {
                         path: self.path.clone(),
@@ -202,12 +199,17 @@ impl McapFile {
                         source,
                     })
                 };
-                let Ok(records::Record::Chunk { header, data }) =
-                    mcap::parse_record(op::CHUNK, &body)
-                else {
-                    return Err(chunk_error(ChunkError::NotAChunk));
-                };
-                let decoded = decode_chunk(&header, &data).map_err(chunk_error)?;
+                let (header, decoded) = self
+                    .with_bytes_at(loc.offset + 9, loc.record_len - 9, |body| {
+                        let Ok(records::Record::Chunk { header, data }) =
+                            mcap::parse_record(op::CHUNK, body)
+                        else {
+                            return Err(chunk_error(ChunkError::NotAChunk));
+                        };
+                        let decoded = decode_chunk(&header, &data).map_err(chunk_error)?;
+                        Ok((header, decoded))
+                    })
+                    .map_err(LoadError::Source)??;
                 let counters = &self.decompressed;
                 counters.chunks.fetch_add(1, Ordering::Relaxed);
                 counters

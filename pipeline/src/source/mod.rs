@@ -227,6 +227,47 @@ impl McapFile {
         }
     }
 
+    /// `f` of the `len` bytes at `offset` (at most [`MAX_RECORD_BYTES`]), read into this
+    /// thread's scratch buffer: a chunk's compressed records are only decompressed, and
+    /// a fresh buffer was zeroed before each read (0.4 % of a sample's profile). Reads
+    /// beyond [`SCRATCH_BYTES`] use a buffer of their own, so no thread keeps one huge.
+    fn with_bytes_at<T>(
+        &self,
+        offset: u64,
+        len: u64,
+        f: impl FnOnce(&[u8]) -> T,
+    ) -> Result<T, SourceError> {
+        thread_local! {
+            static SCRATCH: std::cell::RefCell<Vec<u8>> = const { std::cell::RefCell::new(Vec::new()) };
+        }
+        let len = usize::try_from(len)
+            .unwrap_or(usize::MAX)
+            .min(MAX_RECORD_BYTES as usize);
+        if len > SCRATCH_BYTES {
+            return self
+                .read_exact_at(offset, len as u64)
+                .map(|bytes| f(&bytes));
+        }
+        SCRATCH.with(|cell| {
+            // `f` cannot reach this buffer again, but a nested read would find it taken:
+            // it then reads into a buffer of its own.
+            let Ok(mut scratch) = cell.try_borrow_mut() else {
+                return self
+                    .read_exact_at(offset, len as u64)
+                    .map(|bytes| f(&bytes));
+            };
+            // Grown, never shrunk (below the cap): only new bytes are zeroed.
+            if scratch.len() < len {
+                scratch.resize(len, 0);
+            }
+            let buf = &mut scratch[..len];
+            self.file
+                .read_exact_at(buf, offset)
+                .map_err(|e| self.io(e))?;
+            Ok(f(buf))
+        })
+    }
+
     fn read_exact_at(&self, offset: u64, len: u64) -> Result<Vec<u8>, SourceError> {
         let mut buf = vec![
             0u8;
@@ -240,6 +281,9 @@ impl McapFile {
         Ok(buf)
     }
 }
+
+/// The largest read [`McapFile::with_bytes_at`] makes in a thread's reused buffer.
+const SCRATCH_BYTES: usize = 16 << 20;
 
 #[cfg(test)]
 mod tests;
