@@ -110,7 +110,7 @@ const CHUNK: usize = 64;
 /// The cylindrical cells of `xyz` (cell sizes `rho_m`, `phi_deg`, `z_m`); `exact` is
 /// the per-point formula, used near boundaries.
 ///
-/// Also compiled with AVX2 (four points per register instead of two), chosen at run
+/// Also compiled with AVX2 and with AVX-512 (eight and sixteen lanes), chosen at run
 /// time: the same IEEE operations in the same order (no FMA), so the same cells.
 #[allow(unsafe_code)]
 pub(super) fn cylindrical_cells(
@@ -118,6 +118,12 @@ pub(super) fn cylindrical_cells(
     sizes: [f32; 3],
     exact: &dyn Fn([f32; 3]) -> [i32; 3],
 ) -> Vec<[i32; 3]> {
+    #[cfg(target_arch = "x86_64")]
+    if super::image_ops::has_avx512() {
+        // SAFETY: the CPU runs AVX-512 F and BW (checked just above), the only
+        // requirement of calling a function compiled with them enabled.
+        return unsafe { cylindrical_cells_avx512(xyz, sizes, exact) };
+    }
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
         // SAFETY: the CPU runs AVX2 (checked just above), the only requirement of calling
@@ -131,6 +137,17 @@ pub(super) fn cylindrical_cells(
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 fn cylindrical_cells_avx2(
+    xyz: &[[f32; 3]],
+    sizes: [f32; 3],
+    exact: &dyn Fn([f32; 3]) -> [i32; 3],
+) -> Vec<[i32; 3]> {
+    cylindrical_cells_inline(xyz, sizes, exact)
+}
+
+/// [`cylindrical_cells`] compiled with AVX-512 enabled.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bw,avx2")]
+fn cylindrical_cells_avx512(
     xyz: &[[f32; 3]],
     sizes: [f32; 3],
     exact: &dyn Fn([f32; 3]) -> [i32; 3],
@@ -211,8 +228,23 @@ mod tests {
         } = *grid
         {
             let exact = |p| grid.cell(p);
-            let baseline = super::cylindrical_cells_inline(points, [rho_m, phi_deg, z_m], &exact);
+            let sizes = [rho_m, phi_deg, z_m];
+            let baseline = super::cylindrical_cells_inline(points, sizes, &exact);
             assert_eq!(baseline, fast, "{grid:?}: baseline copy");
+            #[cfg(target_arch = "x86_64")]
+            #[allow(unsafe_code)]
+            {
+                if std::arch::is_x86_feature_detected!("avx2") {
+                    // SAFETY: the CPU runs AVX2.
+                    let avx2 = unsafe { super::cylindrical_cells_avx2(points, sizes, &exact) };
+                    assert_eq!(avx2, fast, "{grid:?}: AVX2 copy");
+                }
+                if crate::sample::image_ops::has_avx512() {
+                    // SAFETY: the CPU runs AVX-512 F and BW.
+                    let avx512 = unsafe { super::cylindrical_cells_avx512(points, sizes, &exact) };
+                    assert_eq!(avx512, fast, "{grid:?}: AVX-512 copy");
+                }
+            }
         }
     }
 

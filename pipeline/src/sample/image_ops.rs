@@ -74,6 +74,12 @@ struct Size {
 #[allow(unsafe_code)]
 fn resize_bilinear_dispatch<const C: usize>(data: &[u8], size: Size) -> Vec<u8> {
     #[cfg(target_arch = "x86_64")]
+    if has_avx512() {
+        // SAFETY: the CPU runs AVX-512 F and BW (checked just above), the only
+        // requirement of calling a function compiled with them enabled.
+        return unsafe { resize_bilinear_avx512::<C>(data, size) };
+    }
+    #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
         // SAFETY: the CPU runs AVX2 (checked just above), the only requirement of calling
         // a function compiled with it enabled.
@@ -87,6 +93,36 @@ fn resize_bilinear_dispatch<const C: usize>(data: &[u8], size: Size) -> Vec<u8> 
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 fn resize_bilinear_avx2<const C: usize>(data: &[u8], size: Size) -> Vec<u8> {
+    if C == 3 {
+        return resize_bilinear_with::<C>(data, size, |blended, xs, out| {
+            horizontal_rgb_avx2(blended, xs, out)
+        });
+    }
+    resize_bilinear_n::<C>(data, size)
+}
+
+/// Whether the AVX-512 copies of the hot loops run (resizes, cylindrical cells,
+/// projection, SLIC): the CPU has AVX-512 F and BW (AMD Zen 4 and later, Intel server
+/// cores since Skylake-SP) and `SUPERFLOW_NO_AVX512` is not set. Every copy gives the
+/// same results; the variable is for CPUs that lower their clock for 512-bit code
+/// (Skylake-SP, Cascade Lake), where the AVX2 copies may be faster overall.
+#[cfg(target_arch = "x86_64")]
+pub(crate) fn has_avx512() -> bool {
+    static CHOSEN: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
+    *CHOSEN.get_or_init(|| {
+        std::arch::is_x86_feature_detected!("avx512f")
+            && std::arch::is_x86_feature_detected!("avx512bw")
+            && std::env::var_os("SUPERFLOW_NO_AVX512").is_none()
+    })
+}
+
+/// [`resize_bilinear_avx2`] compiled with AVX-512 enabled: the vertical blend and the
+/// truncation to bytes run sixteen lanes at a time (the same IEEE operations in the
+/// same order, no contraction: the same bytes). Measured on the nuScenes-sized drive
+/// (Zen 4): the images stage 2.8–3.2 → 2.4–2.9 ms a sample, 4 alternating runs.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bw,avx2")]
+fn resize_bilinear_avx512<const C: usize>(data: &[u8], size: Size) -> Vec<u8> {
     if C == 3 {
         return resize_bilinear_with::<C>(data, size, |blended, xs, out| {
             horizontal_rgb_avx2(blended, xs, out)
@@ -522,6 +558,38 @@ mod tests {
                 }
             };
             assert_eq!(inline(false), want, "{size:?}, baseline copy");
+            #[cfg(target_arch = "x86_64")]
+            #[allow(unsafe_code)]
+            for mirrored in [false, true] {
+                let sized = Size {
+                    dims: size,
+                    mirrored,
+                };
+                // SAFETY: each copy is called below only where the CPU has its features.
+                let copies = |avx512: bool| unsafe {
+                    match (channels, avx512) {
+                        (1, false) => resize_bilinear_avx2::<1>(&data, sized),
+                        (3, false) => resize_bilinear_avx2::<3>(&data, sized),
+                        (_, false) => resize_bilinear_avx2::<4>(&data, sized),
+                        (1, true) => resize_bilinear_avx512::<1>(&data, sized),
+                        (3, true) => resize_bilinear_avx512::<3>(&data, sized),
+                        (_, true) => resize_bilinear_avx512::<4>(&data, sized),
+                    }
+                };
+                let expected = if mirrored {
+                    let mut flipped = want.clone();
+                    flip_horizontal(&mut flipped, ow, channels);
+                    flipped
+                } else {
+                    want.clone()
+                };
+                if std::arch::is_x86_feature_detected!("avx2") {
+                    assert_eq!(copies(false), expected, "{size:?} {mirrored}, AVX2 copy");
+                }
+                if has_avx512() {
+                    assert_eq!(copies(true), expected, "{size:?} {mirrored}, AVX-512 copy");
+                }
+            }
             // Mirrored: the same bytes as resizing, then flipping.
             let mut flipped = want.clone();
             flip_horizontal(&mut flipped, ow, channels);

@@ -117,11 +117,25 @@ pub struct Pairing {
 #[allow(unsafe_code)]
 pub fn pair_points(xyz: &[[f32; 3]], view: &CameraView<'_>) -> Vec<Pairing> {
     #[cfg(target_arch = "x86_64")]
+    if super::image_ops::has_avx512() {
+        // SAFETY: the CPU runs AVX-512 F and BW (checked just above), the only
+        // requirement of calling a function compiled with them enabled.
+        return unsafe { pair_points_avx512(xyz, view) };
+    }
+    #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("avx2") {
         // SAFETY: the CPU runs AVX2 (checked just above), the only requirement of calling
         // a function compiled with it enabled.
         return unsafe { pair_points_avx2(xyz, view) };
     }
+    pair_points_inline(xyz, view)
+}
+
+/// [`pair_points`] compiled with AVX-512 enabled (not used for FMA: Rust never
+/// contracts, so the same results).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bw,avx2")]
+fn pair_points_avx512(xyz: &[[f32; 3]], view: &CameraView<'_>) -> Vec<Pairing> {
     pair_points_inline(xyz, view)
 }
 
@@ -310,5 +324,21 @@ mod tests {
             "threshold points pair"
         );
         assert_eq!(pair_points(&xyz, &view), want);
+        // Every compiled copy the CPU runs.
+        assert_eq!(pair_points_inline(&xyz, &view), want, "baseline copy");
+        #[cfg(target_arch = "x86_64")]
+        #[allow(unsafe_code)]
+        {
+            if std::arch::is_x86_feature_detected!("avx2") {
+                // SAFETY: the CPU runs AVX2.
+                let avx2 = unsafe { pair_points_avx2(&xyz, &view) };
+                assert_eq!(avx2, want, "AVX2 copy");
+            }
+            if crate::sample::image_ops::has_avx512() {
+                // SAFETY: the CPU runs AVX-512 F and BW.
+                let avx512 = unsafe { pair_points_avx512(&xyz, &view) };
+                assert_eq!(avx512, want, "AVX-512 copy");
+            }
+        }
     }
 }

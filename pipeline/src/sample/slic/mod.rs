@@ -175,6 +175,12 @@ pub struct Segmentation {
 #[allow(unsafe_code)]
 pub fn slic(rgb: &[u8], width: usize, height: usize, params: &SlicParams) -> Segmentation {
     #[cfg(target_arch = "x86_64")]
+    if crate::sample::image_ops::has_avx512() {
+        // SAFETY: the CPU runs AVX-512 F and BW (checked just above), the only
+        // requirement of calling a function compiled with them enabled.
+        return unsafe { slic_avx512(rgb, width, height, params) };
+    }
+    #[cfg(target_arch = "x86_64")]
     if simd::has_avx2() {
         // SAFETY: the CPU runs AVX2 (checked just above), the only requirement of calling
         // a function compiled with it enabled.
@@ -187,6 +193,14 @@ pub fn slic(rgb: &[u8], width: usize, height: usize, params: &SlicParams) -> Seg
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 fn slic_avx2(rgb: &[u8], width: usize, height: usize, params: &SlicParams) -> Segmentation {
+    slic_inline(rgb, width, height, params)
+}
+
+/// [`slic`] compiled with AVX-512 enabled (sixteen lanes; the same operations, so the
+/// same labels).
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bw,avx2")]
+fn slic_avx512(rgb: &[u8], width: usize, height: usize, params: &SlicParams) -> Segmentation {
     slic_inline(rgb, width, height, params)
 }
 

@@ -260,17 +260,29 @@ fn slic_matches_scikit_image_exactly() {
 }
 
 #[test]
+#[allow(unsafe_code)]
 fn slic_baseline_and_avx2_copies_agree() {
-    // `slic` runs the AVX2 copy where the CPU has it; `slic_inline` is the baseline one.
+    // `slic` runs the widest copy the CPU has; `slic_inline` is the baseline one, and
+    // every copy the CPU can run is compared with it.
     let (_, street) = blocks(3, 2);
     let mut cases = golden_cases();
     cases.push(("blocks 3x2", W, H, street, SlicParams::default()));
     for (name, w, h, rgb, params) in cases {
-        assert_eq!(
-            slic(&rgb, w, h, &params),
-            slic_inline(&rgb, w, h, &params),
-            "{name}"
-        );
+        let baseline = slic_inline(&rgb, w, h, &params);
+        assert_eq!(slic(&rgb, w, h, &params), baseline, "{name}");
+        #[cfg(target_arch = "x86_64")]
+        {
+            if super::simd::has_avx2() {
+                // SAFETY: the CPU runs AVX2.
+                let avx2 = unsafe { super::slic_avx2(&rgb, w, h, &params) };
+                assert_eq!(avx2, baseline, "{name}: AVX2 copy");
+            }
+            if crate::sample::image_ops::has_avx512() {
+                // SAFETY: the CPU runs AVX-512 F and BW.
+                let avx512 = unsafe { super::slic_avx512(&rgb, w, h, &params) };
+                assert_eq!(avx512, baseline, "{name}: AVX-512 copy");
+            }
+        }
     }
 }
 
