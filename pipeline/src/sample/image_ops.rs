@@ -347,7 +347,9 @@ pub fn resize_nearest<T: Copy, U: From<T> + Default + Clone>(
     let mut out = Vec::with_capacity(out_width * out_height);
     for y in 0..out_height {
         let row = &data[nearest_tap(y, height, out_height) * width..][..width];
-        out.extend(xs.iter().map(|&x| U::from(row[x])));
+        // Every tap is below `width` already; the `min` says so to the compiler, which
+        // then drops the bounds check from each pixel.
+        out.extend(xs.iter().map(|&x| U::from(row[x.min(width - 1)])));
     }
     out
 }
