@@ -192,14 +192,16 @@ enum PlainRing {
     Uint16(usize),
 }
 
-/// The offsets of a layout the plain loop reads: little-endian FLOAT32 `x`, `y`, `z`
-/// and intensity (if any), a [`PlainRing`] (if any), and nothing else to convert (no
-/// time, label or message indices).
+/// The offsets of a layout the plain loop reads: little-endian FLOAT32 `x`, `y`, `z`,
+/// intensity (if any) and time in seconds relative to the stamp (if any: velodyne's and
+/// PCL's `time`), a [`PlainRing`] (if any), and nothing else to convert (no label or
+/// message indices).
 #[derive(Debug, Clone, Copy)]
 struct Plain {
     xyz: [usize; 3],
     intensity: Option<usize>,
     ring: Option<PlainRing>,
+    time: Option<usize>,
 }
 
 impl Plain {
@@ -209,9 +211,14 @@ impl Plain {
             (plan.numeric == NumericType::Float32 && plan.endianness == Endianness::Little)
                 .then_some(plan.offset)
         };
-        if attributes.time.is_some() || attributes.label.is_some() || attributes.kept_indices {
+        if attributes.label.is_some() || attributes.kept_indices {
             return None;
         }
+        let time = match attributes.time {
+            None => None,
+            Some(conversion) if conversion.is_identity() => Some(f32_le(conversion.field)?),
+            Some(_) => return None,
+        };
         let [x, y, z] = layout.xyz;
         let xyz = [f32_le(x)?, f32_le(y)?, f32_le(z)?];
         let intensity = match attributes.intensity {
@@ -231,6 +238,7 @@ impl Plain {
             xyz,
             intensity,
             ring,
+            time,
         })
     }
 }
@@ -254,7 +262,7 @@ const UINT16_RING: u8 = 2;
 /// loop without a branch per point: each point is written at the next kept slot, and
 /// the slot is kept when its coordinates are finite, so clouds with scattered
 /// non-finite points cost no mispredictions. `None` when a kept point's ring is not a
-/// ring index: the caller then runs [`fill`], which names it.
+/// ring index or its time not finite: the caller then runs [`fill`], which names it.
 ///
 /// Measured on the nuScenes-sized bench drive (x, y, z, intensity, ring: 5 FLOAT32):
 /// the general loop, with its per-field options and the ring's early exit, spent
@@ -267,20 +275,33 @@ fn fill_plain(
     plain: Plain,
 ) -> Option<Points> {
     let args = (data, grid, step, capacity, plain);
-    match (plain.intensity.is_some(), plain.ring) {
-        (true, None) => fill_plain_as::<true, NO_RING>(args),
-        (true, Some(PlainRing::Float32(_))) => fill_plain_as::<true, FLOAT32_RING>(args),
-        (true, Some(PlainRing::Uint16(_))) => fill_plain_as::<true, UINT16_RING>(args),
-        (false, None) => fill_plain_as::<false, NO_RING>(args),
-        (false, Some(PlainRing::Float32(_))) => fill_plain_as::<false, FLOAT32_RING>(args),
-        (false, Some(PlainRing::Uint16(_))) => fill_plain_as::<false, UINT16_RING>(args),
+    match plain.time {
+        Some(_) => fill_plain_timed::<true>(args),
+        None => fill_plain_timed::<false>(args),
     }
 }
 
+/// [`fill_plain`] with a time column when `TIME`.
+fn fill_plain_timed<const TIME: bool>(args: PlainArgs<'_>) -> Option<Points> {
+    let plain = args.4;
+    match (plain.intensity.is_some(), plain.ring) {
+        (true, None) => fill_plain_as::<true, NO_RING, TIME>(args),
+        (true, Some(PlainRing::Float32(_))) => fill_plain_as::<true, FLOAT32_RING, TIME>(args),
+        (true, Some(PlainRing::Uint16(_))) => fill_plain_as::<true, UINT16_RING, TIME>(args),
+        (false, None) => fill_plain_as::<false, NO_RING, TIME>(args),
+        (false, Some(PlainRing::Float32(_))) => fill_plain_as::<false, FLOAT32_RING, TIME>(args),
+        (false, Some(PlainRing::Uint16(_))) => fill_plain_as::<false, UINT16_RING, TIME>(args),
+    }
+}
+
+/// What [`fill_plain`] reads: the data, its grid, the point step, the number of points
+/// and the offsets.
+type PlainArgs<'a> = (&'a [u8], Grid, usize, usize, Plain);
+
 /// [`fill_plain`] for one combination of fields: with an intensity when `INTENSITY`, a
-/// ring of kind `RING`.
-fn fill_plain_as<const INTENSITY: bool, const RING: u8>(
-    (data, grid, step, capacity, plain): (&[u8], Grid, usize, usize, Plain),
+/// ring of kind `RING`, a time column when `TIME`.
+fn fill_plain_as<const INTENSITY: bool, const RING: u8, const TIME: bool>(
+    (data, grid, step, capacity, plain): PlainArgs<'_>,
 ) -> Option<Points> {
     let f32_at = |p: &[u8], offset: usize| f32::from_le_bytes(array::<4>(p, offset));
     let intensity_at = plain.intensity.unwrap_or(0);
@@ -291,7 +312,11 @@ fn fill_plain_as<const INTENSITY: bool, const RING: u8>(
     let mut xyz = vec![[0f32; 3]; capacity];
     let mut intensity = vec![0f32; capacity];
     let mut ring = vec![0u16; if RING == NO_RING { 0 } else { capacity }];
+    let time_at = plain.time.unwrap_or(0);
+    let mut time = vec![0f32; if TIME { capacity } else { 0 }];
+    let mut max_abs_time = 0f32;
     let mut rings_ok = true;
+    let mut times_ok = true;
     let mut kept = 0usize;
     let mut index = 0usize;
     for row in rows(data, grid, step) {
@@ -314,24 +339,33 @@ fn fill_plain_as<const INTENSITY: bool, const RING: u8>(
             } else if RING == UINT16_RING {
                 ring[kept] = u16::from_le_bytes(array::<2>(p, ring_at));
             }
+            if TIME {
+                // Seconds from the stamp as stored (the conversion is the identity).
+                let value = f32_at(p, time_at);
+                time[kept] = value;
+                times_ok &= value.is_finite() | !finite;
+                let magnitude = if finite { value.abs() } else { 0.0 };
+                max_abs_time = max_abs_time.max(magnitude);
+            }
             kept += usize::from(finite);
         }
     }
-    if !rings_ok {
+    if !(rings_ok && times_ok) {
         return None;
     }
     xyz.truncate(kept);
     intensity.truncate(kept);
     ring.truncate(kept);
+    time.truncate(kept);
     Some(Points {
         xyz,
         intensity,
         ring: plain.ring.map(|_| ring),
-        time_offset: None,
+        time_offset: plain.time.map(|_| time),
         label: None,
         kept_indices: None,
         dropped: index - kept,
-        max_abs_time: 0.0,
+        max_abs_time: f64::from(max_abs_time),
     })
 }
 
@@ -591,6 +625,16 @@ mod plain_tests {
     use crate::test_rng::TestRng;
     use superflow_schemas::Stamp;
 
+    /// Where the tests' time fields are read as: seconds relative to the stamp.
+    fn relative_seconds(offset: usize) -> TimeConversion {
+        TimeConversion::new(
+            plan(offset, NumericType::Float32),
+            TimeUnit::Seconds,
+            TimeReference::RelativeToStamp,
+            Stamp::from_nanos(1),
+        )
+    }
+
     fn plan(offset: usize, numeric: NumericType) -> FieldPlan {
         FieldPlan {
             offset,
@@ -628,6 +672,19 @@ mod plain_tests {
         [rows, width, pad]: [usize; 3],
         nan_every: u64,
         bad_ring: Option<usize>,
+    ) -> (Vec<u8>, Grid) {
+        cloud_timed(rng, layout, [rows, width, pad], nan_every, bad_ring, None)
+    }
+
+    /// [`cloud`] with a FLOAT32 time at `time` (relative seconds, not finite on some
+    /// dropped points and on kept point `bad_time` if given).
+    fn cloud_timed(
+        rng: &mut TestRng,
+        layout: &PointLayout,
+        [rows, width, pad]: [usize; 3],
+        nan_every: u64,
+        bad_ring: Option<usize>,
+        time: Option<(usize, Option<usize>)>,
     ) -> (Vec<u8>, Grid) {
         let step = layout.point_step;
         let row_step = width * step + pad;
@@ -667,6 +724,13 @@ mod plain_tests {
                         _ => p[o..o + 2].copy_from_slice(&(index as u16).to_le_bytes()),
                     }
                 }
+                if let Some((o, bad_time)) = time {
+                    let mut t = (rng.next() % 100_000) as f32 * 1e-6 - 0.05;
+                    if (broken && rng.next().is_multiple_of(2)) || bad_time == Some(n) {
+                        t = [f32::NAN, f32::INFINITY][(rng.next() % 2) as usize];
+                    }
+                    p[o..o + 4].copy_from_slice(&t.to_le_bytes());
+                }
                 if !broken {
                     n += 1;
                 }
@@ -686,12 +750,22 @@ mod plain_tests {
         data: &[u8],
         grid: Grid,
     ) -> (Option<Points>, Result<Points, PointsError>) {
+        both_timed(layout, data, grid, None)
+    }
+
+    /// [`both`] with a time column read through `time`.
+    fn both_timed(
+        layout: &PointLayout,
+        data: &[u8],
+        grid: Grid,
+        time: Option<TimeConversion>,
+    ) -> (Option<Points>, Result<Points, PointsError>) {
         let step = layout.point_step;
         let capacity = grid.rows * grid.width;
         let attributes = Attributes {
             intensity: layout.intensity.as_ref().map(|f| f.plan),
             ring: layout.ring.as_ref().map(|f| f.plan),
-            time: None,
+            time,
             label: None,
             kept_indices: false,
         };
@@ -789,5 +863,73 @@ mod plain_tests {
         assert!(Plain::of(&byte_intensity, &attributes(&byte_intensity)).is_none());
         let f64_ring = layout(24, Some(12), Some(plan(16, NumericType::Float64)));
         assert!(Plain::of(&f64_ring, &attributes(&f64_ring)).is_none());
+    }
+
+    #[test]
+    fn the_plain_loop_reads_relative_seconds_as_the_general_loop() {
+        let mut rng = TestRng(0x7F4A_7C15);
+        // velodyne's PointcloudXYZIRT: ring UINT16 at 16, time FLOAT32 at 18.
+        let velodyne = layout(22, Some(12), Some(plan(16, NumericType::Uint16)));
+        // PCL-aligned, no ring: time at 16.
+        let aligned = layout(32, Some(12), None);
+        for (layout, at) in [(&velodyne, 18), (&aligned, 16)] {
+            for (shape, nan_every) in [([1, 4_000, 0], 0), ([8, 500, 6], 5), ([2, 3, 0], 1)] {
+                let (data, grid) =
+                    cloud_timed(&mut rng, layout, shape, nan_every, None, Some((at, None)));
+                let (plain, general) = both_timed(layout, &data, grid, Some(relative_seconds(at)));
+                let (plain, general) = (plain.expect("times are finite"), general.unwrap());
+                let times = |p: &Points| p.time_offset.as_deref().map(bits);
+                assert!(plain.time_offset.is_some());
+                assert_eq!(times(&plain), times(&general));
+                assert_eq!(plain.max_abs_time.to_bits(), general.max_abs_time.to_bits());
+                assert_eq!(
+                    bits(plain.xyz.as_flattened()),
+                    bits(general.xyz.as_flattened())
+                );
+                assert_eq!(plain.ring, general.ring);
+                assert_eq!(plain.dropped, general.dropped);
+            }
+        }
+        // A kept point whose time is not finite: the general loop names it.
+        let (data, grid) = cloud_timed(
+            &mut rng,
+            &velodyne,
+            [1, 900, 0],
+            4,
+            None,
+            Some((18, Some(300))),
+        );
+        let (plain, general) = both_timed(&velodyne, &data, grid, Some(relative_seconds(18)));
+        assert!(plain.is_none());
+        assert!(
+            matches!(general, Err(PointsError::BadTime { .. })),
+            "{general:?}"
+        );
+        // Any other unit or reference is not plain.
+        let absolute = TimeConversion::new(
+            plan(18, NumericType::Float32),
+            TimeUnit::Seconds,
+            TimeReference::Absolute,
+            Stamp::from_nanos(1_700_000_000_000_000_000),
+        );
+        let attributes = Attributes {
+            intensity: None,
+            ring: None,
+            time: Some(absolute),
+            label: None,
+            kept_indices: false,
+        };
+        assert!(Plain::of(&velodyne, &attributes).is_none());
+        let micros = TimeConversion::new(
+            plan(18, NumericType::Float32),
+            TimeUnit::Microseconds,
+            TimeReference::RelativeToStamp,
+            Stamp::from_nanos(1),
+        );
+        let attributes = Attributes {
+            time: Some(micros),
+            ..attributes
+        };
+        assert!(Plain::of(&velodyne, &attributes).is_none());
     }
 }
