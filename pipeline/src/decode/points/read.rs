@@ -192,16 +192,17 @@ enum PlainRing {
     Uint16(usize),
 }
 
-/// The offsets of a layout the plain loop reads: little-endian FLOAT32 `x`, `y`, `z`,
-/// intensity (if any) and time in seconds relative to the stamp (if any: velodyne's and
-/// PCL's `time`), a [`PlainRing`] (if any), and nothing else to convert (no label or
-/// message indices).
+/// The offsets of a layout the plain loop reads: little-endian FLOAT32 `x`, `y`, `z`
+/// and intensity (if any), a [`PlainRing`] (if any), a little-endian FLOAT32, FLOAT64 or
+/// UINT32 time with its conversion (if any: velodyne's and PCL's `time`, Ouster's and
+/// Livox's nanoseconds, Hesai's absolute seconds), and nothing else to convert (no
+/// label or message indices).
 #[derive(Debug, Clone, Copy)]
 struct Plain {
     xyz: [usize; 3],
     intensity: Option<usize>,
     ring: Option<PlainRing>,
-    time: Option<usize>,
+    time: Option<(TimeConversion, u8)>,
 }
 
 impl Plain {
@@ -216,8 +217,19 @@ impl Plain {
         }
         let time = match attributes.time {
             None => None,
-            Some(conversion) if conversion.is_identity() => Some(f32_le(conversion.field)?),
-            Some(_) => return None,
+            Some(conversion) => {
+                let field = conversion.field;
+                if field.endianness != Endianness::Little {
+                    return None;
+                }
+                let kind = match field.numeric {
+                    NumericType::Float32 => FLOAT32_TIME,
+                    NumericType::Float64 => FLOAT64_TIME,
+                    NumericType::Uint32 => UINT32_TIME,
+                    _ => return None,
+                };
+                Some((conversion, kind))
+            }
         };
         let [x, y, z] = layout.xyz;
         let xyz = [f32_le(x)?, f32_le(y)?, f32_le(z)?];
@@ -258,6 +270,12 @@ const NO_RING: u8 = 0;
 const FLOAT32_RING: u8 = 1;
 const UINT16_RING: u8 = 2;
 
+/// Time kinds of [`fill_plain_as`], by the field's type.
+const NO_TIME: u8 = 0;
+const FLOAT32_TIME: u8 = 1;
+const FLOAT64_TIME: u8 = 2;
+const UINT32_TIME: u8 = 3;
+
 /// [`fill`] for a [`Plain`] layout (the usual FLOAT32 clouds: nuScenes, KITTI) in one
 /// loop without a branch per point: each point is written at the next kept slot, and
 /// the slot is kept when its coordinates are finite, so clouds with scattered
@@ -275,14 +293,16 @@ fn fill_plain(
     plain: Plain,
 ) -> Option<Points> {
     let args = (data, grid, step, capacity, plain);
-    match plain.time {
-        Some(_) => fill_plain_timed::<true>(args),
-        None => fill_plain_timed::<false>(args),
+    match plain.time.map(|(_, kind)| kind) {
+        None => fill_plain_timed::<NO_TIME>(args),
+        Some(FLOAT32_TIME) => fill_plain_timed::<FLOAT32_TIME>(args),
+        Some(FLOAT64_TIME) => fill_plain_timed::<FLOAT64_TIME>(args),
+        Some(_) => fill_plain_timed::<UINT32_TIME>(args),
     }
 }
 
-/// [`fill_plain`] with a time column when `TIME`.
-fn fill_plain_timed<const TIME: bool>(args: PlainArgs<'_>) -> Option<Points> {
+/// [`fill_plain`] with a time column of kind `TIME`.
+fn fill_plain_timed<const TIME: u8>(args: PlainArgs<'_>) -> Option<Points> {
     let plain = args.4;
     match (plain.intensity.is_some(), plain.ring) {
         (true, None) => fill_plain_as::<true, NO_RING, TIME>(args),
@@ -299,8 +319,8 @@ fn fill_plain_timed<const TIME: bool>(args: PlainArgs<'_>) -> Option<Points> {
 type PlainArgs<'a> = (&'a [u8], Grid, usize, usize, Plain);
 
 /// [`fill_plain`] for one combination of fields: with an intensity when `INTENSITY`, a
-/// ring of kind `RING`, a time column when `TIME`.
-fn fill_plain_as<const INTENSITY: bool, const RING: u8, const TIME: bool>(
+/// ring of kind `RING`, a time column of kind `TIME`.
+fn fill_plain_as<const INTENSITY: bool, const RING: u8, const TIME: u8>(
     (data, grid, step, capacity, plain): PlainArgs<'_>,
 ) -> Option<Points> {
     let f32_at = |p: &[u8], offset: usize| f32::from_le_bytes(array::<4>(p, offset));
@@ -312,9 +332,10 @@ fn fill_plain_as<const INTENSITY: bool, const RING: u8, const TIME: bool>(
     let mut xyz = vec![[0f32; 3]; capacity];
     let mut intensity = vec![0f32; capacity];
     let mut ring = vec![0u16; if RING == NO_RING { 0 } else { capacity }];
-    let time_at = plain.time.unwrap_or(0);
-    let mut time = vec![0f32; if TIME { capacity } else { 0 }];
-    let mut max_abs_time = 0f32;
+    let conversion = plain.time.map(|(conversion, _)| conversion);
+    let time_at = conversion.map_or(0, |c| c.field.offset);
+    let mut time = vec![0f32; if TIME == NO_TIME { 0 } else { capacity }];
+    let mut max_abs_time = 0f64;
     let mut rings_ok = true;
     let mut times_ok = true;
     let mut kept = 0usize;
@@ -339,11 +360,17 @@ fn fill_plain_as<const INTENSITY: bool, const RING: u8, const TIME: bool>(
             } else if RING == UINT16_RING {
                 ring[kept] = u16::from_le_bytes(array::<2>(p, ring_at));
             }
-            if TIME {
-                // Seconds from the stamp as stored (the conversion is the identity).
-                let value = f32_at(p, time_at);
-                time[kept] = value;
-                times_ok &= value.is_finite() | !finite;
+            if let (true, Some(conversion)) = (TIME != NO_TIME, conversion) {
+                // The value as `FieldPlan::read` widens it, converted as the general
+                // loop converts it.
+                let value = match TIME {
+                    FLOAT32_TIME => f64::from(f32_at(p, time_at)),
+                    FLOAT64_TIME => f64::from_le_bytes(array::<8>(p, time_at)),
+                    _ => f64::from(u32::from_le_bytes(array::<4>(p, time_at))),
+                };
+                let offset = conversion.offset_secs(value) as f32;
+                time[kept] = offset;
+                times_ok &= offset.is_finite() | !finite;
                 let magnitude = if finite { value.abs() } else { 0.0 };
                 max_abs_time = max_abs_time.max(magnitude);
             }
@@ -365,7 +392,7 @@ fn fill_plain_as<const INTENSITY: bool, const RING: u8, const TIME: bool>(
         label: None,
         kept_indices: None,
         dropped: index - kept,
-        max_abs_time: f64::from(max_abs_time),
+        max_abs_time,
     })
 }
 
@@ -625,16 +652,6 @@ mod plain_tests {
     use crate::test_rng::TestRng;
     use superflow_schemas::Stamp;
 
-    /// Where the tests' time fields are read as: seconds relative to the stamp.
-    fn relative_seconds(offset: usize) -> TimeConversion {
-        TimeConversion::new(
-            plan(offset, NumericType::Float32),
-            TimeUnit::Seconds,
-            TimeReference::RelativeToStamp,
-            Stamp::from_nanos(1),
-        )
-    }
-
     fn plan(offset: usize, numeric: NumericType) -> FieldPlan {
         FieldPlan {
             offset,
@@ -676,15 +693,16 @@ mod plain_tests {
         cloud_timed(rng, layout, [rows, width, pad], nan_every, bad_ring, None)
     }
 
-    /// [`cloud`] with a FLOAT32 time at `time` (relative seconds, not finite on some
-    /// dropped points and on kept point `bad_time` if given).
+    /// [`cloud`] with a time field `(offset, bad point, type)`: FLOAT32 relative seconds,
+    /// FLOAT64 absolute seconds (around 1.7e9) or UINT32 nanoseconds; a float time is not
+    /// finite on some dropped points and on kept point `bad point` if given.
     fn cloud_timed(
         rng: &mut TestRng,
         layout: &PointLayout,
         [rows, width, pad]: [usize; 3],
         nan_every: u64,
         bad_ring: Option<usize>,
-        time: Option<(usize, Option<usize>)>,
+        time: Option<(usize, Option<usize>, NumericType)>,
     ) -> (Vec<u8>, Grid) {
         let step = layout.point_step;
         let row_step = width * step + pad;
@@ -724,12 +742,24 @@ mod plain_tests {
                         _ => p[o..o + 2].copy_from_slice(&(index as u16).to_le_bytes()),
                     }
                 }
-                if let Some((o, bad_time)) = time {
-                    let mut t = (rng.next() % 100_000) as f32 * 1e-6 - 0.05;
-                    if (broken && rng.next().is_multiple_of(2)) || bad_time == Some(n) {
-                        t = [f32::NAN, f32::INFINITY][(rng.next() % 2) as usize];
+                if let Some((o, bad_time, numeric)) = time {
+                    let bad = (broken && rng.next().is_multiple_of(2)) || bad_time == Some(n);
+                    let not_finite = [f64::NAN, f64::INFINITY][(rng.next() % 2) as usize];
+                    let fraction = (rng.next() % 100_000) as f64 * 1e-6;
+                    match numeric {
+                        NumericType::Float32 => {
+                            let t = if bad { not_finite } else { fraction - 0.05 };
+                            p[o..o + 4].copy_from_slice(&(t as f32).to_le_bytes());
+                        }
+                        NumericType::Float64 => {
+                            let t = if bad { not_finite } else { 1.7e9 + fraction };
+                            p[o..o + 8].copy_from_slice(&t.to_le_bytes());
+                        }
+                        _ => {
+                            let t = (fraction * 1e9) as u32;
+                            p[o..o + 4].copy_from_slice(&t.to_le_bytes());
+                        }
                     }
-                    p[o..o + 4].copy_from_slice(&t.to_le_bytes());
                 }
                 if !broken {
                     n += 1;
@@ -866,70 +896,87 @@ mod plain_tests {
     }
 
     #[test]
-    fn the_plain_loop_reads_relative_seconds_as_the_general_loop() {
+    fn the_plain_loop_converts_times_as_the_general_loop() {
         let mut rng = TestRng(0x7F4A_7C15);
-        // velodyne's PointcloudXYZIRT: ring UINT16 at 16, time FLOAT32 at 18.
-        let velodyne = layout(22, Some(12), Some(plan(16, NumericType::Uint16)));
-        // PCL-aligned, no ring: time at 16.
-        let aligned = layout(32, Some(12), None);
-        for (layout, at) in [(&velodyne, 18), (&aligned, 16)] {
+        let stamp = Stamp::from_nanos(1_700_000_000_123_456_789);
+        let conversion = |offset, numeric, unit, reference| {
+            TimeConversion::new(plan(offset, numeric), unit, reference, stamp)
+        };
+        let (seconds, relative) = (TimeUnit::Seconds, TimeReference::RelativeToStamp);
+        let cases = [
+            // velodyne's PointcloudXYZIRT: ring UINT16 at 16, time FLOAT32 s at 18.
+            (
+                layout(22, Some(12), Some(plan(16, NumericType::Uint16))),
+                conversion(18, NumericType::Float32, seconds, relative),
+            ),
+            // PCL-aligned, no ring, time FLOAT32 s at 16.
+            (
+                layout(32, Some(12), None),
+                conversion(16, NumericType::Float32, seconds, relative),
+            ),
+            // Ouster-like: time UINT32 ns at 20, ring UINT16 at 26.
+            (
+                layout(48, Some(16), Some(plan(26, NumericType::Uint16))),
+                conversion(20, NumericType::Uint32, TimeUnit::Nanoseconds, relative),
+            ),
+            // Hesai-like: absolute FLOAT64 seconds at 24, ring UINT16 at 32.
+            (
+                layout(48, Some(16), Some(plan(32, NumericType::Uint16))),
+                conversion(24, NumericType::Float64, seconds, TimeReference::Absolute),
+            ),
+            // FLOAT32 read as microseconds.
+            (
+                layout(24, None, None),
+                conversion(16, NumericType::Float32, TimeUnit::Microseconds, relative),
+            ),
+        ];
+        for (layout, time) in &cases {
+            let field = (time.field.offset, None, time.field.numeric);
             for (shape, nan_every) in [([1, 4_000, 0], 0), ([8, 500, 6], 5), ([2, 3, 0], 1)] {
                 let (data, grid) =
-                    cloud_timed(&mut rng, layout, shape, nan_every, None, Some((at, None)));
-                let (plain, general) = both_timed(layout, &data, grid, Some(relative_seconds(at)));
+                    cloud_timed(&mut rng, layout, shape, nan_every, None, Some(field));
+                let (plain, general) = both_timed(layout, &data, grid, Some(*time));
                 let (plain, general) = (plain.expect("times are finite"), general.unwrap());
                 let times = |p: &Points| p.time_offset.as_deref().map(bits);
                 assert!(plain.time_offset.is_some());
-                assert_eq!(times(&plain), times(&general));
+                assert_eq!(times(&plain), times(&general), "{time:?}");
                 assert_eq!(plain.max_abs_time.to_bits(), general.max_abs_time.to_bits());
                 assert_eq!(
                     bits(plain.xyz.as_flattened()),
                     bits(general.xyz.as_flattened())
                 );
+                assert_eq!(bits(&plain.intensity), bits(&general.intensity));
                 assert_eq!(plain.ring, general.ring);
                 assert_eq!(plain.dropped, general.dropped);
             }
         }
         // A kept point whose time is not finite: the general loop names it.
-        let (data, grid) = cloud_timed(
-            &mut rng,
-            &velodyne,
-            [1, 900, 0],
-            4,
-            None,
-            Some((18, Some(300))),
-        );
-        let (plain, general) = both_timed(&velodyne, &data, grid, Some(relative_seconds(18)));
+        let (layout, time) = &cases[0];
+        let field = Some((18, Some(300), NumericType::Float32));
+        let (data, grid) = cloud_timed(&mut rng, layout, [1, 900, 0], 4, None, field);
+        let (plain, general) = both_timed(layout, &data, grid, Some(*time));
         assert!(plain.is_none());
         assert!(
             matches!(general, Err(PointsError::BadTime { .. })),
             "{general:?}"
         );
-        // Any other unit or reference is not plain.
-        let absolute = TimeConversion::new(
-            plan(18, NumericType::Float32),
-            TimeUnit::Seconds,
-            TimeReference::Absolute,
-            Stamp::from_nanos(1_700_000_000_000_000_000),
-        );
-        let attributes = Attributes {
+        // Other time types and byte orders take the general loop.
+        let attributes = |time| Attributes {
             intensity: None,
             ring: None,
-            time: Some(absolute),
+            time: Some(time),
             label: None,
             kept_indices: false,
         };
-        assert!(Plain::of(&velodyne, &attributes).is_none());
-        let micros = TimeConversion::new(
-            plan(18, NumericType::Float32),
-            TimeUnit::Microseconds,
-            TimeReference::RelativeToStamp,
-            Stamp::from_nanos(1),
-        );
-        let attributes = Attributes {
-            time: Some(micros),
-            ..attributes
-        };
-        assert!(Plain::of(&velodyne, &attributes).is_none());
+        for numeric in [NumericType::Int8, NumericType::Uint16, NumericType::Int32] {
+            let other = conversion(18, numeric, TimeUnit::Nanoseconds, relative);
+            assert!(
+                Plain::of(layout, &attributes(other)).is_none(),
+                "{numeric:?}"
+            );
+        }
+        let mut big = conversion(18, NumericType::Float32, seconds, relative);
+        big.field.endianness = Endianness::Big;
+        assert!(Plain::of(layout, &attributes(big)).is_none());
     }
 }

@@ -129,12 +129,6 @@ impl TimeConversion {
         }
     }
 
-    /// Whether [`offset_secs`](Self::offset_secs) gives every value back unchanged
-    /// (seconds relative to the stamp: `(v − 0) / 1 − 0` is `v`, signed zeros included).
-    pub(super) fn is_identity(self) -> bool {
-        self.per_second == 1.0 && self.whole == 0.0 && self.frac_secs == 0.0
-    }
-
     /// The offset from the stamp, in seconds, of a stored `value`.
     #[inline]
     pub(super) fn offset_secs(self, value: f64) -> f64 {
