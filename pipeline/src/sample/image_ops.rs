@@ -125,10 +125,66 @@ pub(crate) fn has_avx512() -> bool {
 fn resize_bilinear_avx512<const C: usize>(data: &[u8], size: Size) -> Vec<u8> {
     if C == 3 {
         return resize_bilinear_with::<C>(data, size, |blended, xs, out| {
-            horizontal_rgb_avx2(blended, xs, out)
+            horizontal_rgb_avx512(blended, xs, out)
         });
     }
     resize_bilinear_n::<C>(data, size)
+}
+
+/// [`horizontal_rgb_avx2`] four output pixels to a 16-lane vector: each quarter holds a
+/// pixel's three channels and a spare lane, blended with the same operations in the same
+/// order (the same floats); the spare lanes are squeezed out and the twelve floats
+/// stored under a mask. Pixels after the last group of four go one at a time.
+///
+/// `blended` holds the row's `3·width` floats and four spare ones, `out` the output
+/// row's `3·xs.len()` floats and four spare ones, and every tap is below `width`.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx512f,avx512bw,avx2")]
+#[allow(unsafe_code)]
+fn horizontal_rgb_avx512(blended: &[f32], xs: &HorizontalTaps, out: &mut [f32]) {
+    use std::arch::x86_64::{
+        __m128, __m512, _mm_loadu_ps, _mm512_add_ps, _mm512_castps128_ps512, _mm512_insertf32x4,
+        _mm512_loadu_ps, _mm512_mask_storeu_ps, _mm512_mul_ps, _mm512_permutexvar_ps,
+        _mm512_set1_ps, _mm512_setr_epi32, _mm512_sub_ps,
+    };
+    let quads = xs.first.len() / 4;
+    // Every read below ends by `blended[3·tap + 4]`, every write by `out[12·quads]`,
+    // and the weights by `pair_weights[16·quads]`: checked once here, not per pixel.
+    if blended.len() < xs.last as usize + 4
+        || out.len() < 12 * quads + 4
+        || xs.pair_weights.len() < 16 * quads
+    {
+        return horizontal_taps::<3>(blended, xs, out);
+    }
+    let half = _mm512_set1_ps(0.5);
+    let squeeze = _mm512_setr_epi32(0, 1, 2, 4, 5, 6, 8, 9, 10, 12, 13, 14, 15, 15, 15, 15);
+    let load = |at: u32| -> __m128 {
+        // SAFETY: `at + 4 <= blended.len()` for every tap (checked above).
+        unsafe { _mm_loadu_ps(blended.as_ptr().add(at as usize)) }
+    };
+    let gather = |taps: &[u32]| -> __m512 {
+        let v = _mm512_castps128_ps512(load(taps[0]));
+        let v = _mm512_insertf32x4::<1>(v, load(taps[1]));
+        let v = _mm512_insertf32x4::<2>(v, load(taps[2]));
+        _mm512_insertf32x4::<3>(v, load(taps[3]))
+    };
+    for q in 0..quads {
+        let pixels = 4 * q..4 * q + 4;
+        let p0 = gather(&xs.first[pixels.clone()]);
+        let p1 = gather(&xs.second[pixels]);
+        // SAFETY: `pair_weights` holds 8 floats per pair, 16 per group of four pixels.
+        let w = unsafe { _mm512_loadu_ps(xs.pair_weights.as_ptr().add(16 * q)) };
+        let v = _mm512_add_ps(
+            _mm512_add_ps(p0, _mm512_mul_ps(_mm512_sub_ps(p1, p0), w)),
+            half,
+        );
+        let v = _mm512_permutexvar_ps(squeeze, v);
+        // SAFETY: the twelve lanes stored end at `12·q + 12 <= 12·quads <= out.len()`.
+        unsafe { _mm512_mask_storeu_ps(out.as_mut_ptr().add(12 * q), 0x0FFF, v) };
+    }
+    for x in 4 * quads..xs.first.len() {
+        horizontal_pixel::<3>(blended, xs, x, out);
+    }
 }
 
 /// The horizontal taps of one colour row, two output pixels to an 8-lane vector: each
