@@ -119,7 +119,7 @@ pub(super) fn cylindrical_cells(
     exact: &dyn Fn([f32; 3]) -> [i32; 3],
 ) -> Vec<[i32; 3]> {
     #[cfg(target_arch = "x86_64")]
-    if super::image_ops::has_avx512() {
+    if super::simd::has_avx512() {
         // SAFETY: the CPU runs AVX-512 F and BW (checked just above), the only
         // requirement of calling a function compiled with them enabled.
         return unsafe { cylindrical_cells_avx512(xyz, sizes, exact) };
@@ -239,7 +239,7 @@ mod tests {
                     let avx2 = unsafe { super::cylindrical_cells_avx2(points, sizes, &exact) };
                     assert_eq!(avx2, fast, "{grid:?}: AVX2 copy");
                 }
-                if crate::sample::image_ops::has_avx512() {
+                if crate::sample::simd::has_avx512() {
                     // SAFETY: the CPU runs AVX-512 F and BW.
                     let avx512 = unsafe { super::cylindrical_cells_avx512(points, sizes, &exact) };
                     assert_eq!(avx512, fast, "{grid:?}: AVX-512 copy");

@@ -3,6 +3,8 @@
 //! `INTER_LINEAR`, no antialiasing), nearest for label maps, horizontal flips, and the
 //! mapping of a raw-image pixel to its resized (row, col).
 
+#[cfg(target_arch = "x86_64")]
+use super::simd::has_avx512;
 /// Where output index `i` samples the input, for `n_in → n_out` with half-pixel
 /// centres: the two input indices and the weight of the second.
 fn linear_taps(n_in: usize, n_out: usize) -> Vec<(usize, usize, f32)> {
@@ -99,21 +101,6 @@ fn resize_bilinear_avx2<const C: usize>(data: &[u8], size: Size) -> Vec<u8> {
         });
     }
     resize_bilinear_n::<C>(data, size)
-}
-
-/// Whether the AVX-512 copies of the hot loops run (resizes, cylindrical cells,
-/// projection, SLIC): the CPU has AVX-512 F and BW (AMD Zen 4 and later, Intel server
-/// cores since Skylake-SP) and `SUPERFLOW_NO_AVX512` is not set. Every copy gives the
-/// same results; the variable is for CPUs that lower their clock for 512-bit code
-/// (Skylake-SP, Cascade Lake), where the AVX2 copies may be faster overall.
-#[cfg(target_arch = "x86_64")]
-pub(crate) fn has_avx512() -> bool {
-    static CHOSEN: std::sync::OnceLock<bool> = std::sync::OnceLock::new();
-    *CHOSEN.get_or_init(|| {
-        std::arch::is_x86_feature_detected!("avx512f")
-            && std::arch::is_x86_feature_detected!("avx512bw")
-            && std::env::var_os("SUPERFLOW_NO_AVX512").is_none()
-    })
 }
 
 /// [`resize_bilinear_avx2`] compiled with AVX-512 enabled: the vertical blend and the

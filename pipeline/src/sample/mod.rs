@@ -43,6 +43,7 @@ pub mod project;
 pub mod recipe;
 pub mod rng;
 pub mod sidecar;
+mod simd;
 pub mod slic;
 pub mod sparse;
 pub mod timing;

@@ -117,7 +117,7 @@ pub struct Pairing {
 #[allow(unsafe_code)]
 pub fn pair_points(xyz: &[[f32; 3]], view: &CameraView<'_>) -> Vec<Pairing> {
     #[cfg(target_arch = "x86_64")]
-    if super::image_ops::has_avx512() {
+    if super::simd::has_avx512() {
         // SAFETY: the CPU runs AVX-512 F and BW (checked just above), the only
         // requirement of calling a function compiled with them enabled.
         return unsafe { pair_points_avx512(xyz, view) };
@@ -334,7 +334,7 @@ mod tests {
                 let avx2 = unsafe { pair_points_avx2(&xyz, &view) };
                 assert_eq!(avx2, want, "AVX2 copy");
             }
-            if crate::sample::image_ops::has_avx512() {
+            if crate::sample::simd::has_avx512() {
                 // SAFETY: the CPU runs AVX-512 F and BW.
                 let avx512 = unsafe { pair_points_avx512(&xyz, &view) };
                 assert_eq!(avx512, want, "AVX-512 copy");

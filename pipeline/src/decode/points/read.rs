@@ -202,7 +202,7 @@ struct Plain {
     xyz: [usize; 3],
     intensity: Option<usize>,
     ring: Option<PlainRing>,
-    time: Option<(TimeConversion, u8)>,
+    time: Option<TimeConversion>,
 }
 
 impl Plain {
@@ -218,17 +218,8 @@ impl Plain {
         let time = match attributes.time {
             None => None,
             Some(conversion) => {
-                let field = conversion.field;
-                if field.endianness != Endianness::Little {
-                    return None;
-                }
-                let kind = match field.numeric {
-                    NumericType::Float32 => FLOAT32_TIME,
-                    NumericType::Float64 => FLOAT64_TIME,
-                    NumericType::Uint32 => UINT32_TIME,
-                    _ => return None,
-                };
-                Some((conversion, kind))
+                time_kind(conversion.field)?;
+                Some(conversion)
             }
         };
         let [x, y, z] = layout.xyz;
@@ -276,6 +267,20 @@ const FLOAT32_TIME: u8 = 1;
 const FLOAT64_TIME: u8 = 2;
 const UINT32_TIME: u8 = 3;
 
+/// The time kind the plain loop reads `field` as: a little-endian FLOAT32, FLOAT64 or
+/// UINT32; `None` for any other.
+fn time_kind(field: FieldPlan) -> Option<u8> {
+    if field.endianness != Endianness::Little {
+        return None;
+    }
+    match field.numeric {
+        NumericType::Float32 => Some(FLOAT32_TIME),
+        NumericType::Float64 => Some(FLOAT64_TIME),
+        NumericType::Uint32 => Some(UINT32_TIME),
+        _ => None,
+    }
+}
+
 /// [`fill`] for a [`Plain`] layout (the usual FLOAT32 clouds: nuScenes, KITTI) in one
 /// loop without a branch per point: each point is written at the next kept slot, and
 /// the slot is kept when its coordinates are finite, so clouds with scattered
@@ -293,11 +298,13 @@ fn fill_plain(
     plain: Plain,
 ) -> Option<Points> {
     let args = (data, grid, step, capacity, plain);
-    match plain.time.map(|(_, kind)| kind) {
+    match plain.time.map(|conversion| time_kind(conversion.field)) {
         None => fill_plain_timed::<NO_TIME>(args),
-        Some(FLOAT32_TIME) => fill_plain_timed::<FLOAT32_TIME>(args),
-        Some(FLOAT64_TIME) => fill_plain_timed::<FLOAT64_TIME>(args),
-        Some(_) => fill_plain_timed::<UINT32_TIME>(args),
+        Some(Some(FLOAT32_TIME)) => fill_plain_timed::<FLOAT32_TIME>(args),
+        Some(Some(FLOAT64_TIME)) => fill_plain_timed::<FLOAT64_TIME>(args),
+        Some(Some(UINT32_TIME)) => fill_plain_timed::<UINT32_TIME>(args),
+        // `Plain::of` admits no other time field.
+        Some(_) => None,
     }
 }
 
@@ -332,7 +339,7 @@ fn fill_plain_as<const INTENSITY: bool, const RING: u8, const TIME: u8>(
     let mut xyz = vec![[0f32; 3]; capacity];
     let mut intensity = vec![0f32; capacity];
     let mut ring = vec![0u16; if RING == NO_RING { 0 } else { capacity }];
-    let conversion = plain.time.map(|(conversion, _)| conversion);
+    let conversion = plain.time;
     let time_at = conversion.map_or(0, |c| c.field.offset);
     let mut time = vec![0f32; if TIME == NO_TIME { 0 } else { capacity }];
     let mut max_abs_time = 0f64;

@@ -37,17 +37,19 @@
 //!   are not computed (see `centres`);
 //! * connectivity is worked out on runs of equal labels, breadth-first only where the
 //!   order of the search matters (see `connectivity`);
-//! * the whole computation is also compiled for AVX2 and that copy runs where the CPU
-//!   has it (see `simd`), and its buffers are kept per thread from call to call.
+//! * the whole computation is also compiled for AVX2 and for AVX-512, and the widest
+//!   copy the CPU has runs (see `sample::simd`); its buffers are kept per thread from
+//!   call to call.
 
 mod centres;
 mod connectivity;
 mod lab;
 mod search;
-mod simd;
 mod tiles;
 
 use crate::invalid::InvalidSetting;
+#[cfg(target_arch = "x86_64")]
+use crate::sample::simd;
 use centres::Means;
 use connectivity::enforce_connectivity;
 use lab::Lab;
@@ -175,7 +177,7 @@ pub struct Segmentation {
 #[allow(unsafe_code)]
 pub fn slic(rgb: &[u8], width: usize, height: usize, params: &SlicParams) -> Segmentation {
     #[cfg(target_arch = "x86_64")]
-    if crate::sample::image_ops::has_avx512() {
+    if simd::has_avx512() {
         // SAFETY: the CPU runs AVX-512 F and BW (checked just above), the only
         // requirement of calling a function compiled with them enabled.
         return unsafe { slic_avx512(rgb, width, height, params) };
@@ -189,7 +191,7 @@ pub fn slic(rgb: &[u8], width: usize, height: usize, params: &SlicParams) -> Seg
     slic_inline(rgb, width, height, params)
 }
 
-/// [`slic`] compiled with AVX2 enabled (see `simd`).
+/// [`slic`] compiled with AVX2 enabled (see `sample::simd`).
 #[cfg(target_arch = "x86_64")]
 #[target_feature(enable = "avx2")]
 fn slic_avx2(rgb: &[u8], width: usize, height: usize, params: &SlicParams) -> Segmentation {

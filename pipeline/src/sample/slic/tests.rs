@@ -272,12 +272,12 @@ fn slic_baseline_and_avx2_copies_agree() {
         assert_eq!(slic(&rgb, w, h, &params), baseline, "{name}");
         #[cfg(target_arch = "x86_64")]
         {
-            if super::simd::has_avx2() {
+            if crate::sample::simd::has_avx2() {
                 // SAFETY: the CPU runs AVX2.
                 let avx2 = unsafe { super::slic_avx2(&rgb, w, h, &params) };
                 assert_eq!(avx2, baseline, "{name}: AVX2 copy");
             }
-            if crate::sample::image_ops::has_avx512() {
+            if crate::sample::simd::has_avx512() {
                 // SAFETY: the CPU runs AVX-512 F and BW.
                 let avx512 = unsafe { super::slic_avx512(&rgb, w, h, &params) };
                 assert_eq!(avx512, baseline, "{name}: AVX-512 copy");
