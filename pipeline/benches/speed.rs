@@ -10,6 +10,11 @@
 //! libzstd's speed on the drive's chunks, and its JPEGs and PNG class maps decoded by
 //! libjpeg-turbo and the `png` crate on their own.
 //!
+//! It also draws where a class-map sample's time goes on one core, drive by drive
+//! (`target/bench-drives/speed.svg`, `speed/chart.rs`): the libraries' part of decoding,
+//! the rest of decoding, and the pipeline's stages, against the target for that camera
+//! size.
+//!
 //! SLIC is measured twice: computed per sample, and read from the `<drive>.slic.mcap`
 //! sidecar that `superflow-pipeline superpixels` writes (written once into
 //! `target/bench-drives/…/slic/`, beside a link to the drive).
@@ -22,6 +27,8 @@
 //! size>-<length>/` (20 s at 800×450, a minute at 1600×900) and reused while all of
 //! these are the same.
 
+#[path = "speed/chart.rs"]
+mod chart;
 #[allow(dead_code)]
 #[path = "../../tests/src/bench/common.rs"]
 mod common;
@@ -116,14 +123,15 @@ fn slic_sidecar_drive(path: &std::path::Path, regenerate: bool) -> anyhow::Resul
 /// A sample's decoding on one core beside the libraries alone: runs of `n` samples on
 /// one core (the decode stage of the fastest; the chunks and bytes its files decompressed
 /// per sample, counted in the first), and the cost of that work and of the sample's
-/// images with libzstd, libjpeg-turbo and `png` alone.
+/// images with libzstd, libjpeg-turbo and `png` alone: the table's row, and those three
+/// costs (ms per sample).
 fn floor_row(
     name: &str,
     builder: &SampleBuilder<'_>,
     dataset: &Dataset,
     path: &std::path::Path,
     n: usize,
-) -> anyhow::Result<String> {
+) -> anyhow::Result<(String, [Option<f64>; 3])> {
     let counted = || -> (u64, u64) {
         let files = dataset.drives.iter().flat_map(|d| &d.files);
         files.fold((0, 0), |(c, b), f| {
@@ -157,12 +165,13 @@ fn floor_row(
         Some((png_crate, _)) => format!("{} ({:.1})", cell(png), png_crate * images),
         None => cell(None),
     };
-    Ok(format!(
+    let row = format!(
         "| {name} | {chunks:.1} | {mb:.1} | {} | {} | {png_cell} | {sum:.1} | {decode:.1} | {:.2}× |",
         cell(zstd),
         cell(jpeg),
         decode / sum
-    ))
+    );
+    Ok((row, [zstd, jpeg, png]))
 }
 
 /// Rounds of the batch-write measurement.
@@ -202,6 +211,16 @@ fn batch_write(samples: &[Sample], shape: BatchShape) -> anyhow::Result<(f64, f6
     ))
 }
 
+/// The target for a sample of `width × height` cameras on one core, ms
+/// (nuScenes' 1600×900 and the 800×450 of its many conversions).
+fn target_ms(width: u32, height: u32) -> Option<f64> {
+    match (width, height) {
+        (800, 450) => Some(20.0),
+        (1600, 900) => Some(40.0),
+        _ => None,
+    }
+}
+
 fn main() -> anyhow::Result<()> {
     superflow_pipeline::memory::keep_freed_pages();
     let n = arg_count("--samples")?.unwrap_or(48);
@@ -220,6 +239,7 @@ fn main() -> anyhow::Result<()> {
     println!("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     let mut batch_rows = Vec::new();
     let mut floor_rows = Vec::new();
+    let mut bars = Vec::new();
     for size in sizes.split(',') {
         let (w, h) = size
             .split_once('x')
@@ -258,7 +278,25 @@ fn main() -> anyhow::Result<()> {
                     .collect::<Result<Vec<_>, _>>()?;
                 let shape = BatchShape::of(builder.config());
                 batch_rows.push((format!("{w}×{h}"), batch_write(&samples, shape)?));
-                floor_rows.push(floor_row(&format!("{w}×{h}"), &builder, data, &path, n)?);
+                let (row, libraries) = floor_row(&format!("{w}×{h}"), &builder, data, &path, n)?;
+                floor_rows.push(row);
+                let samples = (count * sample::ROUNDS) as f64;
+                let t = &run.times;
+                bars.push(chart::Bar {
+                    name: format!("{w}×{h}"),
+                    total: 1e3 / one,
+                    libraries,
+                    stages: [
+                        t.decode,
+                        t.sweeps,
+                        t.images,
+                        t.projection,
+                        t.superpixels,
+                        t.voxels,
+                    ]
+                    .map(|ns| ns as f64 / 1e6 / samples),
+                    target: target_ms(w, h),
+                });
             }
         }
     }
@@ -289,6 +327,15 @@ fn main() -> anyhow::Result<()> {
     }
     println!(
         "3 runs of {n} class-map samples on 1 core: the decode stage of the fastest, chunks and bytes its files decompressed per sample, that many MB at libzstd's speed on the drive's chunks, the sample's JPEGs decoded by libjpeg-turbo at the scale the recipe decodes them, its PNG class maps by the faster of the png crate and the pipeline's grey reader (the png crate's in brackets); fastest of 3 rounds"
+    );
+    let picture =
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../target/bench-drives/speed.svg");
+    std::fs::write(&picture, chart::svg(&bars)?)?;
+    let picture = picture.canonicalize()?;
+    println!();
+    println!(
+        "where a class-map sample's time goes: {} (the libraries' parts scaled to the decode stage's mean when they exceed it)",
+        picture.display()
     );
     Ok(())
 }
