@@ -330,11 +330,28 @@ type PlainArgs<'a> = (&'a [u8], Grid, usize, usize, Plain);
 fn fill_plain_as<const INTENSITY: bool, const RING: u8, const TIME: u8>(
     (data, grid, step, capacity, plain): PlainArgs<'_>,
 ) -> Option<Points> {
-    let f32_at = |p: &[u8], offset: usize| f32::from_le_bytes(array::<4>(p, offset));
     let intensity_at = plain.intensity.unwrap_or(0);
     let ring_at = match plain.ring {
         Some(PlainRing::Float32(offset) | PlainRing::Uint16(offset)) => offset,
         None => 0,
+    };
+    let ring_width = if RING == UINT16_RING { 2 } else { 4 };
+    let time_width = if TIME == FLOAT64_TIME { 8 } else { 4 };
+    // Every read below lies within its point, checked here once instead of at each read
+    // (a layout whose fields overrun the point step takes the general loop).
+    let fits = |offset: usize, width: usize| offset + width <= step;
+    let within = plain.xyz.iter().all(|&o| fits(o, 4))
+        && (!INTENSITY || fits(intensity_at, 4))
+        && (RING == NO_RING || fits(ring_at, ring_width))
+        && (TIME == NO_TIME || plain.time.is_some_and(|c| fits(c.field.offset, time_width)));
+    if !within {
+        return None;
+    }
+    // Called below only with one point (`step` bytes) and an offset checked above.
+    #[allow(unsafe_code)]
+    let f32_at = |p: &[u8], offset: usize| {
+        // SAFETY: `offset + 4 <= step == p.len()` (`within`).
+        f32::from_le_bytes(unsafe { bytes_at::<4>(p, offset) })
     };
     let mut xyz = vec![[0f32; 3]; capacity];
     let mut intensity = vec![0f32; capacity];
@@ -365,15 +382,21 @@ fn fill_plain_as<const INTENSITY: bool, const RING: u8, const TIME: u8>(
                 ring[kept] = value;
                 rings_ok &= ok | !finite;
             } else if RING == UINT16_RING {
-                ring[kept] = u16::from_le_bytes(array::<2>(p, ring_at));
+                // SAFETY: `ring_at + 2 <= step == p.len()` (`within`).
+                #[allow(unsafe_code)]
+                let bytes = unsafe { bytes_at::<2>(p, ring_at) };
+                ring[kept] = u16::from_le_bytes(bytes);
             }
             if let (true, Some(conversion)) = (TIME != NO_TIME, conversion) {
                 // The value as `FieldPlan::read` widens it, converted as the general
                 // loop converts it.
+                #[allow(unsafe_code)]
                 let value = match TIME {
                     FLOAT32_TIME => f64::from(f32_at(p, time_at)),
-                    FLOAT64_TIME => f64::from_le_bytes(array::<8>(p, time_at)),
-                    _ => f64::from(u32::from_le_bytes(array::<4>(p, time_at))),
+                    // SAFETY: `time_at + 8 <= step == p.len()` (`within`).
+                    FLOAT64_TIME => f64::from_le_bytes(unsafe { bytes_at::<8>(p, time_at) }),
+                    // SAFETY: `time_at + 4 <= step == p.len()` (`within`).
+                    _ => f64::from(u32::from_le_bytes(unsafe { bytes_at::<4>(p, time_at) })),
                 };
                 let offset = conversion.offset_secs(value) as f32;
                 time[kept] = offset;
@@ -401,6 +424,19 @@ fn fill_plain_as<const INTENSITY: bool, const RING: u8, const TIME: u8>(
         dropped: index - kept,
         max_abs_time,
     })
+}
+
+/// The `N` bytes at `offset` of `point`, without a bounds check ([`fill_plain_as`]
+/// checks every field of the layout against the point step once per sweep).
+///
+/// # Safety
+/// `offset + N <= point.len()`.
+#[inline(always)]
+#[allow(unsafe_code)]
+unsafe fn bytes_at<const N: usize>(point: &[u8], offset: usize) -> [u8; N] {
+    debug_assert!(offset + N <= point.len());
+    // SAFETY: the caller guarantees `offset + N <= point.len()`; the read is unaligned.
+    unsafe { point.as_ptr().add(offset).cast::<[u8; N]>().read_unaligned() }
 }
 
 /// The field's value when it is the usual little-endian FLOAT32, read without the round
@@ -835,6 +871,8 @@ mod plain_tests {
             layout(20, Some(12), Some(plan(16, NumericType::Float32))),
             // velodyne without its time: ring UINT16 at 16.
             layout(22, Some(12), Some(plan(16, NumericType::Uint16))),
+            // A UINT16 ring in the point's last two bytes.
+            layout(18, Some(12), Some(plan(16, NumericType::Uint16))),
             // KITTI: x y z intensity.
             layout(16, Some(12), None),
             // No intensity, padded points.
@@ -859,6 +897,29 @@ mod plain_tests {
                 assert_eq!(plain.dropped, general.dropped);
                 assert!(plain.time_offset.is_none() && plain.label.is_none());
             }
+        }
+    }
+
+    #[test]
+    fn fields_past_the_point_step_go_to_the_general_loop() {
+        // Layouts are checked against their point step when a cloud's fields are
+        // planned; the plain loop, which reads without bounds checks, checks again.
+        let mut rng = TestRng(0x00DD_BA11);
+        for (step, overrun) in [(16, Some(13)), (18, None)] {
+            let ring = if overrun.is_none() {
+                Some(plan(16, NumericType::Float32))
+            } else {
+                None
+            };
+            let fits = layout(20, Some(12), ring);
+            let (data, grid) = cloud(&mut rng, &fits, [1, 50, 0], 0, None);
+            let mut short = fits.clone();
+            short.point_step = step;
+            if let Some(at) = overrun {
+                short.intensity = Some(named("intensity", plan(at, NumericType::Float32)));
+            }
+            let (plain, _) = both(&short, &data, grid);
+            assert!(plain.is_none(), "step {step}");
         }
     }
 
