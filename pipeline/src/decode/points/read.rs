@@ -436,7 +436,13 @@ fn fill_plain_as<const INTENSITY: bool, const RING: u8, const TIME: u8>(
 unsafe fn bytes_at<const N: usize>(point: &[u8], offset: usize) -> [u8; N] {
     debug_assert!(offset + N <= point.len());
     // SAFETY: the caller guarantees `offset + N <= point.len()`; the read is unaligned.
-    unsafe { point.as_ptr().add(offset).cast::<[u8; N]>().read_unaligned() }
+    unsafe {
+        point
+            .as_ptr()
+            .add(offset)
+            .cast::<[u8; N]>()
+            .read_unaligned()
+    }
 }
 
 /// The field's value when it is the usual little-endian FLOAT32, read without the round
