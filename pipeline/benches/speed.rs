@@ -39,7 +39,7 @@ mod floor;
 mod sample;
 
 use common::{arg_count, arg_value, cores, flag, load_average};
-use sample::{one_and_all, stage_cells, throughput};
+use sample::{one_and_all, stage_cells, stage_ms, throughput};
 use std::path::PathBuf;
 use std::time::Instant;
 use superflow_pipeline::batch::{BatchPlan, BatchShape};
@@ -280,21 +280,11 @@ fn main() -> anyhow::Result<()> {
                 batch_rows.push((format!("{w}×{h}"), batch_write(&samples, shape)?));
                 let (row, libraries) = floor_row(&format!("{w}×{h}"), &builder, data, &path, n)?;
                 floor_rows.push(row);
-                let samples = (count * sample::ROUNDS) as f64;
-                let t = &run.times;
                 bars.push(chart::Bar {
                     name: format!("{w}×{h}"),
                     total: 1e3 / one,
                     libraries,
-                    stages: [
-                        t.decode,
-                        t.sweeps,
-                        t.images,
-                        t.projection,
-                        t.superpixels,
-                        t.voxels,
-                    ]
-                    .map(|ns| ns as f64 / 1e6 / samples),
+                    stages: stage_ms(&run.times, count * sample::ROUNDS),
                     target: target_ms(w, h),
                 });
             }

@@ -83,10 +83,9 @@ pub fn one_and_all(
     })
 }
 
-/// The stage columns of a bench table: ms per sample of decode, sweeps, images,
-/// projection, superpixels and voxels+maps, for `times` summed over `n` samples.
-pub fn stage_cells(times: &StageTimes, n: usize) -> String {
-    let ms = |ns: u64| format!("{:.1}", ns as f64 / 1e6 / n as f64);
+/// ms per sample of decode, sweeps, images, projection, superpixels and voxels+maps, for
+/// `times` summed over `n` samples.
+pub fn stage_ms(times: &StageTimes, n: usize) -> [f64; 6] {
     [
         times.decode,
         times.sweeps,
@@ -95,6 +94,10 @@ pub fn stage_cells(times: &StageTimes, n: usize) -> String {
         times.superpixels,
         times.voxels,
     ]
-    .map(ms)
-    .join(" | ")
+    .map(|ns| ns as f64 / 1e6 / n as f64)
+}
+
+/// The stage columns of a bench table: [`stage_ms`] as cells.
+pub fn stage_cells(times: &StageTimes, n: usize) -> String {
+    stage_ms(times, n).map(|ms| format!("{ms:.1}")).join(" | ")
 }
