@@ -46,6 +46,55 @@ fn independent_python_decoders_agree_with_the_ground_truth() {
 }
 
 #[test]
+fn the_numpy_loader_unpacks_a_drive_and_times_its_samples() {
+    // The README's baseline (a numpy + Pillow loader on files): one file per sweep holding
+    // every point of the sweep (x, y, z, intensity as float32), every camera, and a table
+    // row of positive times.
+    let out = workspace_root().join(format!("target/baseline-loader-{}", std::process::id()));
+    let out_arg = out.to_string_lossy().into_owned();
+    let text = python(&[
+        "tests/python/baseline_loader.py",
+        "recordings/drives/street_foxglove.mcap",
+        "--samples",
+        "2",
+        "--out",
+        &out_arg,
+    ]);
+    let read = |path: std::path::PathBuf| -> serde_json::Value {
+        serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap()
+    };
+    let truth = read(workspace_root().join("recordings/drives/street_foxglove.truth.json"));
+    let index = read(out.join("index.json"));
+    let (sweeps, truth_sweeps) = (
+        index["sweeps"].as_array().unwrap(),
+        truth["lidar"]["sweeps"].as_array().unwrap(),
+    );
+    assert_eq!(sweeps.len(), truth_sweeps.len());
+    for (sweep, expected) in sweeps.iter().zip(truth_sweeps) {
+        assert_eq!(sweep["stamp"], expected["stamp_nanos"]);
+        let bytes = std::fs::metadata(out.join(sweep["file"].as_str().unwrap()))
+            .unwrap()
+            .len();
+        assert_eq!(bytes, 16 * expected["points"].as_u64().unwrap());
+    }
+    let cameras = index["cameras"].as_object().unwrap();
+    assert_eq!(cameras.len(), truth["cameras"].as_array().unwrap().len());
+    assert!(cameras.values().all(|c| {
+        let images = c["images"].as_array().unwrap();
+        !images.is_empty() && images.iter().all(|i| i["png"].is_string())
+    }));
+    let row = text.lines().last().unwrap();
+    let times: Vec<f64> = row
+        .split('|')
+        .filter(|c| !c.trim().is_empty())
+        .map(|c| c.trim().parse().unwrap())
+        .collect();
+    assert_eq!(times.len(), 7, "{text}");
+    assert!(times[0] > 0.0 && times.iter().all(|t| *t >= 0.0), "{text}");
+    std::fs::remove_dir_all(&out).unwrap();
+}
+
+#[test]
 fn numpy_reads_a_batch_exactly_as_the_rust_reader() {
     let mut layout = BatchLayout::new();
     let points = layout.add::<f32>("points", &[3, 4]).unwrap();
