@@ -28,7 +28,6 @@ superflow's samples pay for; the comparison leans its way. One process, one thre
 from __future__ import annotations
 
 import argparse
-import io
 import json
 import sys
 import time
