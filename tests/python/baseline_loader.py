@@ -71,7 +71,7 @@ def unpack(drive_path: Path, out: Path) -> dict:
         name = f"sweep_{i:05d}.bin"
         points.tofile(out / name)
         frame = frame_of(msg)
-        root = tf._chain(frame)[-1]
+        root = tf.root(frame)
         stamp = stamp_of(msg)
         sweeps.append({"file": name, "stamp": stamp, "map_from_lidar": tf.lookup(root, frame, stamp).tolist()})
     sidecar = drive_path.with_suffix(".superpixels.mcap")
@@ -90,7 +90,7 @@ def unpack(drive_path: Path, out: Path) -> dict:
         images = []
         for i, msg in enumerate(drive.messages[topic]):
             stamp, frame = stamp_of(msg), frame_of(msg)
-            root = tf._chain(frame)[-1]
+            root = tf.root(frame)
             jpg = f"{name}_{i:05d}.jpg"
             (out / jpg).write_bytes(bytes(msg.data))
             png = None
@@ -191,12 +191,12 @@ def keyframe_step(index: dict) -> int:
     return max(1, round(KEYFRAME_INTERVAL_S * 1e9 / period))
 
 
-def build_sample(root: Path, index: dict, key: int, rng: np.random.Generator) -> dict[str, float]:
+def build_sample(root: Path, index: dict, step: int, key: int, rng: np.random.Generator) -> dict[str, float]:
+    """One sample around sweep ``key`` (``step`` sweeps per keyframe interval); seconds per stage."""
     timer = Timer()
     sweeps = index["sweeps"]
     names = sorted(index["cameras"])
     chosen = rng.choice(len(names), min(CAMERAS_PER_SAMPLE, len(names)), replace=False)
-    step = keyframe_step(index)
     frames = [key - step, key, key + step]
     clouds = {s: np.fromfile(root / sweeps[s]["file"], dtype=np.float32).reshape(-1, 4)
               for s in frames + [key - d for d in range(1, DENSE_EXTRA + 1)]}
@@ -215,8 +215,7 @@ def build_sample(root: Path, index: dict, key: int, rng: np.random.Generator) ->
         stamp = sweeps[s]["stamp"]
         for c in chosen:
             cam = index["cameras"][names[c]]
-            stamps = np.array([im["stamp"] for im in cam["images"]])
-            image = cam["images"][int(np.argmin(np.abs(stamps - stamp)))]
+            image = cam["images"][int(np.argmin(np.abs(cam["stamps"] - stamp)))]
             flip = bool(rng.random() < 0.5)
             _, ids = load_image(root, cam, image, flip, timer)
             cam_from_lidar = invert(np.asarray(image["map_from_cam"])) @ np.asarray(sweeps[s]["map_from_lidar"])
@@ -238,6 +237,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     out = args.out or args.drive.with_name(args.drive.stem + ".files")
     index = unpack(args.drive, out)
+    for cam in index["cameras"].values():  # looked up per image in every sample
+        cam["stamps"] = np.array([im["stamp"] for im in cam["images"]], dtype=np.int64)
     n_sweeps = len(index["sweeps"])
     step = keyframe_step(index)
     first = max(step, DENSE_EXTRA)
@@ -246,12 +247,12 @@ def main(argv: list[str] | None = None) -> int:
         raise SystemExit(f"{args.drive}: {n_sweeps} sweeps, too few for a keyframe with neighbours")
     rng = np.random.default_rng(0)
     for key in keys[:2]:  # warm-up: file cache, imports
-        build_sample(out, index, key, rng)
+        build_sample(out, index, step, key, rng)
     totals, stages = [], {}
     for i in range(args.samples):
         key = keys[int(rng.integers(len(keys)))]
         started = time.perf_counter()
-        times = build_sample(out, index, key, rng)
+        times = build_sample(out, index, step, key, rng)
         totals.append(time.perf_counter() - started)
         for name, seconds in times.items():
             stages.setdefault(name, []).append(seconds)

@@ -254,6 +254,10 @@ class TransformBuffer:
                 raise ValueError(f"transform cycle through {frame!r}")
         return chain
 
+    def root(self, frame: str) -> str:
+        """The top of ``frame``'s tree (the fixed frame, e.g. ``map``)."""
+        return self._chain(frame)[-1]
+
     def _ancestor_from(self, frame: str, ancestor: str, stamp: int) -> np.ndarray:
         m = np.eye(4)
         while frame != ancestor:

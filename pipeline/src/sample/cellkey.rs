@@ -27,7 +27,7 @@ pub(crate) struct CellKeys {
 #[allow(unsafe_code)]
 fn range(cells: &[[i32; 3]]) -> [[i32; 3]; 2] {
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
+    if crate::sample::simd::has_avx2() {
         // SAFETY: the CPU runs AVX2 (checked just above), the only requirement of calling
         // a function compiled with it enabled.
         return unsafe { range_avx2(cells) };

@@ -125,7 +125,7 @@ pub(super) fn cylindrical_cells(
         return unsafe { cylindrical_cells_avx512(xyz, sizes, exact) };
     }
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
+    if crate::sample::simd::has_avx2() {
         // SAFETY: the CPU runs AVX2 (checked just above), the only requirement of calling
         // a function compiled with it enabled.
         return unsafe { cylindrical_cells_avx2(xyz, sizes, exact) };
@@ -234,7 +234,7 @@ mod tests {
             #[cfg(target_arch = "x86_64")]
             #[allow(unsafe_code)]
             {
-                if std::arch::is_x86_feature_detected!("avx2") {
+                if crate::sample::simd::has_avx2() {
                     // SAFETY: the CPU runs AVX2.
                     let avx2 = unsafe { super::cylindrical_cells_avx2(points, sizes, &exact) };
                     assert_eq!(avx2, fast, "{grid:?}: AVX2 copy");

@@ -5,6 +5,7 @@
 
 #[cfg(target_arch = "x86_64")]
 use super::simd::has_avx512;
+
 /// Where output index `i` samples the input, for `n_in → n_out` with half-pixel
 /// centres: the two input indices and the weight of the second.
 fn linear_taps(n_in: usize, n_out: usize) -> Vec<(usize, usize, f32)> {
@@ -82,7 +83,7 @@ fn resize_bilinear_dispatch<const C: usize>(data: &[u8], size: Size) -> Vec<u8> 
         return unsafe { resize_bilinear_avx512::<C>(data, size) };
     }
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
+    if crate::sample::simd::has_avx2() {
         // SAFETY: the CPU runs AVX2 (checked just above), the only requirement of calling
         // a function compiled with it enabled.
         return unsafe { resize_bilinear_avx2::<C>(data, size) };
@@ -628,7 +629,7 @@ mod tests {
                 } else {
                     want.clone()
                 };
-                if std::arch::is_x86_feature_detected!("avx2") {
+                if crate::sample::simd::has_avx2() {
                     assert_eq!(copies(false), expected, "{size:?} {mirrored}, AVX2 copy");
                 }
                 if has_avx512() {

@@ -123,7 +123,7 @@ pub fn pair_points(xyz: &[[f32; 3]], view: &CameraView<'_>) -> Vec<Pairing> {
         return unsafe { pair_points_avx512(xyz, view) };
     }
     #[cfg(target_arch = "x86_64")]
-    if std::arch::is_x86_feature_detected!("avx2") {
+    if crate::sample::simd::has_avx2() {
         // SAFETY: the CPU runs AVX2 (checked just above), the only requirement of calling
         // a function compiled with it enabled.
         return unsafe { pair_points_avx2(xyz, view) };
@@ -329,7 +329,7 @@ mod tests {
         #[cfg(target_arch = "x86_64")]
         #[allow(unsafe_code)]
         {
-            if std::arch::is_x86_feature_detected!("avx2") {
+            if crate::sample::simd::has_avx2() {
                 // SAFETY: the CPU runs AVX2.
                 let avx2 = unsafe { pair_points_avx2(&xyz, &view) };
                 assert_eq!(avx2, want, "AVX2 copy");

@@ -1,9 +1,9 @@
 //! Runtime choice of the vector code for the sample builder's hot loops.
 //!
 //! The crate is built for baseline x86-64 (SSE2), which leaves most of the vector width
-//! of current CPUs unused. The hot loops (bilinear resize, cylindrical cells, the
-//! projection's cone test, SLIC) are therefore also compiled with AVX2 and with AVX-512
-//! enabled (`#[target_feature]` copies of functions whose bodies are
+//! of current CPUs unused. The hot loops (bilinear resize, cylindrical cells and their
+//! ranges, the projection's cone test, SLIC) are therefore also compiled with AVX2, most
+//! of them with AVX-512 too (`#[target_feature]` copies of functions whose bodies are
 //! `#[inline(always)]`), and the widest copy the CPU runs is chosen at run time. FMA is
 //! never used for contraction (Rust never contracts `a * b + c`): every copy performs the
 //! same IEEE operations in the same order, so all give identical results.
