@@ -185,7 +185,18 @@ pub fn kill_and_restart(
 /// (CI has 2 cores), allowed as root (CI runs as root), waiting ranks yielding the CPU
 /// instead of busy-polling, and the shared-memory transport without CMA (ptrace is
 /// off in containers). Open MPI's `mpirun` must be installed (`openmpi-bin`).
+///
+/// Each job gets its own session directory (`TMPDIR`, which Open MPI puts its
+/// `ompi.<host>.<uid>` tree under). Jobs started together by parallel tests otherwise
+/// race to create and remove the one shared `/tmp/ompi.<host>.<uid>`: Open MPI 4.1
+/// fails `orte_init` with "mkdir ... File exists" when one job creates it between
+/// another's check and its `mkdir` (seen once in CI). `mpirun` removes its tree when it
+/// ends; the empty directory stays in the system's temporary directory.
 pub fn mpirun(ranks: usize) -> Command {
+    static JOBS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+    let job = JOBS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let session = std::env::temp_dir().join(format!("sfmpi-{}-{job}", std::process::id()));
+    std::fs::create_dir_all(&session).expect("a session directory for mpirun");
     let mut command = Command::new("mpirun");
     command
         .args([
@@ -198,6 +209,7 @@ pub fn mpirun(ranks: usize) -> Command {
         .env("OMPI_ALLOW_RUN_AS_ROOT", "1")
         .env("OMPI_ALLOW_RUN_AS_ROOT_CONFIRM", "1")
         .env("OMPI_MCA_mpi_yield_when_idle", "1")
-        .env("OMPI_MCA_btl_vader_single_copy_mechanism", "none");
+        .env("OMPI_MCA_btl_vader_single_copy_mechanism", "none")
+        .env("TMPDIR", &session);
     command
 }
