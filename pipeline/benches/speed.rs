@@ -3,7 +3,8 @@
 //! write against one plain write of its bytes.
 //!
 //! `cargo bench -p superflow-pipeline --bench speed` (options: `-- --samples N` (48),
-//! `--slic-samples N` (12), `--sizes 800x450,1600x900`, `--regenerate`).
+//! `--slic-samples N` (12), `--sizes 800x450,1600x900`, `--ros2-sizes 800x450`,
+//! `--regenerate`).
 //!
 //! A last table sets a sample's decoding beside what the libraries alone cost for the same
 //! work (`speed/floor.rs`): the chunks and bytes a sample decompresses (counted) at
@@ -19,13 +20,17 @@
 //! sidecar that `superflow-pipeline superpixels` writes (written once into
 //! `target/bench-drives/…/slic/`, beside a link to the drive).
 //!
-//! The drives come from the generator (`superflow-recordings --preset nuscenes`): the
-//! nuscenes2mcap layout (Foxglove protobuf), a 32-beam LiDAR at 20 Hz (~33 k returns a
-//! sweep), six JPEG cameras at ~12 Hz triggered as the beam passes them, class maps as
-//! PNG in a `<drive>.superpixels.mcap` sidecar, zstd chunks. They are written once under
+//! The drives come from the generator (`superflow-recordings --preset nuscenes`): a
+//! 32-beam LiDAR at 20 Hz (~33 k returns a sweep, its lasers firing 1.152 µs apart as an
+//! HDL-32E's), six JPEG cameras at ~12 Hz triggered as the beam passes them, class maps
+//! as PNG in a `<drive>.superpixels.mcap` sidecar, zstd chunks; in the nuscenes2mcap
+//! layout (Foxglove protobuf, motion-compensated sweeps, undistorted images) at each
+//! `--sizes`, and as a rosbag2 recording (CDR, raw sweeps with a time per point that
+//! the pipeline de-skews, distorted images) at each `--ros2-sizes`, class maps only
+//! (SLIC does not depend on the layout). They are written once under
 //! `target/bench-drives/v<generator version>-<compression>-<JPEG coding>-<chunk
-//! size>-<length>/` (20 s at 800×450, a minute at 1600×900) and reused while all of
-//! these are the same.
+//! size>-<length>-beams<interval>/` (8 s each) and reused while all of these are the
+//! same.
 
 #[path = "speed/chart.rs"]
 mod chart;
@@ -56,18 +61,19 @@ static ALLOCATOR: superflow_pipeline::memory::Allocator = superflow_pipeline::me
 /// Samples in the batch of the batch-write measurement (the service's default).
 const BATCH: usize = 4;
 
-/// Writes (or finds) the nuScenes-sized drive of `width × height`; returns its path.
-fn drive(width: u32, height: u32, regenerate: bool) -> anyhow::Result<PathBuf> {
+/// Writes (or finds) the nuScenes-sized drive of `width × height` in `dialect`; returns
+/// its path.
+fn drive(dialect: Dialect, width: u32, height: u32, regenerate: bool) -> anyhow::Result<PathBuf> {
     let options = DriveOptions::nuscenes(width, height);
-    let dialect = Dialect::Foxglove;
     let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
         .join("../target/bench-drives")
         .join(format!(
-            "v{GENERATOR_VERSION}-{}-{}-{}k-{}s",
+            "v{GENERATOR_VERSION}-{}-{}-{}k-{}s-beams{}ns",
             options.foxglove_compression.name(),
             options.jpeg_coding.name(),
             options.chunk_size / 1024,
-            options.duration_secs()
+            options.duration_secs(),
+            options.beam_interval_nanos
         ));
     std::fs::create_dir_all(&dir)?;
     let path = dir.join(format!("{}.mcap", options.drive_name(dialect)));
@@ -226,33 +232,54 @@ fn main() -> anyhow::Result<()> {
     let n = arg_count("--samples")?.unwrap_or(48);
     let n_slic = arg_count("--slic-samples")?.unwrap_or(12);
     let sizes = arg_value("--sizes").unwrap_or_else(|| "800x450,1600x900".into());
+    let ros2_sizes = arg_value("--ros2-sizes").unwrap_or_else(|| "800x450".into());
     let regenerate = flag("--regenerate");
     let cores = cores();
     println!(
-        "nuScenes-sized drives, default recipe; {} rounds of {n} samples on 1 core then {cores} ({n_slic} with SLIC), load average {} at start",
+        "nuScenes-sized drives (nuscenes2mcap layout; ROS 2: rosbag2 CDR, raw sweeps with a time per point, distorted images), default recipe; {} rounds of {n} samples on 1 core then {cores} ({n_slic} with SLIC), load average {} at start",
         sample::ROUNDS,
         load_average(3)
     );
     println!(
-        "| cameras | superpixels | ms/sample 1 core | samples/s 1 core | samples/s {cores} cores | scaling | decode | sweeps | images | projection | superpixels | voxels+maps |"
+        "| drive | superpixels | ms/sample 1 core | samples/s 1 core | samples/s {cores} cores | scaling | decode | sweeps | images | projection | superpixels | voxels+maps |"
     );
     println!("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     let mut batch_rows = Vec::new();
     let mut floor_rows = Vec::new();
     let mut bars = Vec::new();
-    for size in sizes.split(',') {
-        let (w, h) = size
-            .split_once('x')
-            .and_then(|(w, h)| Some((w.parse::<u32>().ok()?, h.parse::<u32>().ok()?)))
-            .ok_or_else(|| anyhow::anyhow!("--sizes {size}: expected WIDTHxHEIGHT"))?;
-        let path = drive(w, h, regenerate)?;
+    let mut runs = Vec::new();
+    for (dialect, list) in [(Dialect::Foxglove, &sizes), (Dialect::Ros2, &ros2_sizes)] {
+        for size in list.split(',').filter(|s| !s.is_empty()) {
+            let (w, h) = size
+                .split_once('x')
+                .and_then(|(w, h)| Some((w.parse::<u32>().ok()?, h.parse::<u32>().ok()?)))
+                .ok_or_else(|| anyhow::anyhow!("{size}: expected WIDTHxHEIGHT"))?;
+            runs.push((dialect, w, h));
+        }
+    }
+    for (dialect, w, h) in runs {
+        let name = match dialect {
+            Dialect::Foxglove => format!("{w}×{h}"),
+            Dialect::Ros2 => format!("{w}×{h} ROS 2"),
+        };
+        let path = drive(dialect, w, h, regenerate)?;
         let dataset = Dataset::open(std::slice::from_ref(&path), &IngestConfig::default())?;
-        let slic_dataset = slic_sidecar_drive(&path, regenerate)?;
-        for (source, count, data) in [
-            (SuperpixelSource::Channel, n, &dataset),
-            (SuperpixelSource::Slic, n_slic, &dataset),
-            (SuperpixelSource::Slic, n, &slic_dataset),
-        ] {
+        // SLIC does not depend on the layout: its rows are the Foxglove drives'.
+        let slic_dataset = match dialect {
+            Dialect::Foxglove => Some(slic_sidecar_drive(&path, regenerate)?),
+            Dialect::Ros2 => None,
+        };
+        let mut rows = vec![(SuperpixelSource::Channel, n, &dataset, "class map (PNG)")];
+        if let Some(slic_dataset) = &slic_dataset {
+            rows.push((SuperpixelSource::Slic, n_slic, &dataset, "SLIC"));
+            rows.push((
+                SuperpixelSource::Slic,
+                n,
+                slic_dataset,
+                "SLIC from its sidecar",
+            ));
+        }
+        for (source, count, data, label) in rows {
             let config = SampleConfig {
                 superpixels: source,
                 ..SampleConfig::default()
@@ -261,13 +288,7 @@ fn main() -> anyhow::Result<()> {
             let run = one_and_all(&builder, count, cores)?;
             let (one, all) = (run.one, run.all);
             println!(
-                "| {w}×{h} | {} | {:.1} | {one:.1} | {all:.1} | {:.2}× | {} |",
-                match source {
-                    SuperpixelSource::Slic if std::ptr::eq(data, &slic_dataset) =>
-                        "SLIC from its sidecar",
-                    SuperpixelSource::Slic => "SLIC",
-                    _ => "class map (PNG)",
-                },
+                "| {name} | {label} | {:.1} | {one:.1} | {all:.1} | {:.2}× | {} |",
                 1e3 / one,
                 run.scaling,
                 stage_cells(&run.times, count * sample::ROUNDS),
@@ -277,11 +298,11 @@ fn main() -> anyhow::Result<()> {
                     .map(|i| builder.build(0, i % builder.plan().keyframes.len() as u64))
                     .collect::<Result<Vec<_>, _>>()?;
                 let shape = BatchShape::of(builder.config());
-                batch_rows.push((format!("{w}×{h}"), batch_write(&samples, shape)?));
-                let (row, libraries) = floor_row(&format!("{w}×{h}"), &builder, data, &path, n)?;
+                batch_rows.push((name.clone(), batch_write(&samples, shape)?));
+                let (row, libraries) = floor_row(&name, &builder, data, &path, n)?;
                 floor_rows.push(row);
                 bars.push(chart::Bar {
-                    name: format!("{w}×{h}"),
+                    name: name.clone(),
                     total: 1e3 / one,
                     libraries,
                     stages: stage_ms(&run.times, count * sample::ROUNDS),
@@ -294,9 +315,7 @@ fn main() -> anyhow::Result<()> {
         "samples/s: medians of the rounds; scaling: median of the rounds' ratios; stage columns: ms per sample on 1 core (decode: 5 sweeps, 9 JPEGs, 9 PNG class maps)"
     );
     println!();
-    println!(
-        "| cameras | batch of {BATCH} | producer write ms | one copy of its bytes ms | ratio |"
-    );
+    println!("| drive | batch of {BATCH} | producer write ms | one copy of its bytes ms | ratio |");
     println!("|---|---:|---:|---:|---:|");
     for (name, (write, copy, ratio, len)) in batch_rows {
         println!(
@@ -309,7 +328,7 @@ fn main() -> anyhow::Result<()> {
     );
     println!();
     println!(
-        "| cameras | chunks a sample | MB decompressed | libzstd alone ms | JPEGs, libjpeg-turbo alone ms | PNG class maps alone ms | sum ms | decode stage ms | decode / sum |"
+        "| drive | chunks a sample | MB decompressed | libzstd alone ms | JPEGs, libjpeg-turbo alone ms | PNG class maps alone ms | sum ms | decode stage ms | decode / sum |"
     );
     println!("|---|---:|---:|---:|---:|---:|---:|---:|---:|");
     for row in floor_rows {

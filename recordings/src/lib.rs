@@ -316,6 +316,7 @@ pub fn simulate_with(dialect: Dialect, options: &DriveOptions) -> Simulation {
     rig.cameras.truncate(options.cameras);
     rig.columns = options.lidar_columns;
     rig.beam_elevations = sim::beam_elevations(options.beams);
+    rig.beam_interval_nanos = options.beam_interval_nanos;
     let mut timing = dialect.timing();
     timing.duration_nanos = options.duration_nanos;
     let sweeps: Vec<Vec<Return>> = (0..timing.sweep_count())

@@ -166,6 +166,10 @@ pub struct DriveOptions {
     /// LiDAR beams (16 for the sample drives: -25°..+5°; other counts spread evenly over
     /// an HDL-32E-like -30.67°..+10.67°, see [`crate::sim::beam_elevations`]).
     pub beams: usize,
+    /// Time between the firings of two successive beams of a column, lowest first,
+    /// nanoseconds: 0 fires a column's beams at once (the sample drives); an HDL-32E
+    /// fires its lasers 1.152 µs apart, so every point of a raw sweep has its own time.
+    pub beam_interval_nanos: i64,
     /// When the cameras fire ([`CameraTrigger::Fixed`] for the sample drives).
     pub camera_trigger: CameraTrigger,
     /// Where the class maps go ([`ClassMapStorage::InDrive`] for the sample drives).
@@ -192,6 +196,7 @@ impl Default for DriveOptions {
             image_size: IMAGE_SIZE,
             lidar_columns: 300,
             beams: 16,
+            beam_interval_nanos: 0,
             camera_trigger: CameraTrigger::Fixed,
             class_maps: ClassMapStorage::InDrive,
             labels: LidarLabels::Native,
@@ -233,6 +238,7 @@ impl DriveOptions {
             image_size: (width, height),
             lidar_columns: 1084,
             beams: 32,
+            beam_interval_nanos: 1_152,
             camera_trigger: CameraTrigger::Staggered,
             class_maps: ClassMapStorage::PngSidecar,
             labels: LidarLabels::None,

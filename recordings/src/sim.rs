@@ -112,6 +112,8 @@ pub struct Rig {
     pub beam_elevations: Vec<f64>,
     /// Firings per revolution.
     pub columns: usize,
+    /// Nanoseconds between two successive beams of a column, lowest first (0: at once).
+    pub beam_interval_nanos: i64,
     /// The cameras, in nuScenes order.
     pub cameras: Vec<CameraRig>,
 }
@@ -162,6 +164,7 @@ impl Rig {
             ),
             beam_elevations: beam_elevations(16),
             columns: 300,
+            beam_interval_nanos: 0,
             cameras,
         }
     }
@@ -202,18 +205,28 @@ pub struct Return {
     pub object: Option<u32>,
 }
 
-/// Fires every column of sweep `k`: column `c` at `begin + c·T/C`, beams bottom to top.
+/// Fires every column of sweep `k`: column `c` at `begin + c·T/C`, beams bottom to top,
+/// beam `b` [`Rig::beam_interval_nanos`]` · b` after its column.
 pub fn simulate_sweep(scene: &Scene, rig: &Rig, timing: &DriveTiming, k: usize) -> Vec<Return> {
     let (begin, _) = timing.sweep_span(k);
     let mut out = Vec::with_capacity(rig.columns * rig.beam_elevations.len());
     for c in 0..rig.columns {
-        let stamp = begin.add_nanos(c as i64 * timing.sweep_nanos / rig.columns as i64);
-        let t_secs = stamp.secs_since(timing.start);
-        let map_from_lidar = map_from_ego(timing.start, stamp) * rig.ego_from_lidar;
-        let origin = map_from_lidar.translation.vector.into();
+        let column = begin.add_nanos(c as i64 * timing.sweep_nanos / rig.columns as i64);
         // Clockwise spin seen from above, starting behind the sensor.
         let azimuth = crate::trigger::column_azimuth(c, rig.columns);
+        let mut pose = None;
         for (ring, elevation) in rig.beam_elevations.iter().enumerate() {
+            let stamp = column.add_nanos(ring as i64 * rig.beam_interval_nanos);
+            let (map_from_lidar, t_secs) = match pose {
+                Some((at, iso, t)) if at == stamp => (iso, t),
+                _ => {
+                    let iso = map_from_ego(timing.start, stamp) * rig.ego_from_lidar;
+                    let t = stamp.secs_since(timing.start);
+                    pose = Some((stamp, iso, t));
+                    (iso, t)
+                }
+            };
+            let origin = map_from_lidar.translation.vector.into();
             let d_lidar = Vector3::new(
                 elevation.cos() * azimuth.cos(),
                 elevation.cos() * azimuth.sin(),

@@ -7,9 +7,11 @@
 use nalgebra::Point3;
 use superflow_pipeline::decode::image::Target;
 use superflow_pipeline::drive::dataset::nearest;
-use superflow_pipeline::sample::project::{CameraView, camera_from_lidar, deskew, pair_points};
+use superflow_pipeline::drive::{Drive, IngestConfig};
+use superflow_pipeline::sample::deskew::deskew;
+use superflow_pipeline::sample::project::{CameraView, camera_from_lidar, pair_points};
 use superflow_pipeline::source::ChunkCache;
-use superflow_recordings::Dialect;
+use superflow_recordings::{Dialect, DriveOptions, generate_with};
 use superflow_tests::{dataset, sample_drive};
 
 /// The ROS 2 drive records the same simulated returns as the Foxglove drive, raw (each
@@ -20,9 +22,40 @@ use superflow_tests::{dataset, sample_drive};
 fn raw_sweeps_deskew_onto_the_compensated_sweeps() {
     let ros = dataset(&sample_drive(Dialect::Ros2).unwrap()).unwrap();
     let fox = dataset(&sample_drive(Dialect::Foxglove).unwrap()).unwrap();
+    deskew_onto_compensated(&ros, &fox, &[3, 20, 41], 300);
+}
+
+/// The same with the lasers of a column firing 1.152 µs apart, as an HDL-32E's do: every
+/// point of a raw sweep has its own time (32 beams × 1084 columns a sweep, as on the
+/// speed bench's drives).
+#[test]
+fn raw_sweeps_with_a_time_per_point_deskew_onto_the_compensated_sweeps() {
+    let options = DriveOptions {
+        name: "per_beam_{dialect}".into(),
+        duration_nanos: 600_000_000,
+        cameras: 1,
+        image_size: (160, 90),
+        ..DriveOptions::nuscenes(160, 90)
+    };
+    let dir = std::env::temp_dir().join(format!("superflow-deskew-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let [ros, fox] = [Dialect::Ros2, Dialect::Foxglove].map(|dialect| {
+        let generated = generate_with(dialect, &options).unwrap();
+        let path = dir.join(format!("{}.mcap", options.drive_name(dialect)));
+        std::fs::write(&path, &generated.mcap).unwrap();
+        Drive::open(std::slice::from_ref(&path), &IngestConfig::default()).unwrap()
+    });
+    deskew_onto_compensated(&ros, &fox, &[2, 7, 11], 32 * 1084);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// De-skews sweeps `sweeps` of the raw drive `ros` and checks them against the same
+/// sweeps of the compensated drive `fox`; each raw sweep has at least `distinct_times`
+/// firing times (of its points that returned).
+fn deskew_onto_compensated(ros: &Drive, fox: &Drive, sweeps: &[usize], distinct_times: usize) {
     let (ros_lidar, fox_lidar) = (ros.lidar.as_ref().unwrap(), fox.lidar.as_ref().unwrap());
     let mut cache = ChunkCache::new(2);
-    for k in [3, 20, 41] {
+    for &k in sweeps {
         let raw = ros
             .read_sweep(&ros_lidar.sweeps[k], &mut cache)
             .unwrap()
@@ -32,6 +65,21 @@ fn raw_sweeps_deskew_onto_the_compensated_sweeps() {
             .unwrap()
             .cloud;
         assert_eq!(raw.len(), compensated.len());
+        let mut times: Vec<u32> = raw
+            .time_offset_secs
+            .as_ref()
+            .unwrap()
+            .iter()
+            .map(|t| t.to_bits())
+            .collect();
+        times.sort_unstable();
+        times.dedup();
+        // Columns with no return at all leave their times out.
+        assert!(
+            times.len() * 10 >= distinct_times.min(raw.len()) * 9,
+            "sweep {k}: {} distinct times",
+            times.len()
+        );
         let fixed = deskew(&raw, &ros.tf, "map").unwrap();
         // Foxglove points: LIDAR_TOP at the sweep end -> map -> lidar_top at the sweep start.
         let map_from_end = fox
@@ -61,7 +109,8 @@ fn raw_sweeps_deskew_onto_the_compensated_sweeps() {
             "sweep {k}: raw points only {worst_raw} m off"
         );
         eprintln!(
-            "sweep {k}: de-skewed within {worst_fixed:.5} m, raw off by up to {worst_raw:.3} m"
+            "sweep {k}: {} times, de-skewed within {worst_fixed:.5} m, raw off by up to {worst_raw:.3} m",
+            times.len()
         );
     }
 }

@@ -8,8 +8,9 @@
 use prost::Message;
 use std::path::Path;
 use std::time::Instant;
-use superflow_pipeline::decode::foxglove::CompressedImage;
+use superflow_pipeline::decode::foxglove::{CompressedImage, Timestamp};
 use superflow_pipeline::decode::image::{Target, decode_foxglove_compressed};
+use superflow_pipeline::decode::ros2;
 use turbojpeg::{Decompressor, Image, PixelFormat, ScalingFactor};
 
 /// Rounds of each measurement; the fastest counts (the VM drifts by 10–30 %).
@@ -45,20 +46,37 @@ pub fn zstd_ms_per_mb(path: &Path) -> anyhow::Result<Option<f64>> {
     Ok(Some(ms * chunks.len() as f64 / (total as f64 / 1e6)))
 }
 
-/// The first `IMAGES` `foxglove.CompressedImage` messages of `path` whose format is
-/// `format`.
+/// The first `IMAGES` compressed images of `path` (`foxglove.CompressedImage` or ROS 2
+/// `sensor_msgs/msg/CompressedImage`) whose format names `format` (`jpeg`, `png`), as
+/// `foxglove.CompressedImage`s of format `format`.
 fn compressed_images(path: &Path, format: &str) -> anyhow::Result<Vec<CompressedImage>> {
     let bytes = std::fs::read(path)?;
     let mut out = Vec::new();
     for message in mcap::MessageStream::new(&bytes)? {
         let message = message?;
         let schema = message.channel.schema.as_ref().map(|s| s.name.as_str());
-        if schema != Some("foxglove.CompressedImage") {
-            continue;
-        }
-        let image = CompressedImage::decode(&message.data[..])?;
-        if image.format == format {
-            out.push(image);
+        let image = match schema {
+            Some("foxglove.CompressedImage") => CompressedImage::decode(&message.data[..])?,
+            Some("sensor_msgs/msg/CompressedImage") => {
+                let image: ros2::CompressedImage = ros2::decode(&message.data)?;
+                CompressedImage {
+                    timestamp: Some(Timestamp::new(
+                        image.header.stamp.sec as u32,
+                        image.header.stamp.nanosec,
+                    )),
+                    frame_id: image.header.frame_id,
+                    format: image.format,
+                    data: image.data.into(),
+                }
+            }
+            _ => continue,
+        };
+        // ROS 2 spells it `rgb8; jpeg compressed bgr8` or `mono8; png compressed mono8`.
+        if image.format == format || image.format.contains(&format!(" {format} ")) {
+            out.push(CompressedImage {
+                format: format.to_string(),
+                ..image
+            });
             if out.len() == IMAGES {
                 break;
             }

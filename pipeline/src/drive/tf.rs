@@ -278,13 +278,41 @@ impl TransformTree {
         Ok(ancestor_from_frame)
     }
 
-    /// `target_from_source` at `stamp`: maps points in `source` to points in `target`.
-    pub fn lookup(
+    /// The stamps strictly between `from` and `to` of the samples of every stamped edge
+    /// on the path between `target` and `source`, ascending (with repeats): between two
+    /// of them, [`lookup`](Self::lookup) interpolates each edge within one segment.
+    pub fn sample_stamps(
         &self,
         target: &str,
         source: &str,
-        stamp: Stamp,
-    ) -> Result<Isometry3<f64>, TfError> {
+        from: Stamp,
+        to: Stamp,
+    ) -> Result<Vec<Stamp>, TfError> {
+        let (up_source, i, up_target, j) = self.path(target, source)?;
+        let mut stamps: Vec<Stamp> = up_source[..i]
+            .iter()
+            .chain(&up_target[..j])
+            .map(|child| &self.edges[*child])
+            .filter(|edge| edge.fixed.is_none())
+            .flat_map(|edge| {
+                let samples = &edge.samples;
+                let begin = samples.partition_point(|(s, _)| *s <= from);
+                let end = samples.partition_point(|(s, _)| *s < to);
+                samples[begin..end.max(begin)].iter().map(|(s, _)| *s)
+            })
+            .collect();
+        stamps.sort_unstable();
+        Ok(stamps)
+    }
+
+    /// Both frames' chains up to the root, and how many edges of each lead to the first
+    /// frame they share.
+    #[allow(clippy::type_complexity)]
+    fn path<'a>(
+        &'a self,
+        target: &'a str,
+        source: &'a str,
+    ) -> Result<(Vec<&'a str>, usize, Vec<&'a str>, usize), TfError> {
         self.known(target)?;
         self.known(source)?;
         let up_source = self.chain(source)?;
@@ -297,6 +325,17 @@ impl TransformTree {
                 target: target.to_string(),
                 source_frame: source.to_string(),
             })?;
+        Ok((up_source, i, up_target, j))
+    }
+
+    /// `target_from_source` at `stamp`: maps points in `source` to points in `target`.
+    pub fn lookup(
+        &self,
+        target: &str,
+        source: &str,
+        stamp: Stamp,
+    ) -> Result<Isometry3<f64>, TfError> {
+        let (up_source, i, up_target, j) = self.path(target, source)?;
         let common_from_source = self.compose(&up_source, i, stamp)?;
         let common_from_target = self.compose(&up_target, j, stamp)?;
         Ok(common_from_target.inverse() * common_from_source)
@@ -345,6 +384,43 @@ mod tests {
             .lookup("base_link", "map", Stamp::from_nanos(1_250))
             .unwrap();
         assert!((inverse * mid).translation.vector.norm() < 1e-12);
+    }
+
+    #[test]
+    fn sample_stamps_are_those_of_the_stamped_edges_on_the_path() {
+        let mut tree = TransformTree::new(0);
+        for k in 0..5 {
+            tree.insert(tf(k * 100, "map", "odom", 0.0, 0.0, false))
+                .unwrap();
+            tree.insert(tf(k * 40 + 5, "odom", "base_link", 0.0, 0.0, false))
+                .unwrap();
+            tree.insert(tf(k * 10, "base_link", "cam", 0.0, 0.0, false))
+                .unwrap();
+        }
+        tree.insert(tf(0, "base_link", "lidar", 0.5, 0.0, true))
+            .unwrap();
+        let stamps = |target, source, from, to| -> Vec<i64> {
+            tree.sample_stamps(
+                target,
+                source,
+                Stamp::from_nanos(from),
+                Stamp::from_nanos(to),
+            )
+            .unwrap()
+            .into_iter()
+            .map(Stamp::nanos)
+            .collect()
+        };
+        // map ← odom ← base_link ← lidar: the map and odom edges, strictly inside.
+        assert_eq!(stamps("map", "lidar", 45, 200), [85, 100, 125, 165]);
+        assert_eq!(stamps("lidar", "map", 45, 200), [85, 100, 125, 165]);
+        // lidar → base_link ← cam: only the camera's edge; the static one has none.
+        assert_eq!(stamps("lidar", "cam", 5, 30), [10, 20]);
+        assert!(stamps("map", "lidar", 100, 100).is_empty());
+        assert!(
+            tree.sample_stamps("map", "nowhere", Stamp::from_nanos(0), Stamp::from_nanos(1))
+                .is_err()
+        );
     }
 
     #[test]

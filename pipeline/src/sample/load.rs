@@ -5,8 +5,8 @@
 //! with the frame's images ([`SampleContext::load_frame`], images in `images.rs`).
 //! Reads go through a per-thread chunk cache.
 
+use super::deskew::deskew_in_place;
 use super::error::SampleError;
-use super::project::deskew;
 use super::recipe::SampleConfig;
 use super::timing::CameraScan;
 use super::types::{SampleId, SampleImage, StageTimes};
@@ -132,7 +132,7 @@ impl SampleContext<'_> {
         if self.config.deskew && cloud.time_offset_secs.is_some() {
             let t = Instant::now();
             let map = drive.map_frame.as_deref().unwrap_or_default();
-            cloud = deskew(&cloud, &drive.tf, map).map_err(|e| {
+            deskew_in_place(&mut cloud, &drive.tf, map).map_err(|e| {
                 self.transform_error(format!("de-skew of {}", lidar.topic), frame.stamp, e)
             })?;
             times.sweeps += elapsed(t);

@@ -12,7 +12,9 @@
 //!   dense cloud, pairing, augmentation, voxels and maps);
 //! * [`types`]: what a sample is made of, and [`StageTimes`];
 //! * [`project`]: LiDAR → camera through the ego poses at both stamps (paper Eq. 1) with
-//!   the lens distortion and strict bounds, and per-point de-skew of raw sweeps;
+//!   the lens distortion and strict bounds;
+//! * [`deskew`]: raw sweeps with per-point time moved to their stamp (exact poses at
+//!   knots ≤ 0.25 ms apart, blended between);
 //! * [`image_ops`]: bilinear / nearest resize, flips, raw → resized pixel;
 //! * [`slic`]: SLIC superpixels when the recording has no class maps;
 //! * [`sidecar`]: SLIC computed once per drive into a `<drive>.slic.mcap` sidecar
@@ -33,6 +35,7 @@ pub mod builder;
 mod cellkey;
 mod cloud;
 mod cylinder;
+pub mod deskew;
 mod error;
 pub mod export;
 pub mod image_ops;

@@ -1,12 +1,11 @@
 //! LiDAR → camera geometry (paper Eq. 1, done right): each point goes through the ego
 //! pose at the LiDAR stamp into the map, then through the ego pose at the camera stamp
-//! into the camera, then through `K` and the lens distortion. Also per-point de-skew of
-//! raw sweeps with per-point time.
+//! into the camera, then through `K` and the lens distortion.
 
 use crate::drive::{TfError, TransformTree};
 use nalgebra::{Isometry3, Matrix3, Point2, Point3, Vector3};
 use superflow_schemas::Stamp;
-use superflow_schemas::sensor::{CameraCalibration, PointCloud};
+use superflow_schemas::sensor::CameraCalibration;
 
 /// Points nearer than this (along the optical axis) are not paired (the paper's 1 m).
 pub const MIN_DEPTH_M: f64 = 1.0;
@@ -215,41 +214,6 @@ fn might_be_seen(p: [f32; 3], rows: &[[f32; 4]; 3], cone: f32) -> bool {
     let behind = z <= MIN_DEPTH_M as f32;
     let beside = x * x + y * y > cone * (z * z);
     !(behind || beside)
-}
-
-/// Moves every point of a raw sweep (per-point time, each point in the LiDAR frame at
-/// its own firing instant) into the LiDAR frame at the sweep's stamp:
-/// `p_stamp = lidar_from_map(stamp) · map_from_lidar(stamp + t_i) · p_i`. Points sharing
-/// a firing time share one transform lookup. A cloud without per-point time is returned
-/// unchanged.
-pub fn deskew(
-    cloud: &PointCloud,
-    tf: &TransformTree,
-    map_frame: &str,
-) -> Result<PointCloud, TfError> {
-    let Some(times) = &cloud.time_offset_secs else {
-        return Ok(cloud.clone());
-    };
-    let lidar_from_map = tf
-        .lookup(map_frame, &cloud.frame_id, cloud.stamp)?
-        .inverse();
-    let mut out = cloud.clone();
-    let mut cached: Option<(f32, Isometry3<f64>)> = None;
-    for (p, t) in out.xyz.iter_mut().zip(times) {
-        let stamp_from_firing = match cached {
-            Some((ct, iso)) if ct == *t => iso,
-            _ => {
-                let firing = cloud.stamp.add_nanos((f64::from(*t) * 1e9).round() as i64);
-                let iso = lidar_from_map * tf.lookup(map_frame, &cloud.frame_id, firing)?;
-                cached = Some((*t, iso));
-                iso
-            }
-        };
-        let q = stamp_from_firing * Point3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
-        *p = [q.x as f32, q.y as f32, q.z as f32];
-    }
-    out.time_offset_secs = Some(vec![0.0; times.len()]);
-    Ok(out)
 }
 
 #[cfg(test)]
