@@ -19,6 +19,7 @@ mod cache;
 mod chunk;
 mod damage;
 mod framing;
+mod partial;
 mod scan;
 mod summary;
 
@@ -192,6 +193,8 @@ pub struct McapFile {
     pub message_counts: BTreeMap<u16, u64>,
     /// Chunks random access has decompressed.
     decompressed: cache::DecompressCounters,
+    /// Chunks random access has checked against their CRC.
+    checked: cache::CheckedChunks,
 }
 
 impl McapFile {

@@ -81,6 +81,7 @@ impl McapFile {
             damage: Vec::new(),
             message_counts: BTreeMap::new(),
             decompressed: Default::default(),
+            checked: Default::default(),
         })
     }
 

@@ -516,3 +516,85 @@ fn lz4_chunks_round_trip_and_a_flipped_byte_is_a_bad_chunk() {
         assert!(seen.is_empty(), "byte {at}: {} messages", seen.len());
     }
 }
+
+#[test]
+fn a_checked_chunk_read_again_is_decoded_as_far_as_it_is_read_unless_its_bytes_changed() {
+    // 8 zstd chunks of ~600 kB (several 128 KiB blocks each), ~30 messages a chunk.
+    let options = mcap::WriteOptions::new()
+        .chunk_size(Some(600_000))
+        .compression(Some(mcap::Compression::Zstd));
+    let (mut writer, channels) = raw_writer(options, &["/a"]);
+    for i in 0..240u32 {
+        let header = records::MessageHeader {
+            channel_id: channels[0],
+            sequence: i,
+            log_time: 1_000 + u64::from(i),
+            publish_time: 1_000 + u64::from(i),
+        };
+        let payload: Vec<u8> = (0..20_000u32)
+            .map(|j| (j.wrapping_mul(2_654_435_761).wrapping_add(i) >> 24) as u8)
+            .collect();
+        writer.write_to_known_channel(&header, &payload).unwrap();
+    }
+    writer.finish().unwrap();
+    let bytes = writer.into_inner().into_inner();
+    let (file, seen) = scan_bytes("on_demand.mcap", &bytes);
+    assert!(file.damage.is_empty(), "{:?}", file.damage);
+    let firsts: Vec<&Seen> = seen
+        .iter()
+        .filter(|s| matches!(s.3, MessageLoc::Chunk { index: 0, .. }))
+        .collect();
+    assert!(firsts.len() >= 7, "{} chunks", firsts.len());
+    let read = |cache: &mut ChunkCache, s: &Seen| {
+        let m = file.read_message(s.3, cache).unwrap();
+        assert_eq!((m.log_time, m.data), (s.1, &s.2[..]), "{:?}", s.3);
+    };
+    // One thread: the shared table keeps 4 chunks, so the passes below read most chunks
+    // from the file again.
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .unwrap();
+    pool.install(|| {
+        let mut cache = ChunkCache::new(1);
+        // First reads decode whole chunks and check their CRCs.
+        for s in &firsts {
+            read(&mut cache, s);
+        }
+        let whole = file.decompressed();
+        assert_eq!(whole.chunks, firsts.len() as u64);
+        // Read again, each chunk only as far as its first message.
+        for s in &firsts {
+            read(&mut cache, s);
+        }
+        let again = file.decompressed();
+        let (chunks, decoded) = (again.chunks - whole.chunks, again.bytes - whole.bytes);
+        assert!(chunks >= 4, "{chunks} chunks read again");
+        let per_chunk = whole.bytes / whole.chunks;
+        assert!(
+            decoded * 2 < chunks * per_chunk,
+            "{decoded} bytes decoded for {chunks} first messages, chunks of {per_chunk}"
+        );
+        // Every message, last first: chunks decode on from where they stopped.
+        for s in seen.iter().rev() {
+            read(&mut cache, s);
+        }
+        // The file changes under the reader: a chunk read again with other bytes is
+        // decoded whole, and the damage is found.
+        let target = &file.chunks[0];
+        let mut damaged = bytes.clone();
+        damaged[(target.offset + target.record_len / 2) as usize] ^= 0x55;
+        std::fs::write(file.path(), &damaged).unwrap();
+        for s in &firsts[firsts.len() - 5..] {
+            read(&mut cache, s);
+        }
+        let err = file
+            .read_message(firsts[0].3, &mut cache)
+            .expect_err("the changed chunk is rejected");
+        assert!(
+            err.to_string()
+                .contains(&format!("chunk at byte {}", target.offset)),
+            "{err}"
+        );
+    });
+}
