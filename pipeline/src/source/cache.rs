@@ -63,9 +63,9 @@ impl Held {
 }
 
 /// The chunks this opening of a file has decoded whole and found to match their CRC,
-/// each with a CRC-32 of its compressed bytes: read again with the same compressed bytes,
-/// a zstd chunk is decoded only as far as it is read ([`PartialChunk`]), since it decodes
-/// to the bytes its CRC was checked on.
+/// each with a CRC-32 of its record (header and compressed bytes): read again with the
+/// same record, a zstd chunk is decoded only as far as it is read ([`PartialChunk`]),
+/// since it decodes to the bytes its CRC was checked on.
 #[derive(Debug, Default)]
 pub(super) struct CheckedChunks(Mutex<FxHashMap<u32, u32>>);
 
@@ -287,7 +287,8 @@ impl McapFile {
                         // damage anywhere in it rejects all of it.
                         let on_demand =
                             header.compression == "zstd" && header.uncompressed_crc != 0;
-                        let fingerprint = on_demand.then(|| crc32fast::hash(&data));
+                        // Over the whole record: header fields and compressed bytes.
+                        let fingerprint = on_demand.then(|| crc32fast::hash(body));
                         if let Some(fingerprint) = fingerprint
                             && self.checked.holds(chunk, fingerprint)
                         {

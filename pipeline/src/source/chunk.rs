@@ -114,7 +114,7 @@ pub(super) struct DecodedChunk {
 
 /// Bytes of a message record's body before its payload: channel id (2), sequence (4),
 /// log time (8), publish time (8).
-const MESSAGE_HEADER_LEN: usize = 22;
+pub(super) const MESSAGE_HEADER_LEN: usize = 22;
 
 /// Decompresses a chunk and splits it into records. `header` and `records` are the
 /// parsed chunk record (`records` still compressed).

@@ -4,7 +4,7 @@
 //! drives the bytes up to the end of the last message it takes are ~63 % of what whole
 //! chunks decompress to (79 % at 1600×900). A chunk is decoded whole, and its CRC checked,
 //! the first time this process reads it ([`super::cache`]); it is decoded on demand only
-//! when read again with the very same compressed bytes (a CRC-32 of them is kept), so no
+//! when read again with the very same record (a CRC-32 of it is kept), so no
 //! byte reaches a decoder that was not checked against the chunk's CRC once.
 //!
 //! zstd's buffer-less streaming API decodes one block (≤ 128 KiB) at a time straight into
@@ -12,17 +12,13 @@
 //! are, so decoding resumes where it stopped when a later read needs more.
 
 use super::MAX_RECORD_BYTES;
-use super::chunk::ChunkError;
+use super::chunk::{ChunkError, MESSAGE_HEADER_LEN};
 use super::framing::{FramingError, record_len};
 use mcap::records::{self, op};
 use std::ops::Range;
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicU64, Ordering};
 use zstd::zstd_safe::zstd_sys;
-
-/// Bytes of a message record's body before its payload: channel id (2), sequence (4),
-/// log time (8), publish time (8).
-const MESSAGE_HEADER_LEN: usize = 22;
 
 /// One zstd chunk, decoded as far as it has been read.
 pub(super) struct PartialChunk {
