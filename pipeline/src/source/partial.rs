@@ -65,6 +65,8 @@ struct Progress {
     messages: Vec<(records::MessageHeader, Range<usize>)>,
     /// The last frame has ended (every byte is decoded), or decoding failed.
     finished: bool,
+    /// Why decoding failed, for every later read that needs bytes past the failure.
+    failed: Option<String>,
 }
 
 impl PartialChunk {
@@ -89,6 +91,7 @@ impl PartialChunk {
                 framed: 0,
                 messages: Vec::new(),
                 finished: false,
+                failed: None,
             }),
         })
     }
@@ -117,14 +120,19 @@ impl PartialChunk {
             let before = progress.out;
             let step = self.decode_block(&mut progress);
             decoded.fetch_add((progress.out - before) as u64, Ordering::Relaxed);
-            if let Err(e) = step {
+            if let Err(e) = step.and_then(|()| frame(&mut progress, self.base)) {
                 progress.finished = true;
+                progress.failed = Some(e.to_string());
                 return Err(e);
             }
-            frame(&mut progress, self.base)?;
         }
         let Some((header, range)) = progress.messages.get(index).cloned() else {
-            return Ok(None);
+            return match &progress.failed {
+                Some(why) => Err(unreadable(std::io::Error::other(format!(
+                    "an earlier read of this chunk failed: {why}"
+                )))),
+                None => Ok(None),
+            };
         };
         debug_assert!(range.end <= progress.out);
         // SAFETY: `range` lies within the first `out` bytes (framing only takes records
@@ -397,6 +405,12 @@ mod tests {
         let short = compressed[..compressed.len() * 2 / 3].to_vec();
         let partial = PartialChunk::new(plain.len() as u64, short).unwrap();
         assert!(partial.get(19, &decoded).is_err());
+        let again = partial.get(19, &decoded).unwrap_err().to_string();
+        assert!(
+            again.contains("an earlier read of this chunk failed"),
+            "{again}"
+        );
+        assert!(partial.get(0, &decoded).unwrap().is_some());
         // A declared size larger than the frames hold.
         let partial = PartialChunk::new(plain.len() as u64 + 5, compressed.clone()).unwrap();
         assert!(partial.get(19, &decoded).unwrap().is_some());
