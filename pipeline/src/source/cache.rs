@@ -9,7 +9,7 @@
 //! a chunk another is decompressing waits for it instead of decompressing it too.
 //!
 //! A chunk is decoded whole and checked against its CRC the first time the file is read
-//! there; a zstd chunk read again with the same compressed bytes ([`CheckedChunks`]) is
+//! there; a zstd chunk read again with the same record ([`CheckedChunks`]) is
 //! decoded only up to the messages asked for ([`PartialChunk`]): a sample needs ~63 % of
 //! the bytes of the chunks it touches on the nuScenes-sized bench drive.
 
@@ -77,7 +77,7 @@ impl CheckedChunks {
             .unwrap_or_else(|poisoned| poisoned.into_inner())
     }
 
-    /// Whether chunk `chunk` was checked with these compressed bytes (`fingerprint`).
+    /// Whether chunk `chunk` was checked with this record (`fingerprint`: a CRC-32 of it).
     fn holds(&self, chunk: u32, fingerprint: u32) -> bool {
         self.lock().get(&chunk) == Some(&fingerprint)
     }

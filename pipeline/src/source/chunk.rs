@@ -1,7 +1,7 @@
 //! One chunk decompressed and split into records, rejected whole if anything in it fails
 //! (CRC, decompression, a record), so corrupt bytes never reach a decoder. This is how
 //! every chunk is read the first time; a zstd chunk that passed is read again, with the
-//! same compressed bytes, only as far as its readers ask (`partial.rs`).
+//! same record (header and compressed bytes), only as far as its readers ask (`partial.rs`).
 
 use super::MAX_RECORD_BYTES;
 use super::framing::{FramingError, check_framing};
