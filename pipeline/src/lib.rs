@@ -59,10 +59,12 @@ pub mod config;
 pub mod decode;
 pub mod drive;
 pub mod inspect;
-pub mod invalid;
-pub mod memory;
 pub mod publish;
 pub mod sample;
 pub mod source;
+
+// The allocator and the settings error live in `superflow-common`, which the trainer
+// shares without depending on the pipeline; re-exported under their old paths.
+pub use superflow_common::{invalid, memory};
 #[cfg(test)]
 mod test_rng;

@@ -1,8 +1,10 @@
-//! The one error every `validate` of the pipeline's settings returns.
+//! The one error every `validate` of a configuration returns, the pipeline's and the
+//! trainer's alike.
 
 use std::fmt;
 
-/// A setting out of range: which one (its TOML path, e.g. `sample.temporal_frames`),
+/// A setting out of range: which one (its TOML path, e.g. `sample.temporal_frames` or
+/// `optim.steps`),
 /// the value found and the rule it breaks.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error("{setting} = {value} {rule}")]

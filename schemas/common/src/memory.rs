@@ -1,17 +1,18 @@
-//! The producer's allocator: mimalloc, told to keep the pages it frees.
+//! The binaries' allocator: mimalloc, told to keep the pages it frees.
 //!
-//! A sample allocates tens of megabytes (clouds, kernel maps, images) and frees them a
-//! few milliseconds later; the next sample wants the same again. By default mimalloc (and
+//! A pipeline sample allocates tens of megabytes (clouds, kernel maps, images) and frees
+//! them a few milliseconds later, and a training step does the same with hundreds of
+//! megabytes of tensors; the next one wants the same again. By default mimalloc (and
 //! glibc's malloc for blocks over its mmap threshold) hands freed pages back to the
-//! kernel, and the next sample faults them in again, each fault zeroing a page (2 MiB
-//! with transparent huge pages): 28 % of a sample's time on the nuScenes-sized bench
-//! drive. With purging off, the process keeps its high-water mark of memory and reuses
-//! it (`cargo bench -p superflow-pipeline --bench speed`: 47 → 34 ms per sample).
+//! kernel, and the next sample or step faults them in again, each fault zeroing a page
+//! (2 MiB with transparent huge pages). With purging off, the process keeps its
+//! high-water mark of memory and reuses it. (What that saves is measured in the
+//! pipeline's FIELD_NOTES, "allocator".)
 //!
 //! The binaries declare `#[global_allocator] static A: Allocator = Allocator;` and call
 //! [`keep_freed_pages`] first thing in `main`.
 
-/// The global allocator of the pipeline's binaries and benches.
+/// The global allocator of superflow's binaries and benches.
 pub use mimalloc::MiMalloc as Allocator;
 
 /// `mi_option_purge_delay` in mimalloc 3's `mi_option_e` (libmimalloc-sys exports no
