@@ -29,7 +29,7 @@ use superflow_tests::bench::train::{self, BATCH_SIZE, BatchFile, DRIVE, Preset};
 use superflow_tests::process::mpirun;
 use superflow_trainer::ddp::Ddp;
 use superflow_trainer::model::SuperFlowModel;
-use superflow_trainer::sparse::UNetPreset;
+use superflow_trainer::unet::UNetPreset;
 
 const WORKER: &str = "SUPERFLOW_DDP_BENCH_WORKER";
 const MB: usize = 1 << 20;
@@ -92,7 +92,7 @@ fn step_times(ddp: &Ddp, preset: &Preset, batch: &BatchFile, steps: usize) -> an
 fn all_reduce_times(ddp: &Ddp, reps: usize) {
     let device = burn::tensor::Device::flex();
     let model = SuperFlowModel::new(
-        &superflow_trainer::sparse::UNetConfig::preset(UNetPreset::Minkunet34),
+        &superflow_trainer::unet::UNetConfig::preset(UNetPreset::Minkunet34),
         384,
         0,
         &device,

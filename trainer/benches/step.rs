@@ -161,10 +161,10 @@ fn ms(v: f64) -> String {
 
 /// The `superflow-trainer` binary's allocator (mimalloc keeping freed pages).
 #[global_allocator]
-static ALLOCATOR: superflow_pipeline::memory::Allocator = superflow_pipeline::memory::Allocator;
+static ALLOCATOR: superflow_common::memory::Allocator = superflow_common::memory::Allocator;
 
 fn main() -> anyhow::Result<()> {
-    superflow_pipeline::memory::keep_freed_pages();
+    superflow_common::memory::keep_freed_pages();
     let args = Args::parse()?;
     let cores = cores();
     let load = load_average(1);

@@ -35,7 +35,7 @@ Model (the Rust trainer's):
 
 * 3D: MinkowskiEngine's MinkUNet run on the batch's kernel maps (no sparse library).
   A 3x3x3 convolution at level l: pairs ``l{l}_nbr`` = (input row, output row), grouped
-  by offset k (``starts[k]:starts[k+1]``); as ``trainer/src/sparse.rs`` does it: gather
+  by offset k (``starts[k]:starts[k+1]``); as ``trainer/src/unet.rs`` does it: gather
   ``x[in_rows]`` once, multiply each offset's part (``split``) by ``W[k]``, concatenate,
   one ``out.index_add_(0, out_rows, ...)``. The kernel-2 stride-2 down
   convolution uses ``l{l}_down`` (row at l, row at l+1) grouped by child position

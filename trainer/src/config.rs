@@ -2,10 +2,10 @@
 //! Every field has the official code's default; the command line overrides the common
 //! ones. Unknown fields are errors (a typo must not silently train something else).
 
-use crate::error::{InvalidConfig, TrainerError};
+use crate::error::{InvalidSetting, TrainerError};
 use crate::loss::LossConfig;
-use crate::schedule::OneCycle;
-use crate::sparse::{UNetConfig, UNetPreset};
+use crate::lr_schedule::OneCycle;
+use crate::unet::{UNetConfig, UNetPreset};
 use crate::vit::VitPreset;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -130,7 +130,79 @@ impl Default for CheckpointConfig {
     }
 }
 
+/// The settings a command line may override, each `None` when not given: the one place
+/// flags become configuration ([`TrainerConfig::apply`]).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Overrides {
+    /// `optim.steps`.
+    pub steps: Option<u64>,
+    /// `model.unet`.
+    pub unet: Option<UNetPreset>,
+    /// `model.vit`.
+    pub vit: Option<VitPreset>,
+    /// `model.image_weights`.
+    pub image_weights: Option<PathBuf>,
+    /// `loss.pixel_stride`.
+    pub pixel_stride: Option<usize>,
+    /// `optim.lr`.
+    pub lr: Option<f64>,
+    /// `model.seed`.
+    pub seed: Option<u64>,
+    /// `checkpoint.every`.
+    pub checkpoint_every: Option<u64>,
+}
+
 impl TrainerConfig {
+    /// `path`'s configuration (the defaults without one) with `overrides` applied,
+    /// validated: what a command runs with.
+    pub fn resolve(path: Option<&Path>, overrides: &Overrides) -> Result<Self, TrainerError> {
+        let mut config = match path {
+            Some(path) => Self::load(path)?,
+            None => Self::default(),
+        };
+        config.apply(overrides);
+        config.validate()?;
+        Ok(config)
+    }
+
+    /// Replaces every setting `overrides` gives; the others keep their values.
+    pub fn apply(&mut self, overrides: &Overrides) {
+        let Overrides {
+            steps,
+            unet,
+            vit,
+            image_weights,
+            pixel_stride,
+            lr,
+            seed,
+            checkpoint_every,
+        } = overrides;
+        if let Some(v) = *steps {
+            self.optim.steps = v;
+        }
+        if let Some(v) = *unet {
+            self.model.unet = v;
+        }
+        if let Some(v) = *vit {
+            self.model.vit = v;
+        }
+        if let Some(v) = image_weights {
+            self.model.image_weights = Some(v.clone());
+        }
+        if let Some(v) = *pixel_stride {
+            self.loss.pixel_stride = v;
+        }
+        if let Some(v) = *lr {
+            self.optim.lr = v;
+        }
+        if let Some(v) = *seed {
+            self.model.seed = v;
+        }
+        if let Some(v) = *checkpoint_every {
+            self.checkpoint.every = v;
+        }
+    }
+
     /// Reads and validates `path`; errors name the file.
     pub fn load(path: &Path) -> Result<Self, TrainerError> {
         let text = std::fs::read_to_string(path)
@@ -149,18 +221,18 @@ impl TrainerConfig {
     }
 
     /// Checks values a run cannot use; the error names the setting (`optim.steps`, ...).
-    pub fn validate(&self) -> Result<(), InvalidConfig> {
+    pub fn validate(&self) -> Result<(), InvalidSetting> {
         self.optim.schedule().validate()?;
         let l = &self.loss;
         if !(l.temperature > 0.0 && l.temperature.is_finite()) {
-            return Err(InvalidConfig::new(
+            return Err(InvalidSetting::new(
                 "loss.temperature",
                 l.temperature,
                 "must be positive",
             ));
         }
         if l.pixel_stride == 0 {
-            return Err(InvalidConfig::new(
+            return Err(InvalidSetting::new(
                 "loss.pixel_stride",
                 l.pixel_stride,
                 "must be at least 1",
@@ -178,14 +250,14 @@ impl TrainerConfig {
             ),
         ] {
             if !ok {
-                return Err(InvalidConfig::new(setting, value, rule));
+                return Err(InvalidSetting::new(setting, value, rule));
             }
         }
         if let Some(b) = o.betas.iter().find(|b| !(0.0..1.0).contains(*b)) {
-            return Err(InvalidConfig::new("optim.betas", b, "must be in [0, 1)"));
+            return Err(InvalidSetting::new("optim.betas", b, "must be in [0, 1)"));
         }
         if self.checkpoint.keep == 0 {
-            return Err(InvalidConfig::new(
+            return Err(InvalidSetting::new(
                 "checkpoint.keep",
                 self.checkpoint.keep,
                 "must be at least 1",
@@ -213,5 +285,41 @@ mod tests {
         let err = c.validate().expect_err("one step");
         assert_eq!(err.setting, "optim.steps", "{err}");
         assert!(err.to_string().starts_with("optim.steps = 1 "), "{err}");
+    }
+
+    #[test]
+    fn overrides_replace_only_the_settings_given() {
+        let mut file = TrainerConfig::default();
+        file.optim.lr = 0.5;
+        file.model.seed = 7;
+        file.checkpoint.every = 40;
+        let mut c = file.clone();
+        c.apply(&Overrides::default());
+        assert_eq!(c, file, "no flag changes nothing");
+        c.apply(&Overrides {
+            steps: Some(12),
+            unet: Some(UNetPreset::Tiny),
+            lr: Some(0.25),
+            image_weights: Some(PathBuf::from("vit.safetensors")),
+            ..Overrides::default()
+        });
+        assert_eq!(c.optim.steps, 12);
+        assert_eq!(c.model.unet, UNetPreset::Tiny);
+        assert_eq!(c.optim.lr, 0.25);
+        assert_eq!(
+            c.model.image_weights,
+            Some(PathBuf::from("vit.safetensors"))
+        );
+        assert_eq!(c.model.seed, 7, "the file's value stays");
+        assert_eq!(c.checkpoint.every, 40, "the file's value stays");
+        let err = TrainerConfig::resolve(
+            None,
+            &Overrides {
+                pixel_stride: Some(0),
+                ..Overrides::default()
+            },
+        )
+        .expect_err("a flag out of range is validated");
+        assert!(err.to_string().contains("loss.pixel_stride"), "{err}");
     }
 }

@@ -57,7 +57,7 @@ impl Ddp {
     /// collective later gives up after `timeout`.
     pub fn init(timeout: Duration) -> Result<Self, TrainerError> {
         let (universe, threading) = mpi::initialize_with_threading(Threading::Multiple)
-            .ok_or_else(|| TrainerError::Mpi("MPI was initialized already".into()))?;
+            .ok_or(TrainerError::MpiInitialized)?;
         let world = universe.world();
         let local = world.split_shared(world.rank());
         let ddp = Self {

@@ -1,40 +1,18 @@
 //! The trainer library's errors: [`TrainerError`] for a run's files, configuration, batches
-//! and checkpoints, and [`InvalidConfig`], the one error of a setting out of range.
+//! and checkpoints; a setting out of range is an [`InvalidSetting`] (shared with the
+//! pipeline, from `superflow-common`).
 //!
 //! Every message is complete on its own — it names the file (and line) or the setting at
 //! fault and includes the cause's text — so the causes are not chained again as
 //! [`source`](std::error::Error::source): printed with `{:#}` (anyhow) each shows once.
 
 use crate::inputs::InputError;
+use crate::probe::ProbeError;
 use crate::vit::WeightsError;
 use burn::store::RecordError;
-use std::fmt;
 use std::path::PathBuf;
 
-/// A setting out of range: which one (its path in trainer.toml, such as `optim.steps`, or
-/// `vit.<field>` for a [`VitConfig`](crate::vit::VitConfig)), the value found and the rule
-/// it breaks. Shown as `setting = value rule`.
-#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-#[error("{setting} = {value} {rule}")]
-pub struct InvalidConfig {
-    /// The setting.
-    pub setting: &'static str,
-    /// The value found, as written.
-    pub value: String,
-    /// What it must be.
-    pub rule: &'static str,
-}
-
-impl InvalidConfig {
-    /// `setting = value rule`, e.g. `("loss.pixel_stride", 0, "must be at least 1")`.
-    pub fn new(setting: &'static str, value: impl fmt::Display, rule: &'static str) -> Self {
-        Self {
-            setting,
-            value: value.to_string(),
-            rule,
-        }
-    }
-}
+pub use superflow_common::InvalidSetting;
 
 /// A failure of the trainer library.
 #[derive(Debug, thiserror::Error)]
@@ -77,14 +55,14 @@ pub enum TrainerError {
     },
     /// A setting out of range.
     #[error(transparent)]
-    Config(#[from] InvalidConfig),
+    Config(#[from] InvalidSetting),
     /// A setting out of range in a configuration file.
     #[error("{}: {error}", path.display())]
     ConfigFile {
         /// The file.
         path: PathBuf,
         /// The setting.
-        error: InvalidConfig,
+        error: InvalidSetting,
     },
     /// A checkpoint's `state.json` has another format tag.
     #[error("{}: format {found:?}, expected {expected:?}", path.display())]
@@ -140,16 +118,26 @@ pub enum TrainerError {
     },
     /// The downstream probe (`superflow-trainer probe`).
     #[error("probe: {0}")]
-    Probe(String),
-    /// The MPI job (`--ddp`).
-    #[error("MPI: {0}")]
-    Mpi(String),
-    /// Ranks of a data-parallel job disagree.
-    #[error("data-parallel ranks disagree: {0}")]
-    Ranks(String),
+    Probe(Box<ProbeError>),
+    /// `--ddp` in a process whose MPI was initialized already.
+    #[error("MPI: MPI was initialized already")]
+    MpiInitialized,
+    /// A data-parallel step without a batch on this rank was run without the other
+    /// ranks' gradients to apply.
+    #[error(
+        "data-parallel ranks disagree: a step without a batch needs the other ranks' gradients"
+    )]
+    StepWithoutBatch,
     /// A plot of a run without steps.
     #[error("no steps to plot")]
     NothingToPlot,
+}
+
+/// The message embeds the probe's error, so it is not chained again as a source.
+impl From<ProbeError> for TrainerError {
+    fn from(error: ProbeError) -> Self {
+        Self::Probe(Box::new(error))
+    }
 }
 
 impl TrainerError {

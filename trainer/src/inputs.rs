@@ -4,7 +4,7 @@
 
 use crate::loss::{LossInputs, LossPlan, PlanError};
 use crate::model::PixelSampler;
-use crate::sparse::{LevelMaps, UNetConfig, index_tensor};
+use crate::unet::{LevelMaps, UNetConfig, index_tensor};
 use burn::tensor::{Device, Int, Tensor, TensorData};
 use superflow_schemas::batch::{BatchError, BatchView, Section};
 

@@ -11,13 +11,13 @@
 //! 3. [`inputs`]: [`StepInputs`](inputs::StepInputs) turns a batch's sections into the
 //!    step's tensors, with the losses' host-side [`LossPlan`](loss::LossPlan).
 //! 4. [`model`]: the trainable [`SuperFlowModel`](model::SuperFlowModel), the sparse
-//!    residual UNet of [`sparse`] ([`SparseUNet`](sparse::SparseUNet), driven by the kernel
+//!    residual UNet of [`unet`] ([`SparseUNet`](unet::SparseUNet), driven by the kernel
 //!    maps in the batch) and a 2D projection head on top of the frozen DINOv2 ViT of [`vit`]
 //!    ([`DinoVit`](vit::DinoVit)).
 //! 5. [`loss`]: [`SuperFlowLoss`](loss::SuperFlowLoss), the spatial, temporal and
 //!    dense-to-sparse contrastive terms over superpoints and superpixels.
 //! 6. [`train`]: a [`Trainer`](train::Trainer) runs one step (ViT, UNet, losses, backward,
-//!    AdamW with the one-cycle [`schedule`]) and carries the run's state.
+//!    AdamW with the one-cycle [`lr_schedule`]) and carries the run's state.
 //! 7. [`checkpoint`] saves and restores that state atomically, with the stream position to
 //!    resume at; [`metrics`] writes one JSON line per step and plots the loss curves.
 //!
@@ -53,18 +53,19 @@ pub mod checkpoint;
 pub mod config;
 #[cfg(feature = "mpi")]
 pub mod ddp;
+pub mod device;
 pub mod error;
-pub mod evaluate;
 pub mod init;
 pub mod inputs;
 pub mod loss;
+pub mod lr_schedule;
 pub mod metrics;
 pub mod model;
 pub mod probe;
-pub mod schedule;
-pub mod sparse;
+pub mod run;
 pub mod stream;
 pub mod subscribe;
 pub mod sync;
 pub mod train;
+pub mod unet;
 pub mod vit;

@@ -23,7 +23,7 @@
 //!
 //! InfoNCE(a, b) = mean_i −log softmax_j(a_i·b_j / τ)\[i\].
 
-use crate::sparse::index_tensor;
+use crate::unet::index_tensor;
 use burn::tensor::activation::log_softmax;
 use burn::tensor::{Device, IndexingUpdateOp, Int, Tensor, TensorData};
 use serde::{Deserialize, Serialize};

@@ -4,7 +4,7 @@
 //! `max_lr / div_factor / final_div_factor`. burn 0.22 has no one-cycle scheduler; this
 //! is the curve, step by step, for the optimizer to use.
 
-use crate::error::InvalidConfig;
+use crate::error::InvalidSetting;
 
 /// One-cycle parameters (defaults = the official config: lr 0.01, warm-up 20 %, div 25,
 /// final div 100).
@@ -37,16 +37,16 @@ impl OneCycle {
     /// Checks the parameters (PyTorch's rules: at least 2 steps, pct in (0, 1), positive
     /// rates and factors). Errors name the settings of trainer.toml's `[optim]`, which
     /// [`OptimConfig::schedule`](crate::config::OptimConfig::schedule) builds this from.
-    pub fn validate(&self) -> Result<(), InvalidConfig> {
+    pub fn validate(&self) -> Result<(), InvalidSetting> {
         if self.total_steps < 2 {
-            return Err(InvalidConfig::new(
+            return Err(InvalidSetting::new(
                 "optim.steps",
                 self.total_steps,
                 "must be at least 2 (one-cycle schedule)",
             ));
         }
         if !(self.pct_start > 0.0 && self.pct_start < 1.0) {
-            return Err(InvalidConfig::new(
+            return Err(InvalidSetting::new(
                 "optim.pct_start",
                 self.pct_start,
                 "must be in (0, 1)",
@@ -58,7 +58,7 @@ impl OneCycle {
             ("optim.final_div_factor", self.final_div_factor),
         ] {
             if value.is_nan() || value <= 0.0 {
-                return Err(InvalidConfig::new(setting, value, "must be positive"));
+                return Err(InvalidSetting::new(setting, value, "must be positive"));
             }
         }
         Ok(())

@@ -9,7 +9,7 @@
 //! pixels, at a fraction of the cost.
 
 use crate::init::normal_param;
-use crate::sparse::{LevelMaps, SparseUNet, UNetConfig, index_tensor, l2_normalize};
+use crate::unet::{LevelMaps, SparseUNet, UNetConfig, index_tensor, l2_normalize};
 use burn::module::{Module, Param};
 use burn::nn::Linear;
 use burn::tensor::{Device, Int, Tensor, TensorData};

@@ -6,8 +6,8 @@ use crate::config::TrainerConfig;
 use crate::error::TrainerError;
 use crate::inputs::StepInputs;
 use crate::loss::{LossValues, SuperFlowLoss};
+use crate::lr_schedule::OneCycle;
 use crate::model::SuperFlowModel;
-use crate::schedule::OneCycle;
 use crate::stream::StreamPosition;
 use crate::sync::{GradientBuffer, params_hash};
 use crate::vit::{DinoVit, VitConfig, imagenet_normalize};
@@ -92,6 +92,20 @@ pub struct Trainer {
     device: Device,
     vit_device: Device,
     step: u64,
+}
+
+/// Times the phases of a step: each mark stores the seconds since the previous one.
+struct Lap(Instant);
+
+impl Lap {
+    fn start() -> Self {
+        Self(Instant::now())
+    }
+
+    fn mark(&mut self, slot: &mut f64) {
+        *slot = self.0.elapsed().as_secs_f64();
+        self.0 = Instant::now();
+    }
 }
 
 impl std::fmt::Debug for Trainer {
@@ -188,6 +202,10 @@ impl Trainer {
     /// at this step: its shard's epoch ended first) are flattened, combined with the
     /// other ranks' by `reduce` (an elementwise sum over ranks, see [`crate::sync`]),
     /// and the mean gradient is applied. Every rank applies the same update.
+    ///
+    /// Everything that can fail runs on a borrowed model; the model is taken out only
+    /// for the optimizer's update, which cannot fail, so an error leaves the trainer as
+    /// it was before the step.
     pub fn step_synced(
         &mut self,
         view: Option<&BatchView<'_>>,
@@ -195,113 +213,34 @@ impl Trainer {
     ) -> Result<StepOutcome, TrainerError> {
         let started = Instant::now();
         let mut phases = StepPhases::default();
-        let mut lap = Instant::now();
-        let mut mark = |slot: &mut f64| {
-            *slot = lap.elapsed().as_secs_f64();
-            lap = Instant::now();
+        let mut lap = Lap::start();
+        let (local, grads) = match view {
+            Some(view) => self.local_gradients(view, &mut phases, &mut lap)?,
+            None if reduce.is_some() => (Local::default(), GradientsParams::new()),
+            None => {
+                return Err(TrainerError::StepWithoutBatch);
+            }
         };
+        let (grads, global, averaged) = match reduce {
+            Some(reduce) => {
+                let (grads, global, buffer) = self.reduce_gradients(&local, grads, reduce);
+                lap.mark(&mut phases.reduce);
+                (grads, Some(global), Some(buffer))
+            }
+            None => (grads, None, None),
+        };
+        let lr = self.schedule.lr(self.step);
         let model = self
             .model
             .take()
             .expect("the model is present between steps");
-        let mut local = Local::default();
-        let mut grads = GradientsParams::new();
-        if let Some(view) = view {
-            let inputs = match StepInputs::from_view(
-                view,
-                &self.device,
-                &self.vit_device,
-                self.config.loss.pixel_stride,
-            ) {
-                Ok(inputs) => inputs,
-                Err(e) => {
-                    self.model = Some(model);
-                    return Err(e.into());
-                }
-            };
-            mark(&mut phases.inputs);
-            let patches = self.vit.forward(imagenet_normalize(inputs.images.clone()));
-            let patches = patches.autodiff();
-            mark(&mut phases.vit);
-            let point_features = model.point_features(
-                inputs.voxel_features.clone(),
-                &inputs.levels,
-                inputs.pairing_voxel.clone(),
-            );
-            let pixel_features = model.image_head.forward(patches, &inputs.sampler);
-            let terms = self
-                .loss
-                .forward(point_features, pixel_features, &inputs.plan);
-            mark(&mut phases.forward);
-            let losses = terms.values();
-            if !losses.total.is_finite() {
-                self.model = Some(model);
-                return Err(TrainerError::NonFiniteLoss {
-                    loss: losses.total,
-                    step: self.step + 1,
-                    epoch: view.meta().epoch,
-                    batch: view.meta().step,
-                });
-            }
-            grads = GradientsParams::from_grads(terms.total.backward(), &model);
-            mark(&mut phases.backward);
-            local = Local {
-                samples: view.meta().sample_count as usize,
-                sc_frames: terms
-                    .sc_frames
-                    .iter()
-                    .map(|t| {
-                        t.clone()
-                            .into_data()
-                            .try_into_vec::<f32>()
-                            .ok()
-                            .and_then(|v| v.first().copied())
-                            .map_or(f64::NAN, f64::from)
-                    })
-                    .collect(),
-                losses,
-                counts: inputs.counts,
-                sample_ids: inputs.sample_ids.iter().map(|s| [s[0], s[1]]).collect(),
-            };
-        }
-        let mut global = None;
-        let mut averaged = None;
-        if let Some(reduce) = reduce {
-            let n = local.samples as f32;
-            let l = &local.losses;
-            let scalars = [l.total, l.sc, l.tc, l.d2s].map(|v| v as f32 * n);
-            let mut buffer =
-                GradientBuffer::from_gradients(&model, &mut grads, local.samples, &scalars);
-            reduce(&mut buffer.values);
-            let total = buffer.samples();
-            let mean = |i: usize| f64::from(buffer.scalars()[i]) / f64::from(total.max(1.0));
-            global = Some(GlobalStep {
-                losses: LossValues {
-                    total: mean(0),
-                    sc: mean(1),
-                    tc: mean(2),
-                    d2s: mean(3),
-                },
-                samples: total.round() as usize,
-                bytes: buffer.bytes(),
-            });
-            grads = buffer.into_gradients(&model, &self.vit_device);
-            mark(&mut phases.reduce);
-            averaged = Some(buffer);
-        } else if view.is_none() {
-            self.model = Some(model);
-            return Err(TrainerError::Ranks(
-                "a step without a batch needs the other ranks' gradients".into(),
-            ));
-        }
-        let lr = self.schedule.lr(self.step);
         let mut model = self.optim.step(lr, model, grads);
         if let Some(buffer) = averaged {
             model = buffer.average_buffers(model);
         }
         self.model = Some(model);
         self.step += 1;
-        mark(&mut phases.update);
+        lap.mark(&mut phases.update);
         Ok(StepOutcome {
             losses: local.losses,
             sc_frames: local.sc_frames,
@@ -312,6 +251,98 @@ impl Trainer {
             sample_ids: local.sample_ids,
             global,
         })
+    }
+
+    /// This rank's part of a step: tensors, frozen ViT, 3D network, losses and backward
+    /// on `view`.
+    fn local_gradients(
+        &self,
+        view: &BatchView<'_>,
+        phases: &mut StepPhases,
+        lap: &mut Lap,
+    ) -> Result<(Local, GradientsParams), TrainerError> {
+        let model = self.model();
+        let inputs = StepInputs::from_view(
+            view,
+            &self.device,
+            &self.vit_device,
+            self.config.loss.pixel_stride,
+        )?;
+        lap.mark(&mut phases.inputs);
+        let patches = self.vit.forward(imagenet_normalize(inputs.images.clone()));
+        let patches = patches.autodiff();
+        lap.mark(&mut phases.vit);
+        let point_features = model.point_features(
+            inputs.voxel_features.clone(),
+            &inputs.levels,
+            inputs.pairing_voxel.clone(),
+        );
+        let pixel_features = model.image_head.forward(patches, &inputs.sampler);
+        let terms = self
+            .loss
+            .forward(point_features, pixel_features, &inputs.plan);
+        lap.mark(&mut phases.forward);
+        let losses = terms.values();
+        if !losses.total.is_finite() {
+            return Err(TrainerError::NonFiniteLoss {
+                loss: losses.total,
+                step: self.step + 1,
+                epoch: view.meta().epoch,
+                batch: view.meta().step,
+            });
+        }
+        let grads = GradientsParams::from_grads(terms.total.backward(), model);
+        lap.mark(&mut phases.backward);
+        let local = Local {
+            samples: view.meta().sample_count as usize,
+            sc_frames: terms
+                .sc_frames
+                .iter()
+                .map(|t| {
+                    t.clone()
+                        .into_data()
+                        .try_into_vec::<f32>()
+                        .ok()
+                        .and_then(|v| v.first().copied())
+                        .map_or(f64::NAN, f64::from)
+                })
+                .collect(),
+            losses,
+            counts: inputs.counts,
+            sample_ids: inputs.sample_ids.iter().map(|s| [s[0], s[1]]).collect(),
+        };
+        Ok((local, grads))
+    }
+
+    /// Sums this rank's gradients and loss scalars with the other ranks' (`reduce`) and
+    /// returns the mean gradient, the step's global losses and the buffer (its averaged
+    /// BatchNorm statistics are applied after the update).
+    fn reduce_gradients(
+        &self,
+        local: &Local,
+        mut grads: GradientsParams,
+        reduce: &mut Reduce<'_>,
+    ) -> (GradientsParams, GlobalStep, GradientBuffer) {
+        let model = self.model();
+        let n = local.samples as f32;
+        let l = &local.losses;
+        let scalars = [l.total, l.sc, l.tc, l.d2s].map(|v| v as f32 * n);
+        let mut buffer = GradientBuffer::from_gradients(model, &mut grads, local.samples, &scalars);
+        reduce(&mut buffer.values);
+        let total = buffer.samples();
+        let mean = |i: usize| f64::from(buffer.scalars()[i]) / f64::from(total.max(1.0));
+        let global = GlobalStep {
+            losses: LossValues {
+                total: mean(0),
+                sc: mean(1),
+                tc: mean(2),
+                d2s: mean(3),
+            },
+            samples: total.round() as usize,
+            bytes: buffer.bytes(),
+        };
+        let grads = buffer.into_gradients(model, &self.vit_device);
+        (grads, global, buffer)
     }
 
     /// A 64-bit hash of the trainable parameters (equal on replicas holding the same

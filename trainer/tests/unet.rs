@@ -10,7 +10,7 @@ use burn::tensor::ops::{ConvOptions, ConvTransposeOptions};
 use burn::tensor::{Device, IndexingUpdateOp, Int, Tensor, TensorData};
 use superflow_pipeline::sample::sparse::{downsample, neighbour_map};
 use superflow_trainer::init::InitRng;
-use superflow_trainer::sparse::{KERNEL_2, KERNEL_3, LevelMaps, SparseConv};
+use superflow_trainer::unet::{KERNEL_2, KERNEL_3, LevelMaps, SparseConv};
 
 const G: usize = 6; // grid side
 const CIN: usize = 3;

@@ -21,9 +21,9 @@ use superflow_pipeline::publish::{self, Metrics, Mode, ServiceConfig};
 use superflow_pipeline::sample::SampleBuilder;
 use superflow_schemas::batch::BatchMeta;
 use superflow_trainer::config::TrainerConfig;
-use superflow_trainer::sparse::UNetPreset;
 use superflow_trainer::subscribe::{Subscription, Target};
 use superflow_trainer::train::{StepPhases, Trainer};
+use superflow_trainer::unet::UNetPreset;
 use superflow_trainer::vit::VitPreset;
 
 /// Samples per batch (the paper's per-GPU batch, the service default).

@@ -1,31 +1,16 @@
-//! `superflow-trainer probe`: what a pretrained 3D backbone is worth downstream —
-//! per-point semantic segmentation of labelled LiDAR sweeps, scored by mIoU (the
-//! paper's linear-probing and few-label fine-tuning protocols, on the recordings a user
-//! has).
-//!
-//! 1. **Clouds**: the labelled sweeps of every drive, thinned to one per
-//!    `keyframe_interval` (nuScenes labels its 2 Hz keyframes), each decoded and
-//!    de-skewed exactly as the pipeline prepares a pretraining sweep, voxelized with the
-//!    recipe's grid, its 5 levels of kernel maps built, without augmentation. No camera is
-//!    read.
-//! 2. **Split** by time within each drive ([`probe::split_by_time`]): train, a guard gap,
-//!    validation; `label_fraction` keeps that share of the training clouds.
-//! 3. **Linear probe** (default): the backbone frozen (BatchNorm with its running
-//!    statistics), per-point features = the last decoder stage's features of the point's
-//!    voxel, a linear classifier trained on them ([`probe::LinearProbe`]).
-//!    **Fine-tuning** (`finetune`): backbone and a linear classifier trained together with
-//!    cross-entropy, cloud by cloud.
-//! 4. **Score**: mIoU and per-class IoU over the validation clouds' labelled points.
+//! The pipeline-fed half of the probe: labelled clouds decoded by the pipeline's own
+//! code, the protocols that train on them, and the backbone they score.
 
 use crate::checkpoint;
 use crate::config::TrainerConfig;
 use crate::error::TrainerError;
 use crate::model::SuperFlowModel;
-use crate::probe::{
-    self, ConfusionMatrix, KeyframeTime, LinearProbe, PointCounts, ProbeReport, ProbeTraining,
-    SplitCounts,
+use crate::probe::ProbeError;
+use crate::probe::linear::{
+    self as probe, ConfusionMatrix, KeyframeTime, LinearProbe, PointCounts, ProbeReport,
+    ProbeTraining, SplitCounts,
 };
-use crate::sparse::{LevelMaps, SparseUNet};
+use crate::unet::{LevelMaps, SparseUNet};
 use crate::vit::VitConfig;
 use burn::module::Module;
 use burn::nn::loss::CrossEntropyLossConfig;
@@ -92,15 +77,15 @@ pub fn labelled_clouds(
         names: config.labels.classes.clone(),
         ignore: 0,
     };
-    let label_error = |drive: &str, e: &dyn std::fmt::Display| {
-        TrainerError::Probe(format!("labels of {drive}: {e}"))
+    let label_error = |drive: &superflow_pipeline::drive::Drive, error| ProbeError::Labels {
+        drive: drive.file_list(),
+        error,
     };
     let mut largest = None::<u16>;
     for (d, drive) in dataset.drives.iter().enumerate() {
         let (Some(lidar), Some(labels)) = (
             &drive.lidar,
-            DriveLabels::open(drive, &config.labels)
-                .map_err(|e| label_error(&drive.file_list(), &e))?,
+            DriveLabels::open(drive, &config.labels).map_err(|e| label_error(drive, e))?,
         ) else {
             tracing::warn!(drive = %drive.file_list(), "no LiDAR labels (neither a label field nor a labels sidecar): skipped");
             data.unlabelled_drives += 1;
@@ -117,7 +102,7 @@ pub fn labelled_clouds(
             }
             let sweep = labels
                 .read(s, &mut cache)
-                .map_err(|e| label_error(&drive.file_list(), &e))?;
+                .map_err(|e| label_error(drive, e))?;
             let point_labels: Vec<u16> = sweep.labels.iter().map(|&l| u16::from(l)).collect();
             for &l in point_labels.iter().filter(|&&l| l != data.ignore) {
                 largest = Some(largest.map_or(l, |m| m.max(l)));
@@ -128,13 +113,11 @@ pub fn labelled_clouds(
             }
             if recipe.deskew && cloud.time_offset_secs.is_some() {
                 let map = drive.map_frame.as_deref().unwrap_or_default();
-                cloud = deskew(&cloud, &drive.tf, map).map_err(|e| {
-                    TrainerError::Probe(format!(
-                        "{}: de-skew of {} at {}: {e}",
-                        drive.file_list(),
-                        lidar.topic,
-                        frame.stamp
-                    ))
+                cloud = deskew(&cloud, &drive.tf, map).map_err(|error| ProbeError::Deskew {
+                    drive: drive.file_list(),
+                    topic: lidar.topic.clone(),
+                    stamp: frame.stamp,
+                    error,
                 })?;
             }
             last = Some(stamp);
@@ -268,12 +251,12 @@ pub fn probe(
     };
     let train = probe::label_fraction(&split.train, settings.label_fraction);
     if train.is_empty() || split.val.is_empty() {
-        return Err(TrainerError::Probe(format!(
-            "{} labelled clouds give {} training and {} validation clouds: record more, or change the split",
-            clouds.len(),
-            train.len(),
-            split.val.len()
-        )));
+        return Err(ProbeError::EmptySplit {
+            clouds: clouds.len(),
+            train: train.len(),
+            val: split.val.len(),
+        }
+        .into());
     }
     let counts = SplitCounts {
         train: train.len(),
@@ -457,10 +440,8 @@ pub fn load_backbone(
     let ckpt = if path.join("state.json").is_file() {
         checkpoint::read(path)?
     } else {
-        checkpoint::latest(path)?.ok_or_else(|| {
-            TrainerError::Probe(format!(
-                "{checkpoint}: no checkpoint (neither a step-N directory nor a run's checkpoints/ with `latest`); `random` probes an untrained network"
-            ))
+        checkpoint::latest(path)?.ok_or_else(|| ProbeError::NoCheckpoint {
+            checkpoint: checkpoint.to_string(),
         })?
     };
     let config: TrainerConfig =

@@ -13,6 +13,7 @@
 //! * [`ProbeReport`]: what `superflow-trainer probe --json` prints.
 
 use crate::error::TrainerError;
+use crate::probe::ProbeError;
 use burn::module::Module;
 use burn::nn::loss::CrossEntropyLossConfig;
 use burn::nn::{Initializer, Linear, LinearConfig};
@@ -45,11 +46,11 @@ impl ConfusionMatrix {
     /// label or prediction outside the classes is an error.
     pub fn add(&mut self, labels: &[u16], predictions: &[u16]) -> Result<(), TrainerError> {
         if labels.len() != predictions.len() {
-            return Err(TrainerError::Probe(format!(
-                "{} labels and {} predictions",
-                labels.len(),
-                predictions.len()
-            )));
+            return Err(ProbeError::Lengths {
+                labels: labels.len(),
+                predictions: predictions.len(),
+            }
+            .into());
         }
         for (&l, &p) in labels.iter().zip(predictions) {
             if l == self.ignore {
@@ -57,11 +58,11 @@ impl ConfusionMatrix {
             }
             let (l, p) = (usize::from(l), usize::from(p));
             if l >= self.classes || p >= self.classes {
-                return Err(TrainerError::Probe(format!(
-                    "class {} outside the {} classes",
-                    l.max(p),
-                    self.classes
-                )));
+                return Err(ProbeError::Class {
+                    class: l.max(p),
+                    classes: self.classes,
+                }
+                .into());
             }
             self.counts[l * self.classes + p] += 1;
         }
@@ -205,20 +206,22 @@ impl LinearProbe {
     ) -> Result<Self, TrainerError> {
         let kept: Vec<usize> = (0..labels.len()).filter(|&i| labels[i] != ignore).collect();
         if kept.is_empty() {
-            return Err(TrainerError::Probe("no labelled training point".into()));
+            return Err(ProbeError::NoTrainingPoint.into());
         }
         if features.len() != labels.len() * dim {
-            return Err(TrainerError::Probe(format!(
-                "{} feature values for {} points of {dim} features",
-                features.len(),
-                labels.len()
-            )));
+            return Err(ProbeError::Features {
+                values: features.len(),
+                points: labels.len(),
+                dim,
+            }
+            .into());
         }
         if let Some(&bad) = kept.iter().find(|&&i| usize::from(labels[i]) >= classes) {
-            return Err(TrainerError::Probe(format!(
-                "label {} outside the {classes} classes",
-                labels[bad]
-            )));
+            return Err(ProbeError::Label {
+                label: labels[bad],
+                classes,
+            }
+            .into());
         }
         let device = device.clone().autodiff();
         let mut probe = Self {

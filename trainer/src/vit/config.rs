@@ -1,7 +1,7 @@
 //! The shape of a [`DinoVit`](super::DinoVit): the released sizes ([`VitPreset`]) and the
 //! dimensions of one network ([`VitConfig`]).
 
-use crate::error::InvalidConfig;
+use crate::error::InvalidSetting;
 use serde::{Deserialize, Serialize};
 use std::fmt;
 use std::str::FromStr;
@@ -105,7 +105,7 @@ impl VitConfig {
     }
 
     /// Checks that every size is positive and that `dim` splits evenly into `heads`.
-    pub fn validate(&self) -> Result<(), InvalidConfig> {
+    pub fn validate(&self) -> Result<(), InvalidSetting> {
         let sizes = [
             ("vit.dim", self.dim),
             ("vit.depth", self.depth),
@@ -117,18 +117,18 @@ impl VitConfig {
         ];
         for (setting, size) in sizes {
             if size == 0 {
-                return Err(InvalidConfig::new(setting, size, "must be positive"));
+                return Err(InvalidSetting::new(setting, size, "must be positive"));
             }
         }
         if !self.dim.is_multiple_of(self.heads) {
-            return Err(InvalidConfig::new(
+            return Err(InvalidSetting::new(
                 "vit.dim",
                 self.dim,
                 "must be a multiple of vit.heads",
             ));
         }
         if self.eps.is_nan() || self.eps <= 0.0 {
-            return Err(InvalidConfig::new("vit.eps", self.eps, "must be positive"));
+            return Err(InvalidSetting::new("vit.eps", self.eps, "must be positive"));
         }
         Ok(())
     }

@@ -28,12 +28,13 @@
 
 mod blocks;
 mod config;
+mod error;
 mod load;
 mod pos_embed;
 mod weights;
 
 pub use config::{UnknownPreset, VitConfig, VitPreset};
-pub use load::WeightsError;
+pub use error::WeightsError;
 
 use blocks::Block;
 use burn::module::{Module, Param};

@@ -2,7 +2,7 @@
 //! init) and how they become layers: [`DinoVit::build`] assembles the network from them.
 
 use super::blocks::Block;
-use super::load::WeightsError;
+use super::error::WeightsError;
 use super::{DinoVit, VitConfig};
 use burn::module::{Module, Param};
 use burn::nn::{LayerNorm, LayerNormConfig, Linear};

@@ -1,0 +1,118 @@
+//! `superflow-trainer probe`: what a pretrained 3D backbone is worth downstream —
+//! per-point semantic segmentation of labelled LiDAR sweeps, scored by mIoU (the
+//! paper's linear-probing and few-label fine-tuning protocols, on the recordings a user
+//! has).
+//!
+//! 1. **Clouds**: the labelled sweeps of every drive, thinned to one per
+//!    `keyframe_interval` (nuScenes labels its 2 Hz keyframes), each decoded and
+//!    de-skewed exactly as the pipeline prepares a pretraining sweep, voxelized with the
+//!    recipe's grid, its 5 levels of kernel maps built, without augmentation. No camera is
+//!    read.
+//! 2. **Split** by time within each drive ([`linear::split_by_time`]): train, a guard gap,
+//!    validation; `label_fraction` keeps that share of the training clouds.
+//! 3. **Linear probe** (default): the backbone frozen (BatchNorm with its running
+//!    statistics), per-point features = the last decoder stage's features of the point's
+//!    voxel, a linear classifier trained on them ([`linear::LinearProbe`]).
+//!    **Fine-tuning** (`finetune`): backbone and a linear classifier trained together with
+//!    cross-entropy, cloud by cloud.
+//! 4. **Score**: mIoU and per-class IoU over the validation clouds' labelled points.
+
+//!
+//! [`linear`] holds the pieces that do not depend on where the features come from (the
+//! split, the linear classifier, the confusion matrix, the report); [`evaluate`] (the
+//! `probe` cargo feature, on by default) reads the drives with the pipeline and runs the
+//! protocols.
+
+#[cfg(feature = "probe")]
+pub mod evaluate;
+pub mod linear;
+
+#[cfg(feature = "probe")]
+pub use evaluate::{
+    LabelledData, ProbeCloud, ProbeSettings, labelled_clouds, load_backbone, probe,
+};
+pub use linear::{ConfusionMatrix, LinearProbe, ProbeReport};
+
+/// Why a probe cannot run or score.
+#[derive(Debug, thiserror::Error)]
+pub enum ProbeError {
+    /// A confusion matrix was given unequal numbers of labels and predictions.
+    #[error("{labels} labels and {predictions} predictions")]
+    Lengths {
+        /// Labels given.
+        labels: usize,
+        /// Predictions given.
+        predictions: usize,
+    },
+    /// A label or prediction names a class past the classes probed.
+    #[error("class {class} outside the {classes} classes")]
+    Class {
+        /// The class found.
+        class: usize,
+        /// Classes probed.
+        classes: usize,
+    },
+    /// A training label names a class past the classes probed.
+    #[error("label {label} outside the {classes} classes")]
+    Label {
+        /// The label found.
+        label: u16,
+        /// Classes probed.
+        classes: usize,
+    },
+    /// Every training point carries the ignore index.
+    #[error("no labelled training point")]
+    NoTrainingPoint,
+    /// The feature matrix does not match the points.
+    #[error("{values} feature values for {points} points of {dim} features")]
+    Features {
+        /// Values given.
+        values: usize,
+        /// Points given.
+        points: usize,
+        /// Features per point.
+        dim: usize,
+    },
+    /// The split leaves nothing to train on or to score.
+    #[error(
+        "{clouds} labelled clouds give {train} training and {val} validation clouds: record more, or change the split"
+    )]
+    EmptySplit {
+        /// Labelled clouds.
+        clouds: usize,
+        /// Training clouds.
+        train: usize,
+        /// Validation clouds.
+        val: usize,
+    },
+    /// `--checkpoint` names no checkpoint.
+    #[error(
+        "{checkpoint}: no checkpoint (neither a step-N directory nor a run's checkpoints/ with `latest`); `random` probes an untrained network"
+    )]
+    NoCheckpoint {
+        /// What `--checkpoint` said.
+        checkpoint: String,
+    },
+    /// A drive's labels cannot be opened or read.
+    #[cfg(feature = "probe")]
+    #[error("labels of {drive}: {error}")]
+    Labels {
+        /// The drive's files.
+        drive: String,
+        /// The pipeline's error.
+        error: superflow_pipeline::drive::labels::LabelError,
+    },
+    /// A labelled sweep cannot be de-skewed.
+    #[cfg(feature = "probe")]
+    #[error("{drive}: de-skew of {topic} at {stamp}: {error}")]
+    Deskew {
+        /// The drive's files.
+        drive: String,
+        /// The LiDAR topic.
+        topic: String,
+        /// The sweep's stamp.
+        stamp: superflow_schemas::Stamp,
+        /// The transform lookup's error.
+        error: superflow_pipeline::drive::tf::TfError,
+    },
+}

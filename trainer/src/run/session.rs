@@ -1,0 +1,416 @@
+//! A run in progress: receiving batches, stepping, checkpointing, and the summary at the
+//! end.
+
+use super::RunOptions;
+use super::job::Ddp;
+use super::paths::RunPaths;
+use super::start::ask_resume;
+use crate::loss::LossValues;
+use crate::metrics::{self, DdpRecord, MetricsWriter, StepRecord};
+use crate::stream::{self, Action, StreamPosition, StreamTracker};
+use crate::subscribe::{Received, Subscription};
+use crate::train::{StepOutcome, Trainer};
+use anyhow::Context as _;
+use indicatif::{ProgressBar, ProgressStyle};
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicI32, Ordering};
+use std::time::{Duration, Instant};
+use superflow_schemas::batch::BatchMeta;
+
+/// Waits for the next batch; says when no pipeline publishes and keeps waiting for one
+/// to come back, up to `timeout`. `None` once a stop signal was caught.
+fn next_batch(
+    subscription: &Subscription,
+    run: &str,
+    timeout: Duration,
+    stop: &AtomicI32,
+) -> anyhow::Result<Option<Received>> {
+    let t = Instant::now();
+    let mut gone_reported = false;
+    loop {
+        if stop.load(Ordering::SeqCst) != 0 {
+            return Ok(None);
+        }
+        if let Some(batch) = subscription.receive(Duration::from_secs(2))? {
+            if gone_reported {
+                tracing::info!(run, "a pipeline is publishing again");
+            }
+            return Ok(Some(batch));
+        }
+        let attached = subscription.pipeline_attached();
+        if !attached && !gone_reported {
+            tracing::warn!(
+                run,
+                "no pipeline is publishing; waiting for it to come back"
+            );
+            gone_reported = true;
+        } else if attached && gone_reported {
+            tracing::info!(run, "a pipeline is publishing again");
+            gone_reported = false;
+        }
+        if t.elapsed() > timeout {
+            anyhow::bail!(
+                "no batch from run {run} within {} s (is superflow-pipeline running with --run {run}?)",
+                timeout.as_secs()
+            );
+        }
+    }
+}
+
+pub fn progress_bar(steps: u64, position: u64) -> ProgressBar {
+    let bar = ProgressBar::new(steps);
+    bar.set_style(
+        ProgressStyle::with_template(
+            "{spinner} step {pos}/{len} [{elapsed_precise}<{eta_precise}] {msg}",
+        )
+        .unwrap_or_else(|_| ProgressStyle::default_bar()),
+    );
+    bar.set_position(position);
+    bar
+}
+
+/// A run in progress: the stream, the trainer and what it writes.
+pub(super) struct Session<'a> {
+    pub(super) options: &'a RunOptions,
+    pub(super) subscription: Subscription,
+    pub(super) stop: Arc<AtomicI32>,
+    pub(super) trainer: Trainer,
+    pub(super) metrics: MetricsWriter,
+    pub(super) stream: StreamTracker,
+    /// `--ddp`: a batch received but kept for a later step (this rank's shard began its
+    /// next epoch while others finish theirs).
+    pub(super) held: Option<Received>,
+    pub(super) ddp: Option<Ddp>,
+    pub(super) bar: ProgressBar,
+    pub(super) started: Instant,
+    /// Seconds spent waiting for batches, and computing steps.
+    pub(super) waiting: f64,
+    pub(super) computing: f64,
+    /// The losses of the last step.
+    pub(super) last: Option<LossValues>,
+    pub(super) steps: u64,
+    pub(super) every: u64,
+    pub(super) paths: RunPaths,
+}
+
+/// Where a batch lies in its stream.
+fn position_of(batch: &Received) -> StreamPosition {
+    StreamPosition::new(batch.header().epoch, batch.header().step)
+}
+
+impl Session<'_> {
+    fn timeout(&self) -> Duration {
+        Duration::from_secs(self.options.timeout_secs)
+    }
+
+    /// Steps until the run's length, the end of the stream or a stop signal.
+    pub fn train(&mut self) -> anyhow::Result<()> {
+        while self.trainer.step_count() < self.steps {
+            let t = Instant::now();
+            let batch = match self.held.take() {
+                Some(batch) => Some(batch),
+                None => self.next_trainable()?,
+            };
+            let wait = t.elapsed().as_secs_f64();
+            let Some(ddp) = &self.ddp else {
+                let Some(batch) = batch else { break };
+                let at = position_of(&batch);
+                if self.step(Some(batch), at, wait)? {
+                    break;
+                }
+                continue;
+            };
+            // Data-parallel: every rank says where its batch lies and whether it stops;
+            // the step trains the earliest position (a rank whose shard already began
+            // the next epoch keeps its batch for later and adds no gradient).
+            let mine = batch.as_ref().map(position_of);
+            let stop = self.stop.load(Ordering::SeqCst) != 0 || batch.is_none();
+            let what = format!("agreement before step {}", self.trainer.step_count() + 1);
+            let ranks = ddp.all_gather(
+                &[
+                    mine.map_or(u64::MAX, |p| p.epoch),
+                    mine.map_or(u64::MAX, |p| p.batch),
+                    u64::from(stop),
+                ],
+                &what,
+            );
+            let states: Vec<_> = ranks
+                .chunks(3)
+                .map(|r| {
+                    (
+                        (r[0] != u64::MAX).then(|| StreamPosition::new(r[0], r[1])),
+                        r[2] != 0,
+                    )
+                })
+                .collect();
+            let Some(at) = stream::agree(&states) else {
+                self.held = batch;
+                tracing::warn!("a rank is stopping: every rank stops after the same step");
+                break;
+            };
+            let batch = match batch {
+                Some(b) if position_of(&b) == at => Some(b),
+                other => {
+                    self.held = other;
+                    None
+                }
+            };
+            self.step(batch, at, wait)?;
+        }
+        Ok(())
+    }
+
+    /// The next batch to train on, past batches trained already and streams asked to
+    /// continue elsewhere; `None` once a stop signal was caught.
+    fn next_trainable(&mut self) -> anyhow::Result<Option<Received>> {
+        loop {
+            let Some(batch) = next_batch(
+                &self.subscription,
+                &self.options.run,
+                self.timeout(),
+                &self.stop,
+            )?
+            else {
+                return Ok(None);
+            };
+            let position = position_of(&batch);
+            match self.stream.classify(batch.origin(), position) {
+                Action::Train => return Ok(Some(batch)),
+                Action::Skip { skipped } => {
+                    tracing::warn!(
+                        epoch = position.epoch,
+                        batch = position.batch,
+                        skipped,
+                        "already trained on this batch: skipped"
+                    );
+                }
+                Action::Resume { at, restarted } => {
+                    drop(batch);
+                    self.continue_at(position, at, restarted)?;
+                }
+            }
+        }
+    }
+
+    /// The stream is not at this trainer's next batch `at` (a new pipeline, the old one
+    /// died and was restarted, began elsewhere, or the stream jumped ahead): asks it to
+    /// continue there.
+    fn continue_at(
+        &mut self,
+        got: StreamPosition,
+        at: StreamPosition,
+        restarted: bool,
+    ) -> anyhow::Result<()> {
+        tracing::warn!(
+            got_epoch = got.epoch,
+            got_batch = got.batch,
+            epoch = at.epoch,
+            batch = at.batch,
+            restarted,
+            "the stream is not at this trainer's next batch (a restarted pipeline, or another trainer's resume); asking it to continue there"
+        );
+        let publisher = ask_resume(&self.subscription, &self.options.run, at, self.timeout())?;
+        self.stream.resumed(publisher);
+        Ok(())
+    }
+
+    /// One step at stream position `at` on `batch` (waited for `wait` seconds; `None`: a
+    /// data-parallel rank without a batch at this step): metrics, log, progress and the
+    /// periodic checkpoint. `true` when a stop signal was caught: a lone trainer ends
+    /// here (data-parallel ranks agree on stopping before the next step).
+    fn step(
+        &mut self,
+        batch: Option<Received>,
+        at: StreamPosition,
+        wait: f64,
+    ) -> anyhow::Result<bool> {
+        let view = batch
+            .as_ref()
+            .map(Received::view)
+            .transpose()
+            .context("invalid batch")?;
+        let meta = view.as_ref().map(|v| v.meta().clone());
+        let number = self.trainer.step_count() + 1;
+        let outcome = match (&self.ddp, &view) {
+            (Some(ddp), view) => {
+                let what = format!("gradient all-reduce of step {number}");
+                let mut reduce = |values: &mut [f32]| ddp.all_reduce_sum(values, &what);
+                self.trainer.step_synced(view.as_ref(), Some(&mut reduce))
+            }
+            (None, Some(view)) => self.trainer.step(view),
+            (None, None) => anyhow::bail!("step {number}: no batch"),
+        }
+        .with_context(|| format!("step {number} ({at})"))?;
+        drop(view);
+        drop(batch);
+        self.waiting += wait;
+        self.computing += outcome.seconds;
+        if meta.is_some() {
+            self.stream.trained(at);
+        }
+        let mut record = step_record(number, at, meta.as_ref(), &outcome, wait);
+        record.params_hash = self.trainer.params_hash();
+        if let (Some(ddp), Some(global)) = (&self.ddp, &outcome.global) {
+            record.ddp = Some(DdpRecord {
+                rank: ddp.rank() as u32,
+                world_size: ddp.size() as u32,
+                loss: global.losses.total,
+                samples: global.samples,
+                reduce_ms: outcome.phases.reduce * 1e3,
+                reduce_bytes: global.bytes,
+            });
+        }
+        self.metrics.write(&record)?;
+        log_step(&record, &outcome);
+        self.bar.set_position(record.step);
+        let shown = record.ddp.as_ref().map_or(record.loss, |d| d.loss);
+        self.bar.set_message(format!("loss {shown:.4}"));
+        let losses = outcome.global.map_or(outcome.losses, |g| g.losses);
+        let stopping = self.stop.load(Ordering::SeqCst) != 0;
+        let periodic = self.every > 0 && record.step.is_multiple_of(self.every);
+        // Data-parallel ranks checkpoint together whatever their signals say (the stop
+        // is agreed before the next step).
+        if periodic
+            && record.step < self.steps
+            && (!stopping || self.ddp.is_some())
+            && let Some(dir) = self.save_checkpoint(&losses)?
+        {
+            tracing::info!(checkpoint = %dir.display(), "checkpoint saved");
+        }
+        self.last = Some(losses);
+        Ok(stopping)
+    }
+
+    /// The position this trainer continues at: the batch it holds, or the one after its
+    /// last trained batch.
+    fn next_position(&self) -> Option<StreamPosition> {
+        self.held.as_ref().map(position_of).or(self.stream.next())
+    }
+
+    /// Saves a checkpoint (a data-parallel job: every rank calls this, rank 0 writes it
+    /// with every rank's next position); the directory written, if this process wrote.
+    /// `losses` are the last step's (over all ranks in a data-parallel job).
+    fn save_checkpoint(&self, losses: &LossValues) -> anyhow::Result<Option<PathBuf>> {
+        let run = &self.options.run;
+        let Some(ddp) = &self.ddp else {
+            let next = self
+                .next_position()
+                .context("a checkpoint before the first step")?;
+            let state = self.trainer.checkpoint_state(run, next, losses);
+            return Ok(Some(
+                self.trainer
+                    .save_checkpoint(&self.paths.checkpoints, &state)?,
+            ));
+        };
+        let next = self.next_position().unwrap_or_default();
+        let what = format!("checkpoint positions at step {}", self.trainer.step_count());
+        let all = ddp.all_gather(&[next.epoch, next.batch], &what);
+        if ddp.rank() != 0 {
+            return Ok(None);
+        }
+        let mut state = self.trainer.checkpoint_state(run, next, losses);
+        state.ranks = all.chunks(2).map(|p| [p[0], p[1]]).collect();
+        Ok(Some(
+            self.trainer
+                .save_checkpoint(&self.paths.checkpoints, &state)?,
+        ))
+    }
+
+    /// The final checkpoint, the plot and the summary; `Some(128 + signal)` when stopped
+    /// by a signal.
+    pub fn finish(self) -> anyhow::Result<Option<i32>> {
+        self.bar.finish_and_clear();
+        let signal = self.stop.load(Ordering::SeqCst);
+        let checkpoint = match &self.ddp {
+            // Every rank takes part (the same steps on all ranks).
+            Some(_) => self.last.filter(|_| self.trainer.step_count() > 0),
+            None => self.last.filter(|_| self.stream.next().is_some()),
+        };
+        if let Some(losses) = checkpoint
+            && let Some(dir) = self.save_checkpoint(&losses)?
+        {
+            if signal != 0 {
+                tracing::warn!(
+                    checkpoint = %dir.display(),
+                    step = self.trainer.step_count(),
+                    "stopped by a signal; checkpoint saved: continue with --resume"
+                );
+            } else {
+                tracing::info!(checkpoint = %dir.display(), "final checkpoint saved");
+            }
+        }
+        // Stopped early: by this process's signal, or (data-parallel) another rank's.
+        let stopped_early =
+            signal != 0 || (self.ddp.is_some() && self.trainer.step_count() < self.steps);
+        if stopped_early {
+            return Ok(Some(128 + if signal != 0 { signal } else { 15 }));
+        }
+        if self.options.plot {
+            metrics::plot_svg(&metrics::read(&self.paths.metrics)?, &self.paths.plot)?;
+            tracing::info!(plot = %self.paths.plot.display(), "loss curves written");
+        }
+        let total = self.started.elapsed().as_secs_f64();
+        tracing::info!(
+            steps = self.trainer.step_count(),
+            seconds = format_args!("{total:.1}"),
+            data_stall_fraction = format_args!("{:.3}", self.waiting / total.max(1e-9)),
+            compute_fraction = format_args!("{:.3}", self.computing / total.max(1e-9)),
+            metrics = %self.paths.metrics.display(),
+            "done training"
+        );
+        Ok(None)
+    }
+}
+
+/// The metrics line of step `step` at stream position `at`, trained on the batch `meta`
+/// (none: a data-parallel rank without a batch at this step) after waiting `wait`
+/// seconds for it.
+fn step_record(
+    step: u64,
+    at: StreamPosition,
+    meta: Option<&BatchMeta>,
+    outcome: &StepOutcome,
+    wait: f64,
+) -> StepRecord {
+    let samples = meta.map_or(0, |m| m.sample_count as usize);
+    StepRecord {
+        step,
+        epoch: at.epoch,
+        batch: at.batch,
+        loss: outcome.losses.total,
+        l_sc: outcome.losses.sc,
+        l_tc: outcome.losses.tc,
+        l_d2s: outcome.losses.d2s,
+        lr: outcome.lr,
+        wait_ms: wait * 1e3,
+        step_ms: outcome.seconds * 1e3,
+        samples_per_s: samples as f64 / (wait + outcome.seconds).max(1e-9),
+        samples,
+        points: outcome.counts[0],
+        pairings: outcome.counts[1],
+        voxels: outcome.counts[2],
+        sample_ids: outcome.sample_ids.clone(),
+        params_hash: 0,
+        ddp: None,
+    }
+}
+
+fn log_step(record: &StepRecord, outcome: &StepOutcome) {
+    tracing::info!(
+        step = record.step,
+        epoch = record.epoch,
+        batch = record.batch,
+        loss = format_args!("{:.4}", record.loss),
+        l_sc = format_args!("{:.4}", record.l_sc),
+        l_tc = format_args!("{:.4}", record.l_tc),
+        l_d2s = format_args!("{:.4}", record.l_d2s),
+        lr = format_args!("{:.2e}", record.lr),
+        wait_ms = format_args!("{:.1}", record.wait_ms),
+        step_ms = format_args!("{:.1}", record.step_ms),
+        vit_ms = format_args!("{:.1}", outcome.phases.vit * 1e3),
+        forward_ms = format_args!("{:.1}", outcome.phases.forward * 1e3),
+        backward_ms = format_args!("{:.1}", outcome.phases.backward * 1e3),
+        "step"
+    );
+}

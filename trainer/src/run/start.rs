@@ -1,0 +1,371 @@
+//! How a run starts: fresh, from its newest checkpoint (`--resume`), or — a data-parallel
+//! job — as rank 0 decides, with every rank receiving rank 0's parameters.
+
+use super::RunOptions;
+use super::job::Ddp;
+use super::paths::RunPaths;
+use crate::checkpoint::CheckpointState;
+use crate::metrics;
+use crate::stream::StreamPosition;
+use crate::subscribe::Subscription;
+use crate::train::Trainer;
+use anyhow::Context as _;
+use std::path::PathBuf;
+use std::time::Duration;
+
+/// Asks the pipeline to continue this trainer's stream at `at`.
+pub fn ask_resume(
+    subscription: &Subscription,
+    run: &str,
+    at: StreamPosition,
+    timeout: Duration,
+) -> anyhow::Result<u128> {
+    let reply = subscription
+        .resume(at.epoch, at.batch, timeout)
+        .with_context(|| format!("asking run {run} to resume"))?;
+    if reply.accepted != 1 {
+        anyhow::bail!(
+            "the pipeline refused to resume run {run} at epoch {} batch {} (reason {}): \
+             is it the same recording and configuration?",
+            at.epoch,
+            at.batch,
+            reply.reason
+        );
+    }
+    Ok(reply.publisher())
+}
+
+/// How rank 0 starts a data-parallel job; every rank receives it.
+#[derive(Debug, Default, serde::Serialize, serde::Deserialize)]
+pub struct JobStart {
+    /// Rank 0's configuration (TOML): every rank must run the same.
+    pub config: String,
+    /// The checkpoint the job continues from (`--resume` and one exists).
+    pub resume: Option<CheckpointState>,
+    /// Why rank 0 cannot start the job.
+    pub error: Option<String>,
+}
+
+/// `--ddp`: rank 0 decides how the job starts (fresh, or from the newest checkpoint)
+/// and every rank receives the same parameters and optimizer state from it; each rank
+/// then asks its shard stream to continue at its own position. Returns that position
+/// when resuming.
+pub fn start_ranks(
+    options: &RunOptions,
+    trainer: &mut Trainer,
+    subscription: &Subscription,
+    paths: &RunPaths,
+    ddp: &Ddp,
+) -> anyhow::Result<Option<StreamPosition>> {
+    let rank = ddp.rank();
+    let (start, model, optim) = if rank == 0 {
+        match first_rank_start(options.resume, trainer, paths) {
+            Ok(start) => start,
+            Err(e) => (
+                JobStart {
+                    error: Some(format!("{e:#}")),
+                    ..JobStart::default()
+                },
+                Vec::new(),
+                Vec::new(),
+            ),
+        }
+    } else {
+        Default::default()
+    };
+    let start = ddp.broadcast_bytes(serde_json::to_vec(&start)?, "job start (rank 0's decision)");
+    let start: JobStart = serde_json::from_slice(&start).context("rank 0's job start")?;
+    if let Some(error) = start.error {
+        anyhow::bail!(if rank == 0 {
+            error
+        } else {
+            format!("rank 0 could not start the job: {error}")
+        });
+    }
+    if start.config != trainer.config_toml() {
+        anyhow::bail!(
+            "rank {rank}'s configuration differs from rank 0's: give every rank the same trainer.toml and flags"
+        );
+    }
+    let model = ddp.broadcast_bytes(model, "rank 0's parameters");
+    let optim = ddp.broadcast_bytes(optim, "rank 0's optimizer state");
+    let step = start.resume.as_ref().map_or(0, |s| s.step);
+    trainer.restore_bytes(model, optim, step, &paths.checkpoints)?;
+    let Some(state) = start.resume else {
+        start_fresh(paths, false)?;
+        tracing::info!(
+            rank,
+            world_size = ddp.size(),
+            "every rank starts from rank 0's parameters"
+        );
+        return Ok(None);
+    };
+    if state.ranks.len() != ddp.size() {
+        anyhow::bail!(
+            "the checkpoint at step {} was written by a job of {} data-parallel ranks; resume it with mpirun -np {}",
+            state.step,
+            state.ranks.len(),
+            state.ranks.len().max(1)
+        );
+    }
+    let [epoch, batch] = state.ranks[rank];
+    let at = StreamPosition::new(epoch, batch);
+    ask_resume(
+        subscription,
+        &options.run,
+        at,
+        Duration::from_secs(options.timeout_secs),
+    )?;
+    tracing::info!(
+        rank,
+        step,
+        epoch,
+        batch,
+        "resuming: this rank's shard continues at its checkpointed position"
+    );
+    drop_redone_metrics(paths, step)?;
+    Ok(Some(at))
+}
+
+/// Rank 0's part of [`start_ranks`]: the decision and the records to send.
+pub fn first_rank_start(
+    resume: bool,
+    trainer: &Trainer,
+    paths: &RunPaths,
+) -> anyhow::Result<(JobStart, Vec<u8>, Vec<u8>)> {
+    let config = trainer.config_toml();
+    let latest = crate::checkpoint::latest(&paths.checkpoints)?;
+    match latest {
+        Some(ckpt) if resume => {
+            let read =
+                |p: PathBuf| std::fs::read(&p).with_context(|| format!("reading {}", p.display()));
+            let (model, optim) = (read(ckpt.model_path())?, read(ckpt.optim_path())?);
+            tracing::info!(checkpoint = %ckpt.dir.display(), step = ckpt.state.step, "the job continues from this checkpoint");
+            let start = JobStart {
+                config,
+                resume: Some(ckpt.state),
+                error: None,
+            };
+            Ok((start, model, optim))
+        }
+        Some(_) => Err(holds_checkpoints(paths)),
+        None => {
+            if resume {
+                tracing::warn!(dir = %paths.checkpoints.display(), "--resume: no checkpoint yet, starting fresh");
+            }
+            let start = JobStart {
+                config,
+                ..JobStart::default()
+            };
+            Ok((start, trainer.model_bytes()?, Vec::new()))
+        }
+    }
+}
+
+/// `--resume`: restores the newest checkpoint and asks the pipeline to continue at its
+/// next batch (`None` when there is no checkpoint yet: a fresh start).
+pub fn resume(
+    options: &RunOptions,
+    trainer: &mut Trainer,
+    subscription: &Subscription,
+    paths: &RunPaths,
+) -> anyhow::Result<Option<StreamPosition>> {
+    let Some(state) = restore_newest(trainer, paths)? else {
+        return Ok(None);
+    };
+    ask_resume(
+        subscription,
+        &options.run,
+        state.next(),
+        Duration::from_secs(options.timeout_secs),
+    )?;
+    tracing::info!(
+        step = state.step,
+        epoch = state.next_epoch,
+        batch = state.next_batch,
+        "resuming: the pipeline continues at the checkpoint's next batch"
+    );
+    drop_redone_metrics(paths, state.step)?;
+    Ok(Some(state.next()))
+}
+
+/// Restores the newest checkpoint of `paths` into `trainer`; `None` (said in the log)
+/// when there is none yet: the run starts fresh.
+pub fn restore_newest(
+    trainer: &mut Trainer,
+    paths: &RunPaths,
+) -> anyhow::Result<Option<CheckpointState>> {
+    let state = trainer.restore_latest(&paths.checkpoints)?;
+    if state.is_none() {
+        tracing::warn!(dir = %paths.checkpoints.display(), "--resume: no checkpoint yet, starting fresh");
+    }
+    Ok(state)
+}
+
+/// A resumed run redoes the steps after its checkpoint's `step`: their metrics lines go.
+pub fn drop_redone_metrics(paths: &RunPaths, step: u64) -> anyhow::Result<()> {
+    let redone = metrics::truncate_after(&paths.metrics, step)?;
+    if redone > 0 {
+        tracing::warn!(
+            steps = redone,
+            after = step,
+            "steps trained after the checkpoint are lost and will be redone on the same batches; their metrics lines are dropped"
+        );
+    }
+    Ok(())
+}
+
+/// Why a fresh run does not start in `paths`: it holds checkpoints.
+fn holds_checkpoints(paths: &RunPaths) -> anyhow::Error {
+    anyhow::anyhow!(
+        "{} already holds checkpoints: pass --resume to continue that run, or choose another --out",
+        paths.checkpoints.display()
+    )
+}
+
+/// A fresh run: refuses an output directory holding checkpoints (`check_checkpoints`:
+/// the process that writes them), drops old metrics.
+pub fn start_fresh(paths: &RunPaths, check_checkpoints: bool) -> anyhow::Result<()> {
+    if check_checkpoints && crate::checkpoint::latest(&paths.checkpoints)?.is_some() {
+        return Err(holds_checkpoints(paths));
+    }
+    if paths.metrics.exists() {
+        std::fs::remove_file(&paths.metrics)
+            .with_context(|| format!("replacing {}", paths.metrics.display()))?;
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::TrainerConfig;
+    use crate::loss::LossValues;
+    use crate::metrics::{MetricsWriter, StepRecord};
+    use crate::unet::UNetPreset;
+    use crate::vit::VitPreset;
+
+    fn tiny_trainer(seed: u64) -> Trainer {
+        let mut config = TrainerConfig::default();
+        config.model.unet = UNetPreset::Tiny;
+        config.model.vit = VitPreset::Tiny;
+        config.model.seed = seed;
+        Trainer::new(config, &burn::tensor::Device::flex()).expect("tiny trainer")
+    }
+
+    fn paths_in(dir: &std::path::Path) -> RunPaths {
+        RunPaths::new(dir.to_path_buf(), &TrainerConfig::default(), None)
+    }
+
+    fn scratch(name: &str) -> PathBuf {
+        let dir =
+            std::env::temp_dir().join(format!("superflow-start-{name}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        dir
+    }
+
+    /// A checkpoint of `trainer` at `step` whose next batch is (epoch 1, batch `step`).
+    fn checkpoint_at(trainer: &mut Trainer, paths: &RunPaths, step: u64) -> CheckpointState {
+        let model = trainer.model_bytes().expect("model");
+        trainer
+            .restore_bytes(model, Vec::new(), step, &paths.checkpoints)
+            .expect("step count");
+        let state =
+            trainer.checkpoint_state("r", StreamPosition::new(1, step), &LossValues::default());
+        trainer
+            .save_checkpoint(&paths.checkpoints, &state)
+            .expect("saved");
+        state
+    }
+
+    #[test]
+    fn rank_zero_starts_fresh_resumes_or_refuses_a_directory_holding_checkpoints() {
+        let dir = scratch("rank0");
+        let paths = paths_in(&dir);
+        let mut trainer = tiny_trainer(1);
+        // No checkpoint: a fresh job, with or without --resume, from rank 0's parameters.
+        for resume in [false, true] {
+            let (start, model, optim) = first_rank_start(resume, &trainer, &paths).expect("fresh");
+            assert_eq!(start.config, trainer.config_toml());
+            assert!(start.resume.is_none() && start.error.is_none());
+            assert_eq!(model, trainer.model_bytes().expect("model"));
+            assert!(optim.is_empty(), "a fresh optimizer is not sent");
+        }
+        let state = checkpoint_at(&mut trainer, &paths, 4);
+        // A checkpoint and --resume: its records and state.
+        let (start, model, optim) = first_rank_start(true, &trainer, &paths).expect("resume");
+        let newest = crate::checkpoint::latest(&paths.checkpoints)
+            .expect("read")
+            .expect("one");
+        assert_eq!(
+            start.resume.as_ref().map(|s| (s.step, s.next())),
+            Some((4, state.next()))
+        );
+        assert_eq!(
+            model,
+            std::fs::read(newest.model_path()).expect("model.bpk")
+        );
+        assert_eq!(
+            optim,
+            std::fs::read(newest.optim_path()).expect("optim.bpk")
+        );
+        // A checkpoint without --resume: refused, naming the directory.
+        let err = first_rank_start(false, &trainer, &paths).expect_err("holds checkpoints");
+        assert!(
+            err.to_string()
+                .contains("already holds checkpoints: pass --resume"),
+            "{err}"
+        );
+        let err = start_fresh(&paths, true).expect_err("a lone trainer refuses too");
+        assert!(
+            err.to_string().contains("already holds checkpoints"),
+            "{err}"
+        );
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn resuming_restores_the_newest_checkpoint_and_drops_the_metrics_of_redone_steps() {
+        let dir = scratch("resume");
+        let paths = paths_in(&dir);
+        let mut saved = tiny_trainer(2);
+        let state = checkpoint_at(&mut saved, &paths, 3);
+        let mut writer = MetricsWriter::open(&paths.metrics).expect("metrics");
+        for step in 1..=5 {
+            writer
+                .write(&StepRecord {
+                    step,
+                    ..StepRecord::default()
+                })
+                .expect("line");
+        }
+        drop(writer);
+        let mut trainer = tiny_trainer(3);
+        assert_ne!(trainer.params_hash(), saved.params_hash(), "another seed");
+        let restored = restore_newest(&mut trainer, &paths)
+            .expect("restore")
+            .expect("one");
+        assert_eq!((restored.step, restored.next()), (3, state.next()));
+        assert_eq!(trainer.step_count(), 3);
+        assert_eq!(
+            trainer.params_hash(),
+            saved.params_hash(),
+            "the checkpoint's parameters"
+        );
+        drop_redone_metrics(&paths, restored.step).expect("truncate");
+        let steps: Vec<u64> = metrics::read(&paths.metrics)
+            .expect("read")
+            .iter()
+            .map(|r| r.step)
+            .collect();
+        assert_eq!(steps, [1, 2, 3], "steps 4 and 5 are redone");
+        // Nothing to resume from: a fresh start.
+        let empty = paths_in(&scratch("resume-empty"));
+        assert!(
+            restore_newest(&mut trainer, &empty)
+                .expect("no checkpoint")
+                .is_none()
+        );
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}
