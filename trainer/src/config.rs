@@ -2,13 +2,14 @@
 //! Every field has the official code's default; the command line overrides the common
 //! ones. Unknown fields are errors (a typo must not silently train something else).
 
-use crate::error::{InvalidSetting, TrainerError};
+use crate::error::TrainerError;
 use crate::loss::LossConfig;
 use crate::lr_schedule::OneCycle;
 use crate::unet::{UNetConfig, UNetPreset};
 use crate::vit::VitPreset;
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
+use superflow_common::InvalidSetting;
 
 /// The whole file.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]

@@ -7,7 +7,7 @@
 //! [`source`](std::error::Error::source): printed with `{:#}` (anyhow) each shows once.
 
 use crate::inputs::InputError;
-use crate::probe::ProbeError;
+use crate::probe::error::ProbeError;
 use crate::vit::WeightsError;
 use burn::store::RecordError;
 use std::path::PathBuf;

@@ -21,9 +21,16 @@
 //! 7. [`checkpoint`] saves and restores that state atomically, with the stream position to
 //!    resume at; [`metrics`] writes one JSON line per step and plots the loss curves.
 //!
-//! [`config`] is `trainer.toml` ([`TrainerConfig`](config::TrainerConfig)); [`init`] draws the
-//! seeded initial weights; [`error`] holds [`TrainerError`](error::TrainerError), the
-//! library's error. The `superflow-trainer` binary wires these together.
+//! 8. [`run`]: a training run as the `superflow-trainer` binary runs it — start (fresh,
+//!    `--resume`, or a data-parallel job over MPI, `ddp`), the step loop, checkpoints on a
+//!    schedule and on SIGTERM, the summary.
+//!
+//! [`config`] is `trainer.toml` ([`TrainerConfig`](config::TrainerConfig)) with the
+//! command line's [`Overrides`](config::Overrides); [`device`] turns a backend name into
+//! a device; [`init`] draws the seeded initial weights; [`check`] compares backends on one
+//! batch; [`probe`] scores a backbone downstream (its pipeline-fed half behind the `probe`
+//! feature); [`error`] holds [`TrainerError`](error::TrainerError), the library's error.
+//! The binary (`src/bin/superflow-trainer/`) only parses flags and dispatches.
 //!
 //! ```no_run
 //! use std::time::Duration;

@@ -4,7 +4,7 @@
 //! `max_lr / div_factor / final_div_factor`. burn 0.22 has no one-cycle scheduler; this
 //! is the curve, step by step, for the optimizer to use.
 
-use crate::error::InvalidSetting;
+use superflow_common::InvalidSetting;
 
 /// One-cycle parameters (defaults = the official config: lr 0.01, warm-up 20 %, div 25,
 /// final div 100).

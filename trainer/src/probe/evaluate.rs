@@ -5,7 +5,7 @@ use crate::checkpoint;
 use crate::config::TrainerConfig;
 use crate::error::TrainerError;
 use crate::model::SuperFlowModel;
-use crate::probe::ProbeError;
+use crate::probe::error::ProbeError;
 use crate::probe::linear::{
     self as probe, ConfusionMatrix, KeyframeTime, LinearProbe, PointCounts, ProbeReport,
     ProbeTraining, SplitCounts,

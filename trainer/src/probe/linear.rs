@@ -13,7 +13,7 @@
 //! * [`ProbeReport`]: what `superflow-trainer probe --json` prints.
 
 use crate::error::TrainerError;
-use crate::probe::ProbeError;
+use crate::probe::error::ProbeError;
 use burn::module::Module;
 use burn::nn::loss::CrossEntropyLossConfig;
 use burn::nn::{Initializer, Linear, LinearConfig};

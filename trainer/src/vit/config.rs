@@ -1,10 +1,10 @@
 //! The shape of a [`DinoVit`](super::DinoVit): the released sizes ([`VitPreset`]) and the
 //! dimensions of one network ([`VitConfig`]).
 
-use crate::error::InvalidSetting;
 use serde::{Deserialize, Serialize};
 use std::fmt;
 use std::str::FromStr;
+use superflow_common::InvalidSetting;
 
 /// The backbone sizes [`VitConfig::preset`] knows. Names are lowercase in serde, [`FromStr`]
 /// and [`Display`](fmt::Display): `tiny`, `small`, `base`, `large`.

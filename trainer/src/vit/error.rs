@@ -1,8 +1,8 @@
 //! [`WeightsError`]: what can be wrong with a DINOv2 checkpoint file. A leaf of the
 //! folder: the loader (`load.rs`) and the weight walk (`weights.rs`) both return it.
 
-use crate::error::InvalidSetting;
 use std::path::PathBuf;
+use superflow_common::InvalidSetting;
 
 /// What can be wrong with a DINOv2 checkpoint file; every message names the file, and the
 /// tensor where one is at fault (with its prefix).
