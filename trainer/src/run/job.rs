@@ -1,6 +1,6 @@
 //! `--ddp`: joining the MPI job, or saying why this build cannot.
 
-use super::RunOptions;
+use super::options::RunOptions;
 
 #[cfg(feature = "mpi")]
 pub use crate::ddp::Ddp;

@@ -1,8 +1,8 @@
 //! A run in progress: receiving batches, stepping, checkpointing, and the summary at the
 //! end.
 
-use super::RunOptions;
 use super::job::Ddp;
+use super::options::RunOptions;
 use super::paths::RunPaths;
 use super::start::ask_resume;
 use crate::loss::LossValues;

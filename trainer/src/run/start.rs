@@ -1,8 +1,8 @@
 //! How a run starts: fresh, from its newest checkpoint (`--resume`), or — a data-parallel
 //! job — as rank 0 decides, with every rank receiving rank 0's parameters.
 
-use super::RunOptions;
 use super::job::Ddp;
+use super::options::RunOptions;
 use super::paths::RunPaths;
 use crate::checkpoint::CheckpointState;
 use crate::metrics;
