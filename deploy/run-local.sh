@@ -6,7 +6,7 @@
 # Defaults are the CPU demo: the tiny 3D preset, a tiny RANDOM ViT (no DINOv2 weights;
 # the trainer says so loudly), superpixel pooling at every 4th pixel, 48 steps.
 # Real pretraining: TRAINER_ARGS="--unet minkunet34 --image-weights dinov2_vits14.safetensors
-# --steps 100000 --pixel-stride 1" (and a GPU backend, see the README).
+# --steps 100000 --pixel-stride 1" (and a GPU backend, see trainer/README.md).
 # Output (metrics.jsonl, losses.svg, checkpoints/) goes to runs/<run>.
 set -euo pipefail
 cd "$(dirname "$0")/.."

@@ -1,6 +1,7 @@
 //! All the benchmarks in one table: pipeline samples/s per core, iceoryx2 delivery
 //! latency against payload size, the producer's cost of fan-out, trainer steps/s and the
-//! data-stall fraction — with the machine above it, ready to paste into the README.
+//! data-stall fraction — with the machine above it, ready to paste into
+//! pipeline/docs/BENCHMARKS.md.
 //!
 //! `cargo bench -p superflow-tests --bench summary [-- OPTIONS]`; the table goes to
 //! stdout and to `target/bench-summary.md`, progress to stderr. About 2 minutes on 2

@@ -47,9 +47,9 @@ fn independent_python_decoders_agree_with_the_ground_truth() {
 
 #[test]
 fn the_numpy_loader_unpacks_a_drive_and_times_its_samples() {
-    // The README's baseline (a numpy + Pillow loader on files): one file per sweep holding
-    // every point of the sweep (x, y, z, intensity as float32), every camera, and a table
-    // row of positive times.
+    // The baseline of pipeline/docs/BENCHMARKS.md (a numpy + Pillow loader on files): one
+    // file per sweep holding every point of the sweep (x, y, z, intensity as float32),
+    // every camera, and a table row of positive times.
     let out = workspace_root().join(format!("target/baseline-loader-{}", std::process::id()));
     let out_arg = out.to_string_lossy().into_owned();
     let text = python(&[
