@@ -2,8 +2,9 @@
 //! drops the non-finite ones, converts ring and time, and resolves a float time field's
 //! unit by the magnitude of its values.
 
+use super::field::{Endianness, FieldPlan, NamedField, NumericType, array};
 use super::label::{LabelPlan, bad_label};
-use super::layout::{Endianness, FieldPlan, NamedField, NumericType, PointLayout, array};
+use super::layout::PointLayout;
 use super::time::{
     TimeConversion, TimeFieldSpec, TimeReference, TimeRule, TimeUnit, magnitude_rule,
 };
