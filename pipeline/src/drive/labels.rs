@@ -58,7 +58,9 @@
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 
-use super::dataset::{Drive, FrameAt, LabelCloudStream, LidarStream, ReadError};
+use super::index::Drive;
+use super::read::{FrameAt, ReadError};
+use super::streams::{LabelCloudStream, LidarStream};
 use crate::decode::points::{
     CloudOptions, DecodedCloud, LabelFieldSpec, PointsError, decode_labels_message,
     decode_message_with, field_names, find_label_field,

@@ -18,7 +18,7 @@ use super::SampleConfig;
 use super::slic::slic;
 use crate::decode::foxglove::{CompressedImage, Timestamp, decode};
 use crate::decode::image::Target;
-use crate::drive::dataset::SlicStream;
+use crate::drive::SlicStream;
 use crate::drive::discover::{SLIC_IMAGE_TOPIC_KEY, SLIC_SETTINGS_KEY};
 use crate::drive::{CameraStream, Drive, FrameRef};
 use crate::source::ChunkCache;
