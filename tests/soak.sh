@@ -88,8 +88,13 @@ stop() {
 trap stop EXIT
 
 rss_kib() { awk '/^VmRSS:/ { print $2 }' "/proc/$1/status" 2>/dev/null || echo 0; }
-# Pages actually held by this run's shared memory (tmpfs blocks, not the reserved size).
-shm_kib() { du -sk /dev/shm/"$SUPERFLOW_IOX_PREFIX"_* 2>/dev/null | awk '{ s += $1 } END { print s + 0 }'; }
+# Pages actually held by this run's shared memory (tmpfs blocks, not the reserved size);
+# 0 before the pipeline has created any (du then fails on the unmatched glob, and
+# pipefail would turn that into a failure of the whole script) or while files vanish.
+shm_kib() {
+    { du -sk /dev/shm/"$SUPERFLOW_IOX_PREFIX"_* 2>/dev/null || true; } |
+        awk '{ s += $1 } END { print s + 0 }'
+}
 steps() { grep -c '}$' "$out/rank$1/metrics.jsonl" 2>/dev/null || echo 0; }
 
 echo "minute,pipeline_kib,rank0_kib,rank1_kib,shm_kib,rank0_steps,rank1_steps" > "$out/rss.csv"

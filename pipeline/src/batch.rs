@@ -9,7 +9,7 @@
 //! element type of every write.
 
 use crate::sample::SampleConfig;
-use crate::sample::sparse::KernelMap;
+use crate::sample::kernel_maps::KernelMap;
 use crate::sample::{Cloud, Sample};
 use superflow_schemas::batch::{
     BatchError, BatchLayout, BatchMeta, BatchWriter, Dims, LevelDims, Section,

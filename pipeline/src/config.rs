@@ -11,10 +11,13 @@
 //!   whoever asks for labels, e.g. a linear probe; samples never read them).
 //!
 //! `pipeline/pipeline.toml` lists every setting with its default and a comment.
+//!
+//! The command line's settings ([`Overrides`]) are laid over the file's in one place,
+//! [`PipelineConfig::apply`], and the result is validated after.
 
 use crate::drive::{IngestConfig, LabelConfig};
 use crate::invalid::InvalidSetting;
-use crate::publish::ServiceConfig;
+use crate::publish::{Mode, ServiceConfig};
 use crate::sample::SampleConfig;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -32,6 +35,26 @@ pub struct PipelineConfig {
     pub service: ServiceConfig,
     /// Per-point labels (`[labels]`, `[labels.mapping]`).
     pub labels: LabelConfig,
+}
+
+/// `[service]` settings given on the command line: each one present replaces the file's
+/// value, each one absent (`None`) keeps it.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Overrides {
+    /// `[service] mode`.
+    pub mode: Option<Mode>,
+    /// `[service] world_size`; above 1 without a `mode` it also selects shard mode.
+    pub world_size: Option<u32>,
+    /// `[service] host_rank`.
+    pub host_rank: Option<u32>,
+    /// `[service] host_count`.
+    pub host_count: Option<u32>,
+    /// `[service] batch_size`.
+    pub batch_size: Option<u32>,
+    /// `[service] epochs`.
+    pub epochs: Option<u64>,
+    /// `[service] min_subscribers`.
+    pub min_subscribers: Option<u32>,
 }
 
 /// A configuration file that cannot be used.
@@ -80,6 +103,38 @@ impl PipelineConfig {
             .validate()
             .map_err(|source| ConfigError::Invalid { path: name, source })?;
         Ok(config)
+    }
+
+    /// Lays the command line's `overrides` over this (the file's) configuration: the low
+    /// settings (file, defaults) give way to the high ones (flags). A `world_size` above 1
+    /// with no `mode` given selects shard mode. Nothing is validated here: validate the
+    /// result ([`ServiceConfig::validate`]) before use.
+    pub fn apply(&mut self, overrides: &Overrides) {
+        let service = &mut self.service;
+        if let Some(mode) = overrides.mode {
+            service.mode = mode;
+        }
+        if let Some(w) = overrides.world_size {
+            service.world_size = w;
+            if w > 1 && overrides.mode.is_none() {
+                service.mode = Mode::Shard;
+            }
+        }
+        if let Some(b) = overrides.batch_size {
+            service.batch_size = b;
+        }
+        if let Some(h) = overrides.host_rank {
+            service.host_rank = h;
+        }
+        if let Some(n) = overrides.host_count {
+            service.host_count = n;
+        }
+        if let Some(e) = overrides.epochs {
+            service.epochs = e;
+        }
+        if let Some(n) = overrides.min_subscribers {
+            service.min_subscribers = n;
+        }
     }
 
     /// Checks ranges.
@@ -205,6 +260,41 @@ mod tests {
             toml::from_str("[labels]\nclasses = [\"car\"]\n[labels.mapping]\n10 = 3\n").unwrap();
         let e = bad.validate().unwrap_err();
         assert_eq!(e.setting, "labels.mapping.10");
+    }
+
+    #[test]
+    fn a_flag_overrides_the_files_value_and_an_absent_flag_keeps_it() {
+        let mut config: PipelineConfig =
+            toml::from_str("[service]\nbatch_size = 8\nepochs = 3\nmin_subscribers = 2\n").unwrap();
+        config.apply(&Overrides {
+            batch_size: Some(4),
+            ..Overrides::default()
+        });
+        assert_eq!(config.service.batch_size, 4);
+        assert_eq!(config.service.epochs, 3);
+        assert_eq!(config.service.min_subscribers, 2);
+        assert_eq!(config.service.mode, Mode::Broadcast);
+        config.apply(&Overrides::default());
+        assert_eq!(config.service.batch_size, 4);
+        assert_eq!(config.service.epochs, 3);
+        // A world size above 1 alone selects shard mode; given with a mode, the mode stands.
+        let mut sharded = config.clone();
+        sharded.apply(&Overrides {
+            world_size: Some(2),
+            ..Overrides::default()
+        });
+        assert_eq!(sharded.service.mode, Mode::Shard);
+        assert!(sharded.service.validate().is_ok());
+        config.apply(&Overrides {
+            mode: Some(Mode::Broadcast),
+            world_size: Some(2),
+            ..Overrides::default()
+        });
+        assert_eq!(config.service.mode, Mode::Broadcast);
+        assert_eq!(
+            config.service.validate().unwrap_err().setting,
+            "service.world_size"
+        );
     }
 
     /// The dotted paths of every key of `table`.

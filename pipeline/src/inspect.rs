@@ -3,8 +3,8 @@
 //! The JSON form ([`InspectReport`], `"format": "superflow.inspect/1"`) is a contract:
 //! fields are only ever added, and a change of meaning bumps the format string.
 
+use crate::drive::ChannelSummary;
 use crate::drive::SkipReport;
-use crate::drive::dataset::ChannelSummary;
 use crate::drive::{Dataset, Drive, DriveLabels, LabelConfig, LabelForm, Role};
 use crate::sample::SampleConfig;
 use crate::sample::plan::drive_keyframes;

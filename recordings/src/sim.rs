@@ -4,6 +4,7 @@
 pub use crate::render::{CameraFrame, ObjectMap, pixel_rays, render_camera};
 use crate::scene::{CLASSES, Scene};
 use nalgebra::{Isometry3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use std::f64::consts::{PI, TAU};
 use superflow_schemas::Stamp;
 use superflow_schemas::sensor::{CameraCalibration, Distortion};
 
@@ -170,6 +171,12 @@ impl Rig {
     }
 }
 
+/// Azimuth in the LiDAR frame of column `c` of `columns` (0 = first firing of a sweep):
+/// the LiDAR spins clockwise seen from above, starting behind the sensor.
+pub fn column_azimuth(column: usize, columns: usize) -> f64 {
+    PI * 1.5 - TAU * column as f64 / columns as f64
+}
+
 /// Elevations of `beams` LiDAR beams, lowest first, radians: 16 beams spread evenly over
 /// -25°..+5° (the sample drives), any other count over an HDL-32E-like -30.67°..+10.67°
 /// (one beam: the middle of that).
@@ -213,7 +220,7 @@ pub fn simulate_sweep(scene: &Scene, rig: &Rig, timing: &DriveTiming, k: usize) 
     for c in 0..rig.columns {
         let column = begin.add_nanos(c as i64 * timing.sweep_nanos / rig.columns as i64);
         // Clockwise spin seen from above, starting behind the sensor.
-        let azimuth = crate::trigger::column_azimuth(c, rig.columns);
+        let azimuth = column_azimuth(c, rig.columns);
         let mut pose = None;
         for (ring, elevation) in rig.beam_elevations.iter().enumerate() {
             let stamp = column.add_nanos(ring as i64 * rig.beam_interval_nanos);

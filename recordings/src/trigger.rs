@@ -4,16 +4,11 @@
 //! camera's body yaw.
 
 use crate::options::CameraTrigger;
+
 use crate::sim::{DriveTiming, Rig};
 use nalgebra::Vector3;
 use std::f64::consts::{PI, TAU};
 use superflow_schemas::Stamp;
-
-/// Azimuth in the LiDAR frame of column `c` of `columns` (0 = first firing of a sweep):
-/// the LiDAR spins clockwise seen from above, starting behind the sensor.
-pub fn column_azimuth(column: usize, columns: usize) -> f64 {
-    PI * 1.5 - TAU * column as f64 / columns as f64
-}
 
 /// Yaw of camera `camera`'s viewing direction (body x axis) in the ego frame, radians.
 pub fn camera_yaw(rig: &Rig, camera: usize) -> Option<f64> {
@@ -76,6 +71,7 @@ mod tests {
     #![allow(clippy::unwrap_used)] // tests fail loudly on purpose
     use super::*;
     use crate::Dialect;
+    use crate::sim::column_azimuth;
     use superflow_schemas::sensor::Distortion;
 
     /// Angle between two azimuths, in `[0, π]`.

@@ -105,11 +105,11 @@ pub fn spawn(command: &mut Command) -> Proc {
 }
 
 /// `superflow-pipeline --mcap drive --run run args…` under the iceoryx2 prefix `prefix`,
-/// from the workspace root, its stderr piped; `probe` is the test's
-/// `env!("CARGO_BIN_EXE_superflow-probe")` (the pipeline binary lies beside it).
-pub fn pipeline(probe: &str, drive: &str, prefix: &str, run: &str, args: &[&str]) -> Proc {
+/// from the workspace root, its stderr piped; `subscriber` is the test's
+/// `env!("CARGO_BIN_EXE_superflow-subscriber")` (the pipeline binary lies beside it).
+pub fn pipeline(subscriber: &str, drive: &str, prefix: &str, run: &str, args: &[&str]) -> Proc {
     spawn(
-        Command::new(crate::pipeline_binary(probe))
+        Command::new(crate::pipeline_binary(subscriber))
             .args(["--mcap", drive, "--run", run])
             .args(args)
             .env("SUPERFLOW_IOX_PREFIX", prefix)
@@ -120,10 +120,11 @@ pub fn pipeline(probe: &str, drive: &str, prefix: &str, run: &str, args: &[&str]
     )
 }
 
-/// `superflow-probe --run run args…` under the iceoryx2 prefix `prefix`, its output piped.
-pub fn probe(probe: &str, prefix: &str, run: &str, args: &[&str]) -> Proc {
+/// `superflow-subscriber --run run args…` under the iceoryx2 prefix `prefix`, its output
+/// piped.
+pub fn subscriber(subscriber: &str, prefix: &str, run: &str, args: &[&str]) -> Proc {
     spawn(
-        Command::new(probe)
+        Command::new(subscriber)
             .args(["--run", run])
             .args(args)
             .env("SUPERFLOW_IOX_PREFIX", prefix)

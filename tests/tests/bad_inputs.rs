@@ -111,7 +111,7 @@ fn listing() -> (Vec<String>, Vec<String>) {
 
 /// Runs the pipeline binary in the workspace root; fails on a panic or a hang.
 fn pipeline(args: &[&str]) -> (bool, String, String) {
-    let mut command = Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-probe")));
+    let mut command = Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-subscriber")));
     command
         .args(args)
         .current_dir(workspace_root())

@@ -293,7 +293,7 @@ fn shard_pipeline(prefix: &str, run: &str, epochs: u64) -> Proc {
         &epochs,
     ];
     pipeline(
-        env!("CARGO_BIN_EXE_superflow-probe"),
+        env!("CARGO_BIN_EXE_superflow-subscriber"),
         DRIVE,
         prefix,
         run,
@@ -311,7 +311,10 @@ fn trainer(
     out: &Path,
     extra: &[&str],
 ) -> Proc {
-    let binary = workspace_binary(env!("CARGO_BIN_EXE_superflow-probe"), "superflow-trainer");
+    let binary = workspace_binary(
+        env!("CARGO_BIN_EXE_superflow-subscriber"),
+        "superflow-trainer",
+    );
     let mut command = match launcher {
         Some(mut launcher) => {
             launcher.arg(binary);

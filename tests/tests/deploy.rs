@@ -455,7 +455,7 @@ fn containerfile_passes_hadolint_and_builds_what_runs() {
 
 #[test]
 fn flags_in_the_deploy_files_exist_in_the_binaries() {
-    let sibling = env!("CARGO_BIN_EXE_superflow-probe");
+    let sibling = env!("CARGO_BIN_EXE_superflow-subscriber");
     let pipeline = help_flags(&pipeline_binary(sibling));
     let trainer = help_flags(&workspace_binary(sibling, "superflow-trainer"));
     for needed in ["--host-rank", "--host-count", "--mode", "--world-size"] {
@@ -878,7 +878,7 @@ fn systemd_units_verify_and_share_shared_memory() {
         available,
         "systemd-analyze is missing: `apt-get install systemd` (.ci/run does) to verify the units"
     );
-    let sibling = env!("CARGO_BIN_EXE_superflow-probe");
+    let sibling = env!("CARGO_BIN_EXE_superflow-subscriber");
     let bin_dir = pipeline_binary(sibling).parent().unwrap().to_owned();
     workspace_binary(sibling, "superflow-trainer");
     let dir = std::env::temp_dir().join(format!("superflow-units-{}", std::process::id()));

@@ -6,7 +6,7 @@
 
 use nalgebra::Point3;
 use superflow_pipeline::decode::image::Target;
-use superflow_pipeline::drive::dataset::nearest;
+use superflow_pipeline::drive::nearest;
 use superflow_pipeline::drive::{Drive, IngestConfig};
 use superflow_pipeline::sample::deskew::deskew;
 use superflow_pipeline::sample::project::{CameraView, camera_from_lidar, pair_points};

@@ -87,7 +87,7 @@ fn scenario(prefix: &str, args: &[&str], env: &[(&str, &str)]) -> Proc {
 
 fn pipeline(prefix: &str, run: &str, args: &[&str]) -> Proc {
     process::pipeline(
-        env!("CARGO_BIN_EXE_superflow-probe"),
+        env!("CARGO_BIN_EXE_superflow-subscriber"),
         DRIVE,
         prefix,
         run,
@@ -121,8 +121,13 @@ fn succeeded(proc: Proc) -> Vec<Value> {
 fn python_sections_equal_the_rust_reader_and_lie_in_shared_memory() {
     let p = prefix("pyread");
     let python = scenario(&p, &["read", "--run", "pyread", "--count", "2"], &[]);
-    let probe_exe = env!("CARGO_BIN_EXE_superflow-probe");
-    let rust = process::probe(probe_exe, &p, "pyread", &["--count", "2", "--sections"]);
+    let subscriber_exe = env!("CARGO_BIN_EXE_superflow-subscriber");
+    let rust = process::subscriber(
+        subscriber_exe,
+        &p,
+        "pyread",
+        &["--count", "2", "--sections"],
+    );
     let pipe = pipeline(
         &p,
         "pyread",

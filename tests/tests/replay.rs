@@ -66,7 +66,7 @@ impl Run {
     /// `<dir>/<log>.log`.
     fn pipeline(&self, log: &str, drives: &[&str], args: &[&str]) -> Proc {
         spawn(
-            Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-probe")))
+            Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-subscriber")))
                 .arg("--mcap")
                 .args(drives)
                 .args(["--run", &self.name])
@@ -83,7 +83,7 @@ impl Run {
     fn trainer(&self, name: &str, steps: u64, args: &[&str]) -> Proc {
         spawn(
             Command::new(workspace_binary(
-                env!("CARGO_BIN_EXE_superflow-probe"),
+                env!("CARGO_BIN_EXE_superflow-subscriber"),
                 "superflow-trainer",
             ))
             .args(["--run", &self.name, "--steps", &steps.to_string()])

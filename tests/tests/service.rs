@@ -1,4 +1,4 @@
-//! The real `superflow-pipeline` streaming to `superflow-probe` subscribers over
+//! The real `superflow-pipeline` streaming to `superflow-subscriber` processes over
 //! iceoryx2 (each test with its own run name and iceoryx2 prefix, so tests run in
 //! parallel): shard accounting, broadcast identity, backpressure without loss, a
 //! SIGKILLed subscriber cleaned up, resume at a position.
@@ -19,7 +19,7 @@ const KEYFRAMES: u64 = 6;
 
 fn pipeline(prefix: &str, run: &str, args: &[&str]) -> Proc {
     process::pipeline(
-        env!("CARGO_BIN_EXE_superflow-probe"),
+        env!("CARGO_BIN_EXE_superflow-subscriber"),
         DRIVE,
         prefix,
         run,
@@ -27,11 +27,16 @@ fn pipeline(prefix: &str, run: &str, args: &[&str]) -> Proc {
     )
 }
 
-fn probe(prefix: &str, run: &str, args: &[&str]) -> Proc {
-    process::probe(env!("CARGO_BIN_EXE_superflow-probe"), prefix, run, args)
+fn subscriber(prefix: &str, run: &str, args: &[&str]) -> Proc {
+    process::subscriber(
+        env!("CARGO_BIN_EXE_superflow-subscriber"),
+        prefix,
+        run,
+        args,
+    )
 }
 
-/// The batches a probe printed.
+/// The batches a subscriber printed.
 fn batches(stdout: &str) -> Vec<Value> {
     stdout
         .lines()
@@ -55,8 +60,8 @@ const LIMIT: Duration = Duration::from_secs(180);
 fn two_shards_receive_every_keyframe_once_per_epoch() {
     let p = prefix("shard");
     // 6 keyframes, 2 ranks, batches of 2: 2 batches per rank per epoch; 2 epochs.
-    let probes: Vec<Proc> = (0..2)
-        .map(|r| probe(&p, "shard", &["--rank", &r.to_string(), "--count", "4"]))
+    let subscribers: Vec<Proc> = (0..2)
+        .map(|r| subscriber(&p, "shard", &["--rank", &r.to_string(), "--count", "4"]))
         .collect();
     let pipe = pipeline(
         &p,
@@ -64,7 +69,7 @@ fn two_shards_receive_every_keyframe_once_per_epoch() {
         &["--world-size", "2", "--batch-size", "2", "--epochs", "2"],
     );
     let mut per_rank = Vec::new();
-    for child in probes {
+    for child in subscribers {
         let (ok, out, err) = finish(child, LIMIT);
         assert!(ok, "{err}");
         per_rank.push(sample_keys(&batches(&out)));
@@ -78,8 +83,8 @@ fn two_shards_receive_every_keyframe_once_per_epoch() {
 #[test]
 fn broadcast_subscribers_receive_identical_batches() {
     let p = prefix("bcast");
-    let probes: Vec<Proc> = (0..3)
-        .map(|_| probe(&p, "bcast", &["--count", "3"]))
+    let subscribers: Vec<Proc> = (0..3)
+        .map(|_| subscriber(&p, "bcast", &["--count", "3"]))
         .collect();
     let pipe = pipeline(
         &p,
@@ -87,7 +92,7 @@ fn broadcast_subscribers_receive_identical_batches() {
         &["--batch-size", "2", "--epochs", "1", "--subscribers", "3"],
     );
     let mut got = Vec::new();
-    for child in probes {
+    for child in subscribers {
         let (ok, out, err) = finish(child, LIMIT);
         assert!(ok, "{err}");
         got.push(batches(&out));
@@ -118,7 +123,7 @@ fn broadcast_subscribers_receive_identical_batches() {
 #[test]
 fn a_stalled_subscriber_slows_the_stream_without_loss() {
     let p = prefix("stall");
-    let slow = probe(
+    let slow = subscriber(
         &p,
         "stall",
         &[
@@ -132,7 +137,7 @@ fn a_stalled_subscriber_slows_the_stream_without_loss() {
             "3",
         ],
     );
-    let fast = probe(&p, "stall", &["--count", "6"]);
+    let fast = subscriber(&p, "stall", &["--count", "6"]);
     let started = Instant::now();
     let pipe = pipeline(
         &p,
@@ -161,12 +166,12 @@ fn a_stalled_subscriber_slows_the_stream_without_loss() {
 #[test]
 fn a_killed_subscriber_is_cleaned_up_and_the_stream_goes_on() {
     let p = prefix("kill");
-    let mut doomed = probe(
+    let mut doomed = subscriber(
         &p,
         "kill",
         &["--count", "9", "--buffer", "1", "--stall-after", "1"],
     );
-    let survivor = probe(&p, "kill", &["--count", "9"]);
+    let survivor = subscriber(&p, "kill", &["--count", "9"]);
     let pipe = pipeline(
         &p,
         "kill",
@@ -207,7 +212,7 @@ fn resuming_at_a_position_replays_exactly_the_following_batches() {
     // Read steps 0, 1, 2 of epoch 0, then rewind to (0, 1): expect 1, 2 again, then all
     // of epoch 1 (the pipeline publishes until its epochs are done, so the reader reads
     // them all).
-    let reader = probe(
+    let reader = subscriber(
         &p,
         "resume",
         &[
@@ -251,7 +256,7 @@ fn resuming_at_a_position_replays_exactly_the_following_batches() {
     // A pipeline started at (0, 2) publishes that batch first, the same bits (it is the
     // last batch of the one epoch asked for, so the pipeline then ends).
     let p2 = prefix("start");
-    let reader = probe(&p2, "start", &["--count", "1"]);
+    let reader = subscriber(&p2, "start", &["--count", "1"]);
     let pipe = pipeline(
         &p2,
         "start",
@@ -287,7 +292,7 @@ fn a_restarted_pipeline_continues_where_the_subscriber_is() {
     let p = prefix("restart");
     // 6 batches of 1; read 2, pause 5 s (the pipeline is killed and restarted meanwhile),
     // then ask for (0, 2) and read the remaining 4.
-    let reader = probe(
+    let reader = subscriber(
         &p,
         "restart",
         &[
@@ -337,7 +342,7 @@ fn metrics_endpoint_and_sigterm() {
     let p = prefix("metrics");
     let port = 20_000 + (std::process::id() % 20_000) as u16;
     let addr = format!("127.0.0.1:{port}");
-    let reader = probe(&p, "metrics", &["--count", "1"]);
+    let reader = subscriber(&p, "metrics", &["--count", "1"]);
     let pipe = pipeline(
         &p,
         "metrics",
@@ -389,7 +394,7 @@ fn the_trainer_waits_for_a_pipeline() {
     let _ = std::fs::remove_dir_all(&out);
     let trainer = superflow_tests::process::spawn(
         Command::new(superflow_tests::workspace_binary(
-            env!("CARGO_BIN_EXE_superflow-probe"),
+            env!("CARGO_BIN_EXE_superflow-subscriber"),
             "superflow-trainer",
         ))
         .args(["--run", "trainer", "--steps", "2", "--timeout-secs", "120"])

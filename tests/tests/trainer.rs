@@ -27,7 +27,7 @@ const EPOCHS: &str = "4";
 
 fn pipeline(prefix: &str, run: &str) -> Proc {
     spawn(
-        Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-probe")))
+        Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-subscriber")))
             .args([
                 "--mcap",
                 DRIVE,
@@ -50,7 +50,7 @@ fn trainer(prefix: &str, run: &str, out: &Path, extra: &[&str]) -> Proc {
     let steps = STEPS.to_string();
     spawn(
         Command::new(workspace_binary(
-            env!("CARGO_BIN_EXE_superflow-probe"),
+            env!("CARGO_BIN_EXE_superflow-subscriber"),
             "superflow-trainer",
         ))
         .args([
@@ -83,7 +83,7 @@ fn probe(backbone: &str, extra: &[&str]) -> serde_json::Value {
     let (ok, out, err) = finish(
         spawn(
             Command::new(workspace_binary(
-                env!("CARGO_BIN_EXE_superflow-probe"),
+                env!("CARGO_BIN_EXE_superflow-subscriber"),
                 "superflow-trainer",
             ))
             .args([
@@ -270,7 +270,7 @@ fn check_runs_the_same_steps_on_every_backend_and_compares_their_losses() {
     let batch = dir.join("batch.bin");
     let (ok, _, err) = finish(
         spawn(
-            Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-probe")))
+            Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-subscriber")))
                 .args(["batch", "--mcap", DRIVE, "--batch-size", "2", "--out"])
                 .arg(&batch)
                 .current_dir(workspace_root())
@@ -284,7 +284,7 @@ fn check_runs_the_same_steps_on_every_backend_and_compares_their_losses() {
     let (ok, out, err) = finish(
         spawn(
             Command::new(workspace_binary(
-                env!("CARGO_BIN_EXE_superflow-probe"),
+                env!("CARGO_BIN_EXE_superflow-subscriber"),
                 "superflow-trainer",
             ))
             .args(["check", "--batch"])
@@ -320,7 +320,7 @@ fn check_runs_the_same_steps_on_every_backend_and_compares_their_losses() {
     let (ok, _, err) = finish(
         spawn(
             Command::new(workspace_binary(
-                env!("CARGO_BIN_EXE_superflow-probe"),
+                env!("CARGO_BIN_EXE_superflow-subscriber"),
                 "superflow-trainer",
             ))
             .args(["check", "--backends", "flex", "--batch"])

@@ -1,6 +1,6 @@
 //! The sparse convolutions equal burn's dense 3D convolutions on a small voxel grid —
 //! outputs at the active sites and gradients with respect to features and weights —
-//! with kernel maps built by the pipeline's own code (`superflow_pipeline::sample::sparse`).
+//! with kernel maps built by the pipeline's own code (`superflow_pipeline::sample::kernel_maps`).
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
 
@@ -8,7 +8,7 @@ use burn::module::Param;
 use burn::tensor::module::{conv_transpose3d, conv3d};
 use burn::tensor::ops::{ConvOptions, ConvTransposeOptions};
 use burn::tensor::{Device, IndexingUpdateOp, Int, Tensor, TensorData};
-use superflow_pipeline::sample::sparse::{downsample, neighbour_map};
+use superflow_pipeline::sample::kernel_maps::{downsample, neighbour_map};
 use superflow_trainer::init::InitRng;
 use superflow_trainer::unet::{KERNEL_2, KERNEL_3, LevelMaps, SparseConv};
 
@@ -147,7 +147,7 @@ fn compare(
 fn level(cells: &[[i32; 3]], device: &Device) -> (LevelMaps, Vec<[i32; 3]>) {
     let nbr = neighbour_map(cells);
     let (parents, down) = downsample(cells);
-    let flat_pairs = |m: &superflow_pipeline::sample::sparse::KernelMap| {
+    let flat_pairs = |m: &superflow_pipeline::sample::kernel_maps::KernelMap| {
         m.pairs.iter().flatten().copied().collect::<Vec<u32>>()
     };
     let (np, dp) = (flat_pairs(&nbr), flat_pairs(&down));

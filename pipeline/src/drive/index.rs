@@ -1,21 +1,26 @@
-//! Building the index of a drive ([`Drive::open`]): one pass per file, every LiDAR sweep
-//! and camera frame with its sensor stamp and location, every transform in the
-//! [`TransformTree`], every calibration; then the frames checked (repeated stamps, stamps
-//! far from their log time) and what was skipped logged.
+//! One drive ([`Drive`]) and the building of its index ([`Drive::open`]): one pass per
+//! file, every LiDAR sweep and camera frame with its sensor stamp and location, every
+//! transform in the [`TransformTree`], every calibration; then the frames checked
+//! (repeated stamps, stamps far from their log time) and what was skipped logged. A
+//! drive then answers sensor checks and keyframes here, and reads one sensor message in
+//! [`super::read`].
 
-use super::dataset::{Drive, FrameRef, IngestError};
 use super::discover::IngestConfig;
+use super::error::IngestError;
 use super::heads::stamp_and_frame;
 use super::skips::{DamageKind, SkipReport};
-use super::streams::Streams;
+use super::streams::{
+    CameraStream, ChannelSummary, EGO_FRAMES, FrameRef, LabelCloudStream, LidarStream, Streams,
+    TopicData, nearest,
+};
 use super::tf::TransformTree;
 use crate::decode::{DecodeError, foxglove, ros2};
 use crate::decode::{Dialect, SchemaKind, schema_kind};
-use crate::source::{ChannelInfo, McapFile, MessageRef, SourceError};
+use crate::source::{McapFile, MessageRef, SourceError};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use superflow_schemas::Stamp;
-use superflow_schemas::sensor::{CameraCalibration, StampedTransform};
+use superflow_schemas::sensor::StampedTransform;
 
 /// How far a sensor stamp may stray from its channel's usual stamp-to-log-time offset.
 /// Recorder latency, buffering and the nuScenes converter's keyframe log times stay far
@@ -23,19 +28,159 @@ use superflow_schemas::sensor::{CameraCalibration, StampedTransform};
 /// clock jump does not.
 pub const STAMP_LOG_TOLERANCE_NANOS: i64 = 10_000_000_000;
 
-/// What the index holds of one topic, over all files of the drive.
+/// One drive: one or more MCAP files of the same recording, indexed together.
 #[derive(Debug)]
-pub(super) struct TopicData {
-    pub channel: ChannelInfo,
-    pub kind: Option<(SchemaKind, Dialect)>,
-    pub count: u64,
-    pub frame_id: Option<String>,
-    pub frames: Vec<FrameRef>,
-    /// Log time of each of `frames`, until the stamps are checked against them.
-    pub frame_logs: Vec<u64>,
-    pub calibrations: Vec<CameraCalibration>,
-    pub first_log: u64,
-    pub last_log: u64,
+pub struct Drive {
+    /// The files, in the order given.
+    pub files: Vec<McapFile>,
+    /// Every channel with its role, sorted by topic.
+    pub channels: Vec<ChannelSummary>,
+    /// The LiDAR, if one was found.
+    pub lidar: Option<LidarStream>,
+    /// Cameras, sorted by name.
+    pub cameras: Vec<CameraStream>,
+    /// The point clouds of a `<drive>.labels.mcap` sidecar, sorted by topic (empty
+    /// without one).
+    pub label_clouds: Vec<LabelCloudStream>,
+    /// Every transform.
+    pub tf: TransformTree,
+    /// Stamped edges that never change, treated as static (re-published extrinsics).
+    pub frozen_edges: Vec<(String, String)>,
+    /// The map frame, if determined.
+    pub map_frame: Option<String>,
+    /// The ego frame, if determined.
+    pub ego_frame: Option<String>,
+    /// Messages skipped during indexing, by kind.
+    pub skipped: SkipReport,
+    /// The configuration used.
+    pub config: IngestConfig,
+}
+
+impl Drive {
+    /// The files' paths, comma-separated (for messages).
+    pub fn file_list(&self) -> String {
+        self.files
+            .iter()
+            .map(|f| f.path().display().to_string())
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
+
+    /// Checks that the dataset has what training needs: a LiDAR, at least one camera,
+    /// a calibration for every camera, ego and map frames, and the LiDAR and camera
+    /// frames in the transform tree.
+    pub fn check_sensors(&self) -> Result<(), IngestError> {
+        let mut problems = Vec::new();
+        match &self.lidar {
+            None => problems.push(
+                "no LiDAR channel (foxglove.PointCloud or sensor_msgs/msg/PointCloud2)".to_string(),
+            ),
+            Some(l) if l.sweeps.is_empty() => {
+                problems.push(format!("LiDAR {} has no readable sweep", l.topic))
+            }
+            Some(_) => {}
+        }
+        if self.cameras.is_empty() {
+            problems.push("no camera image channel".into());
+        }
+        for camera in &self.cameras {
+            if camera.calibrations.is_empty() {
+                problems.push(format!(
+                    "camera {} ({}) has no calibration (no CameraInfo / CameraCalibration in its namespace or frame `{}`)",
+                    camera.name, camera.image_topic, camera.frame_id
+                ));
+            }
+        }
+        match (&self.ego_frame, &self.map_frame) {
+            (Some(ego), Some(_)) if self.ego_poses_missing() => problems.push(format!(
+                "no ego poses: no transform places `{ego}` in a map or odom frame (it is the \
+                 root of its transform tree; is `/tf` missing?)"
+            )),
+            (Some(ego), Some(_)) => {
+                let sensors = self
+                    .lidar
+                    .iter()
+                    .map(|l| (&l.topic, &l.frame_id))
+                    .chain(self.cameras.iter().map(|c| (&c.image_topic, &c.frame_id)));
+                for (topic, frame) in sensors {
+                    if !self.tf.contains(frame) {
+                        problems.push(format!(
+                            "{topic}: frame `{frame}` has no transform to `{ego}`"
+                        ));
+                    }
+                }
+            }
+            _ if self.tf.frames().is_empty() => problems.push(
+                "no transforms: no readable /tf or /tf_static message, so no ego pose and no \
+                 sensor extrinsics"
+                    .to_string(),
+            ),
+            _ => problems.push(format!(
+                "no ego frame (tried {}) in the transforms; frames: {}",
+                EGO_FRAMES.join(", "),
+                self.tf.frames().join(", ")
+            )),
+        }
+        if problems.is_empty() {
+            Ok(())
+        } else {
+            Err(IngestError::Missing {
+                files: self.file_list(),
+                problems: problems.join("; "),
+            })
+        }
+    }
+
+    /// Whether the ego frame is its own map: nothing in the transforms moves it (the
+    /// ego frame is the root of its tree, e.g. only `/tf_static` was recorded) and no
+    /// `map_frame` was configured. Every pose lookup would then answer the identity.
+    pub fn ego_poses_missing(&self) -> bool {
+        self.config.map_frame.is_none()
+            && self
+                .ego_frame
+                .as_ref()
+                .is_some_and(|ego| self.map_frame.as_ref() == Some(ego))
+    }
+
+    /// First and last LiDAR stamps.
+    pub fn time_span(&self) -> Option<(Stamp, Stamp)> {
+        let sweeps = &self.lidar.as_ref()?.sweeps;
+        Some((sweeps.first()?.stamp, sweeps.last()?.stamp))
+    }
+
+    /// LiDAR sweeps usable as keyframes, at least `interval_nanos` apart: every camera
+    /// has an image within half its period, and the ego pose is known at the sweep and
+    /// at those images. Returns sweep indices.
+    pub fn keyframes(&self, interval_nanos: i64) -> Vec<usize> {
+        let (Some(lidar), Some(map), Some(ego)) = (&self.lidar, &self.map_frame, &self.ego_frame)
+        else {
+            return Vec::new();
+        };
+        if self.ego_poses_missing() {
+            return Vec::new();
+        }
+        let mut out = Vec::new();
+        let mut last: Option<Stamp> = None;
+        for (i, sweep) in lidar.sweeps.iter().enumerate() {
+            if last.is_some_and(|l| sweep.stamp.nanos_since(l) < interval_nanos) {
+                continue;
+            }
+            let pose_ok = |s: Stamp| self.tf.lookup(map, ego, s).is_ok();
+            let cameras_ok = !self.cameras.is_empty()
+                && self.cameras.iter().all(|camera| {
+                    let half = camera.period_nanos().unwrap_or(0) / 2;
+                    !camera.calibrations.is_empty()
+                        && nearest(&camera.frames, sweep.stamp).is_some_and(|f| {
+                            f.stamp.nanos_since(sweep.stamp).abs() <= half && pose_ok(f.stamp)
+                        })
+                });
+            if cameras_ok && pose_ok(sweep.stamp) {
+                out.push(i);
+                last = Some(sweep.stamp);
+            }
+        }
+        out
+    }
 }
 
 /// The index of a drive while its files are scanned.
@@ -54,7 +199,7 @@ struct Indexed<'a> {
     file: u32,
     /// Path of its file.
     path: &'a Path,
-    /// Whether the file is a labels sidecar ([`super::inputs::is_labels_sidecar`]).
+    /// Whether the file is a labels sidecar ([`super::files::is_labels_sidecar`]).
     labels_sidecar: bool,
     m: MessageRef<'a>,
 }
@@ -122,7 +267,7 @@ impl Index {
         mut progress: impl FnMut(u64),
     ) -> Result<McapFile, SourceError> {
         let _span = tracing::info_span!("index", file = %path.display()).entered();
-        let labels_sidecar = super::inputs::is_labels_sidecar(path);
+        let labels_sidecar = super::files::is_labels_sidecar(path);
         let scanned = McapFile::scan_with_progress(
             path,
             |m| {
@@ -412,7 +557,8 @@ fn drop_stamps_far_from_log_time(t: &mut TopicData, files: &[PathBuf], skipped: 
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::source::MessageLoc;
+    use crate::source::{ChannelInfo, MessageLoc};
+    use nalgebra::Isometry3;
 
     fn frame(stamp: i64, index: u32) -> FrameRef {
         FrameRef {
@@ -500,5 +646,59 @@ mod tests {
         drop_stamps_far_from_log_time(&mut t, &files, &mut skipped);
         assert_eq!(t.frames.len(), 2);
         assert_eq!(skipped.total(), 0);
+    }
+
+    /// A drive of no files with the transform tree `tf` (for the sensor checks).
+    fn drive(tf: TransformTree) -> Drive {
+        let ego_frame = ["base_link"]
+            .iter()
+            .find(|f| tf.contains(f))
+            .map(|f| f.to_string());
+        let map_frame = ego_frame.as_deref().and_then(|e| tf.root_of(e).ok());
+        Drive {
+            files: Vec::new(),
+            channels: Vec::new(),
+            lidar: None,
+            cameras: Vec::new(),
+            label_clouds: Vec::new(),
+            tf,
+            frozen_edges: Vec::new(),
+            map_frame,
+            ego_frame,
+            skipped: SkipReport::default(),
+            config: IngestConfig::default(),
+        }
+    }
+
+    #[test]
+    fn extrinsics_without_ego_poses_are_not_trainable() {
+        let mut tf = TransformTree::new(0);
+        tf.insert(StampedTransform {
+            stamp: Stamp::from_nanos(1),
+            parent_frame: "base_link".into(),
+            child_frame: "lidar_top".into(),
+            parent_from_child: Isometry3::identity(),
+            is_static: true,
+        })
+        .unwrap_or_else(|e| panic!("{e}"));
+        let only_static = drive(tf);
+        assert!(only_static.ego_poses_missing());
+        let err = only_static
+            .check_sensors()
+            .err()
+            .map(|e| e.to_string())
+            .unwrap_or_default();
+        assert!(
+            err.contains("no ego poses") && err.contains("`base_link`") && err.contains("/tf"),
+            "{err}"
+        );
+
+        let none = drive(TransformTree::new(0));
+        let err = none
+            .check_sensors()
+            .err()
+            .map(|e| e.to_string())
+            .unwrap_or_default();
+        assert!(err.contains("no transforms"), "{err}");
     }
 }

@@ -9,7 +9,7 @@
 //!   `lidarseg` (regardless of case) that the first readable sweep has. Any integer type,
 //!   or a float holding integers ([`crate::decode::points::LabelFieldSpec`]).
 //! * **A sidecar** `<drive>.labels.mcap` next to `<drive>.mcap` (grouped with the drive
-//!   like the other sidecars, [`super::inputs`]): a point cloud per sweep with the sweep's
+//!   like the other sidecars, [`super::files`]): a point cloud per sweep with the sweep's
 //!   stamp, its point order and count, and the label field (the configured or a default
 //!   name, else its only field). The sidecar's point clouds are never taken for the LiDAR.
 //!   Which of them labels the LiDAR: the only one; else the one whose channel metadata
@@ -58,7 +58,9 @@
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 
-use super::dataset::{Drive, FrameAt, LabelCloudStream, LidarStream, ReadError};
+use super::index::Drive;
+use super::read::{FrameAt, ReadError};
+use super::streams::{LabelCloudStream, LidarStream};
 use crate::decode::points::{
     CloudOptions, DecodedCloud, LabelFieldSpec, PointsError, decode_labels_message,
     decode_message_with, field_names, find_label_field,

@@ -1,13 +1,175 @@
-//! From the indexed topics to the drive's streams: the role of every channel, the channel
-//! summaries, the LiDAR, the cameras (with their calibration and class maps) and the ego
+//! A drive's streams and how they are built from the indexed topics: the frames
+//! ([`FrameRef`]), the stream types (LiDAR, cameras with their calibration and class maps,
+//! label clouds, SLIC sidecars), the role of every channel and its summary, and the ego
 //! and map frames.
 
-use super::dataset::{CameraStream, ChannelSummary, LabelCloudStream, LidarStream, SlicStream};
 use super::discover::{self, IngestConfig, Role};
-use super::index::TopicData;
 use super::tf::TransformTree;
+use crate::decode::{Dialect, SchemaKind};
 use crate::source::ChannelInfo;
+use crate::source::MessageLoc;
+use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
+use superflow_schemas::Stamp;
+use superflow_schemas::sensor::CameraCalibration;
+
+/// A sensor message located in the dataset.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FrameRef {
+    /// The sensor's own stamp (`header.stamp` / `timestamp`), never the log time.
+    pub stamp: Stamp,
+    /// Index of the file in [`Drive::files`](super::Drive::files).
+    pub file: u32,
+    /// Where the message is in that file.
+    pub loc: MessageLoc,
+}
+
+/// The LiDAR stream.
+#[derive(Debug, Clone)]
+pub struct LidarStream {
+    /// Its topic.
+    pub topic: String,
+    /// Frame of its points.
+    pub frame_id: String,
+    /// Encoding dialect.
+    pub dialect: Dialect,
+    /// Every sweep, sorted by stamp.
+    pub sweeps: Vec<FrameRef>,
+}
+
+/// A point-cloud channel of a `<drive>.labels.mcap` sidecar: label clouds parallel to the
+/// LiDAR's sweeps (same stamps, same point order), one per sweep. Which one labels the
+/// LiDAR is decided when the labels are opened ([`super::labels::DriveLabels::open`]).
+#[derive(Debug, Clone)]
+pub struct LabelCloudStream {
+    /// Its topic.
+    pub topic: String,
+    /// The LiDAR topic its channel metadata names
+    /// ([`LABELS_LIDAR_TOPIC_KEY`](super::discover::LABELS_LIDAR_TOPIC_KEY)), if any.
+    pub lidar_topic: Option<String>,
+    /// Every label cloud, sorted by stamp.
+    pub frames: Vec<FrameRef>,
+}
+
+/// One camera: its image stream, calibration and optional class-map stream.
+#[derive(Debug, Clone)]
+pub struct CameraStream {
+    /// Name (the last segment of its topic namespace, `CAM_FRONT`, `cam_front`).
+    pub name: String,
+    /// Topic of its images.
+    pub image_topic: String,
+    /// Compressed or raw images.
+    pub image_kind: SchemaKind,
+    /// Encoding dialect.
+    pub dialect: Dialect,
+    /// The optical frame of its images.
+    pub frame_id: String,
+    /// Topic of its calibration, if found.
+    pub calibration_topic: Option<String>,
+    /// Distinct calibrations in time order (usually one).
+    pub calibrations: Vec<CameraCalibration>,
+    /// Every image, sorted by stamp.
+    pub frames: Vec<FrameRef>,
+    /// Topic of its per-pixel class maps, if recorded.
+    pub superpixel_topic: Option<String>,
+    /// Compressed or raw class maps.
+    pub superpixel_kind: Option<SchemaKind>,
+    /// Every class map, sorted by stamp.
+    pub superpixels: Vec<FrameRef>,
+    /// SLIC superpixels precomputed by `superflow-pipeline superpixels`, if found.
+    pub slic: Option<SlicStream>,
+}
+
+/// A camera's precomputed SLIC superpixels (a `<drive>.slic.mcap` sidecar).
+#[derive(Debug, Clone)]
+pub struct SlicStream {
+    /// Topic.
+    pub topic: String,
+    /// The settings they were computed with (see `sample::sidecar::settings_key`).
+    pub settings: String,
+    /// Every label map, sorted by stamp.
+    pub frames: Vec<FrameRef>,
+}
+
+impl CameraStream {
+    /// The calibration in force at `stamp` (the latest one at or before it, else the first).
+    pub fn calibration_at(&self, stamp: Stamp) -> Option<&CameraCalibration> {
+        self.calibrations
+            .iter()
+            .rev()
+            .find(|c| c.stamp <= stamp)
+            .or(self.calibrations.first())
+    }
+
+    /// Median spacing of the images, nanoseconds.
+    pub fn period_nanos(&self) -> Option<i64> {
+        median_spacing(&self.frames)
+    }
+}
+
+fn median_spacing(frames: &[FrameRef]) -> Option<i64> {
+    let mut gaps: Vec<i64> = frames
+        .windows(2)
+        .map(|w| w[1].stamp.nanos_since(w[0].stamp))
+        .collect();
+    if gaps.is_empty() {
+        return None;
+    }
+    gaps.sort_unstable();
+    Some(gaps[gaps.len() / 2])
+}
+
+/// What a channel holds, over all files of the dataset.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ChannelSummary {
+    /// Topic.
+    pub topic: String,
+    /// Role assigned by discovery (or the config).
+    pub role: Role,
+    /// Schema name.
+    pub schema: String,
+    /// Schema encoding.
+    pub schema_encoding: String,
+    /// Message encoding.
+    pub message_encoding: String,
+    /// Messages read.
+    pub message_count: u64,
+    /// Messages per second over the channel's span (sensor stamps where decoded, else
+    /// log times).
+    pub rate_hz: Option<f64>,
+}
+
+/// The frame nearest to `stamp` in a sorted list.
+pub fn nearest(frames: &[FrameRef], stamp: Stamp) -> Option<&FrameRef> {
+    let at = frames.partition_point(|f| f.stamp < stamp);
+    let before = at.checked_sub(1).and_then(|i| frames.get(i));
+    let after = frames.get(at);
+    match (before, after) {
+        (Some(b), Some(a)) => Some(
+            if stamp.nanos_since(b.stamp) <= a.stamp.nanos_since(stamp) {
+                b
+            } else {
+                a
+            },
+        ),
+        (b, a) => b.or(a),
+    }
+}
+
+/// What the index holds of one topic, over all files of the drive.
+#[derive(Debug)]
+pub(super) struct TopicData {
+    pub channel: ChannelInfo,
+    pub kind: Option<(SchemaKind, Dialect)>,
+    pub count: u64,
+    pub frame_id: Option<String>,
+    pub frames: Vec<FrameRef>,
+    /// Log time of each of `frames`, until the stamps are checked against them.
+    pub frame_logs: Vec<u64>,
+    pub calibrations: Vec<CameraCalibration>,
+    pub first_log: u64,
+    pub last_log: u64,
+}
 
 /// Ego frames tried, in order, when the configuration names none.
 pub(super) const EGO_FRAMES: [&str; 5] = [

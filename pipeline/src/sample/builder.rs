@@ -13,7 +13,7 @@ use super::plan::{KeyframeRef, Plan};
 use super::recipe::{SampleConfig, SuperpixelSource};
 use super::rng::{Purpose, SampleRng};
 use super::types::{Cloud, Frame, Pair, Sample, SampleId, StageTimes};
-use crate::drive::dataset::{Dataset, Drive};
+use crate::drive::{Dataset, Drive};
 use rayon::prelude::*;
 
 /// Builds samples of a dataset.

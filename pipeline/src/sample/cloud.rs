@@ -5,10 +5,10 @@
 use super::augment::Augmentation;
 use super::error::SampleError;
 use super::image_ops;
+use super::kernel_maps::build_levels_keyed;
 use super::load::{LoadedSweep, SampleContext, elapsed};
 use super::project::{CameraView, pair_points};
 use super::rng::{Purpose, SampleRng};
-use super::sparse::build_levels_keyed;
 use super::types::{Cloud, Pair, SampleImage, StageTimes};
 use super::voxel::voxelize_keyed;
 use std::time::Instant;

@@ -4,8 +4,8 @@
 //!
 //! A transform lookup costs ~0.45 µs (the chain of frames, a search and an interpolation
 //! per edge), and the sweeps of Velodyne and Hesai drivers give every point its own
-//! firing time (each laser fires at its own instant): one lookup per point took 15 ms a
-//! sweep of 33 k points. So the transform is looked up exactly at knots — the first and
+//! firing time (each laser fires at its own instant): one lookup per point would cost
+//! ~15 ms a sweep of 33 k points. So the transform is looked up exactly at knots — the first and
 //! the last firing, every stamp of a transform sample in between (where the interpolated
 //! poses change course), and as many more as keep knots at most [`KNOT_SPACING_SECS`]
 //! apart — and a point takes the linear blend of the 3×4 matrices of the knots either
@@ -17,7 +17,7 @@
 //! exact lookup per point.
 //!
 //! Times spanning more than [`MAX_GRID_SPAN_SECS`], or not finite, are not a sweep's: they
-//! take the exact lookup per distinct time, as before.
+//! take the exact lookup per distinct time.
 
 use crate::drive::{TfError, TransformTree};
 use nalgebra::{Isometry3, Point3};

@@ -1,7 +1,7 @@
 //! Why a sample (or a plan) cannot be built: [`SampleError`].
 
 use crate::drive::TfError;
-use crate::drive::dataset::{IngestError, ReadError};
+use crate::drive::{IngestError, ReadError};
 use crate::invalid::InvalidSetting;
 use superflow_schemas::Stamp;
 

@@ -13,7 +13,7 @@ use super::sidecar;
 use super::slic::slic;
 use super::types::{SampleImage, StageTimes};
 use crate::decode::image::{ScaledImage, Target, buffers};
-use crate::drive::dataset::{CameraStream, FrameRef, nearest};
+use crate::drive::{CameraStream, FrameRef, nearest};
 use nalgebra::Isometry3;
 use std::time::Instant;
 use superflow_schemas::Stamp;

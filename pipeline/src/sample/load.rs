@@ -11,7 +11,7 @@ use super::recipe::SampleConfig;
 use super::timing::CameraScan;
 use super::types::{SampleId, SampleImage, StageTimes};
 use crate::drive::TfError;
-use crate::drive::dataset::{Drive, LidarStream};
+use crate::drive::{Drive, LidarStream};
 use crate::source::ChunkCache;
 use nalgebra::Point3;
 use rayon::prelude::*;

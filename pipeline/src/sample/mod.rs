@@ -24,7 +24,7 @@
 //!   cells, a representative point per cell, the point→voxel map (`cylinder.rs`: the
 //!   cylindrical cells of a whole cloud, fast and identical to the per-point formula;
 //!   `cellkey.rs`: cells packed into sortable `u64` keys);
-//! * [`sparse`]: the sparse-convolution maps of every UNet level — 3×3×3 neighbour maps,
+//! * [`kernel_maps`]: the sparse-convolution maps of every UNet level — 3×3×3 neighbour maps,
 //!   stride-2 down-sampling maps and their transposes for up-sampling;
 //! * [`rng`]: the keyed random streams that make a sample a function of
 //!   `(seed, epoch, index)`;
@@ -40,6 +40,7 @@ mod error;
 pub mod export;
 pub mod image_ops;
 mod images;
+pub mod kernel_maps;
 mod load;
 pub mod plan;
 pub mod project;
@@ -48,7 +49,6 @@ pub mod rng;
 pub mod sidecar;
 mod simd;
 pub mod slic;
-pub mod sparse;
 pub mod timing;
 pub mod types;
 pub mod voxel;

@@ -5,7 +5,7 @@
 use super::recipe::{EdgePolicy, KeyframeChoice, SampleConfig};
 use super::rng::{Purpose, SampleRng};
 use super::timing::{CameraScan, median_sweep_period, scan_offsets};
-use crate::drive::dataset::{CameraStream, Dataset, Drive, FrameRef, nearest};
+use crate::drive::{CameraStream, Dataset, Drive, FrameRef, nearest};
 use serde::Serialize;
 use superflow_schemas::Stamp;
 

@@ -112,7 +112,7 @@ pub struct Pairing {
 /// moves them into the camera in `f32` lanes (no branch per point) and drops those
 /// clearly behind [`MIN_DEPTH_M`] or clearly outside the cone of the image (by more than
 /// `f32` rounding could move them); every other point goes through
-/// [`CameraView::project`] as before, so the pairings are the same.
+/// [`CameraView::project`], the per-point path, so the pairings are the same.
 #[allow(unsafe_code)]
 pub fn pair_points(xyz: &[[f32; 3]], view: &CameraView<'_>) -> Vec<Pairing> {
     #[cfg(target_arch = "x86_64")]

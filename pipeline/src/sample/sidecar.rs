@@ -1,7 +1,7 @@
 //! SLIC superpixels computed once per drive: `superflow-pipeline superpixels` writes a
 //! `<drive>.slic.mcap` sidecar, and samples read their superpixels from it instead of
-//! running SLIC on every image of every epoch (~5 ms an image; ~45 ms of a nuScenes-sized
-//! sample).
+//! running SLIC on every image of every epoch (milliseconds an image, and a sample has
+//! several images: a large part of the time of a sample that computes them).
 //!
 //! Each camera image of the drive is decoded, resized to the recipe's size exactly as a
 //! sample does, segmented with the recipe's SLIC settings, and stored as a 16-bit grey
@@ -18,7 +18,7 @@ use super::SampleConfig;
 use super::slic::slic;
 use crate::decode::foxglove::{CompressedImage, Timestamp, decode};
 use crate::decode::image::Target;
-use crate::drive::dataset::SlicStream;
+use crate::drive::SlicStream;
 use crate::drive::discover::{SLIC_IMAGE_TOPIC_KEY, SLIC_SETTINGS_KEY};
 use crate::drive::{CameraStream, Drive, FrameRef};
 use crate::source::ChunkCache;
@@ -147,7 +147,8 @@ fn encode_labels(labels: &[u32], width: u32, height: u32) -> Result<Vec<u8>, Str
     encoder.set_color(png::ColorType::Grayscale);
     encoder.set_depth(png::BitDepth::Sixteen);
     // "Up" rows (mostly zeros for label maps) unfilter as one vector add; the adaptive
-    // choice picks Paeth, whose unfiltering is sequential and cost ~0.4 ms a map.
+    // choice picks Paeth, whose unfiltering is sequential (each byte waits for its left
+    // neighbour), which makes reading a map slow.
     encoder.set_filter(png::Filter::Up);
     let mut writer = encoder.write_header().map_err(|e| e.to_string())?;
     writer

@@ -15,7 +15,7 @@
 //! `scan`), and keyframes are the sweeps whose cameras are nearest their scan moments.
 
 use super::recipe::{CameraSync, SampleConfig};
-use crate::drive::dataset::Drive;
+use crate::drive::Drive;
 use crate::source::ChunkCache;
 use nalgebra::Vector3;
 use serde::Serialize;

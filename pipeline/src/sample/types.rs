@@ -3,7 +3,7 @@
 //! [`Frame`], the [`Sample`] itself and the [`StageTimes`] spent building it.
 
 use super::augment::Augmentation;
-use super::sparse::Level;
+use super::kernel_maps::Level;
 use super::voxel::Voxelized;
 use nalgebra::Isometry3;
 use serde::Serialize;

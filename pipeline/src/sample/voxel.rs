@@ -135,7 +135,7 @@ pub fn voxelize(xyz: &[[f32; 3]], grid: &VoxelGrid) -> Voxelized {
 }
 
 /// [`voxelize`], and the voxels' packed keys when the cells have a packing (for the
-/// first level's neighbour map: see `sparse::build_levels_keyed`).
+/// first level's neighbour map: see `kernel_maps::build_levels_keyed`).
 pub(crate) fn voxelize_keyed(xyz: &[[f32; 3]], grid: &VoxelGrid) -> (Voxelized, Option<Keyed>) {
     let cells = grid.cells(xyz);
     // Equal cells end up next to each other, in point order.

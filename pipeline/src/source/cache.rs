@@ -4,14 +4,14 @@
 //!
 //! Each thread keeps its own cache, and behind them all sits one small shared table of
 //! the chunks decompressed last ([`SHARED_CHUNKS_PER_THREAD`] per thread): the parts of
-//! one sample run on several threads, and without it each thread decompressed the
-//! sample's chunks again (~20 % more chunks on 2 threads than on 1). A thread that wants
+//! one sample run on several threads, and without it each thread would decompress the
+//! sample's chunks again. A thread that wants
 //! a chunk another is decompressing waits for it instead of decompressing it too.
 //!
 //! A chunk is decoded whole and checked against its CRC the first time the file is read
 //! there; a zstd chunk read again with the same record ([`CheckedChunks`]) is
-//! decoded only up to the messages asked for ([`PartialChunk`]): a sample needs ~63 % of
-//! the bytes of the chunks it touches on the nuScenes-sized bench drive.
+//! decoded only up to the messages asked for ([`PartialChunk`]): a sample needs only a
+//! part of the bytes of the chunks it touches.
 
 use super::chunk::{ChunkError, ChunkMessages, decode_chunk};
 use super::framing::record_len;

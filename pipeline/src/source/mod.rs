@@ -232,7 +232,7 @@ impl McapFile {
 
     /// `f` of the `len` bytes at `offset` (at most [`MAX_RECORD_BYTES`]), read into this
     /// thread's scratch buffer: a chunk's compressed records are only decompressed, and
-    /// a fresh buffer was zeroed before each read (0.4 % of a sample's profile). Reads
+    /// reusing the buffer spares zeroing a fresh one before each read. Reads
     /// beyond [`SCRATCH_BYTES`] use a buffer of their own, so no thread keeps one huge.
     fn with_bytes_at<T>(
         &self,

@@ -1,8 +1,8 @@
 //! A zstd chunk decoded only as far as its readers ask, block by block.
 //!
-//! A sample reads a few messages from each chunk it touches; on the nuScenes-sized bench
-//! drives the bytes up to the end of the last message it takes are ~63 % of what whole
-//! chunks decompress to (79 % at 1600×900). A chunk is decoded whole, and its CRC checked,
+//! A sample reads a few messages from each chunk it touches, and the bytes up to the end
+//! of the last message it takes are only a part of what whole chunks decompress to. A
+//! chunk is decoded whole, and its CRC checked,
 //! the first time this process reads it ([`super::cache`]); it is decoded on demand only
 //! when read again with the very same record (a CRC-32 of it is kept), so no
 //! byte reaches a decoder that was not checked against the chunk's CRC once.

@@ -5,7 +5,7 @@ every section) and of `batch.torch()` when torch is installed.
 
     superflow-pipeline --mcap DRIVES --run rate --subscribers 2 --batch-size 4 &
     python trainer/python/examples/receive_rate.py --run rate --count 40 &
-    superflow-probe --run rate --count 41      # the Rust reader on the same stream
+    superflow-subscriber --run rate --count 41      # the Rust reader on the same stream
 """
 
 from __future__ import annotations

@@ -23,7 +23,7 @@ use superflow_pipeline::drive::Dataset;
 use superflow_pipeline::drive::labels::DriveLabels;
 use superflow_pipeline::sample::SampleConfig;
 use superflow_pipeline::sample::deskew::deskew;
-use superflow_pipeline::sample::sparse::{Level, build_levels};
+use superflow_pipeline::sample::kernel_maps::{Level, build_levels};
 use superflow_pipeline::sample::voxel::voxelize;
 use superflow_pipeline::source::ChunkCache;
 use superflow_schemas::sensor::PointCloud;

@@ -2,7 +2,7 @@
 //! `foxglove.PointCloud` (stride, pose) and MCAP messages dispatched on their schema.
 
 use super::label::LabelFieldSpec;
-use super::layout::FieldList;
+use super::layout::{FieldList, foxglove_ctx};
 use super::read::{Grid, decode_core};
 use super::time::TimeFieldSpec;
 use super::{DecodedCloud, PointsError};
@@ -151,13 +151,6 @@ impl AnyCloud {
             }),
         }
     }
-}
-
-/// The context of a Foxglove cloud: its frame and stamp (an error without a timestamp).
-pub(super) fn foxglove_ctx(msg: &fox::PointCloud) -> Result<Ctx<'_>, PointsError> {
-    Ctx::foxglove(msg).map_err(|_| PointsError::MissingTimestamp {
-        frame_id: msg.frame_id.clone(),
-    })
 }
 
 /// The grid of a Foxglove cloud: one row of `data.len() / point_stride` points.

@@ -1,8 +1,9 @@
-//! Field layouts: the element types of both numbering schemes ([`NumericType`]), how one
-//! field is read ([`FieldPlan`]), and the per-message decoding plan ([`PointLayout`])
-//! built from a ROS 2 or Foxglove field list and checked against the point size.
+//! The per-message decoding plan ([`PointLayout`]) built from a ROS 2 or Foxglove field
+//! list and checked against the point size (the fields' own types are in
+//! [`super::field`]).
 
 use super::PointsError;
+use super::field::{Endianness, FieldPlan, NamedField, NumericType};
 use super::label::{LabelFieldSpec, LabelPlan};
 use super::time::{TIME_NAMES, TimeFieldSpec, TimePlan, TimeReference, TimeRule, TimeUnit};
 use crate::decode::context::Ctx;
@@ -15,142 +16,6 @@ const INTENSITY_NAMES: [&str; 2] = ["intensity", "i"];
 const INTENSITY_FALLBACK: &str = "reflectivity";
 /// Names of the ring (beam index) field, in order of preference.
 const RING_NAMES: [&str; 4] = ["ring", "channel", "laser_id", "line"];
-
-/// Element type of a field, independent of the dialect's numbering.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub enum NumericType {
-    /// `i8`.
-    Int8,
-    /// `u8`.
-    Uint8,
-    /// `i16`.
-    Int16,
-    /// `u16`.
-    Uint16,
-    /// `i32`.
-    Int32,
-    /// `u32`.
-    Uint32,
-    /// `f32`.
-    Float32,
-    /// `f64`.
-    Float64,
-}
-
-impl NumericType {
-    /// Size of one element in bytes.
-    pub const fn size(self) -> usize {
-        match self {
-            NumericType::Int8 | NumericType::Uint8 => 1,
-            NumericType::Int16 | NumericType::Uint16 => 2,
-            NumericType::Int32 | NumericType::Uint32 | NumericType::Float32 => 4,
-            NumericType::Float64 => 8,
-        }
-    }
-
-    /// Whether the type is a floating-point type.
-    pub const fn is_float(self) -> bool {
-        matches!(self, NumericType::Float32 | NumericType::Float64)
-    }
-
-    /// The type of a ROS `PointField.datatype` (INT8 = 1 ... FLOAT64 = 8).
-    pub const fn from_ros2(datatype: u8) -> Option<Self> {
-        Some(match datatype {
-            1 => NumericType::Int8,
-            2 => NumericType::Uint8,
-            3 => NumericType::Int16,
-            4 => NumericType::Uint16,
-            5 => NumericType::Int32,
-            6 => NumericType::Uint32,
-            7 => NumericType::Float32,
-            8 => NumericType::Float64,
-            _ => return None,
-        })
-    }
-
-    /// The type of a Foxglove `PackedElementField.type` (UINT8 = 1, INT8 = 2, ...,
-    /// FLOAT64 = 8; 0 is UNKNOWN).
-    pub const fn from_foxglove(numeric_type: i32) -> Option<Self> {
-        Some(match numeric_type {
-            1 => NumericType::Uint8,
-            2 => NumericType::Int8,
-            3 => NumericType::Uint16,
-            4 => NumericType::Int16,
-            5 => NumericType::Uint32,
-            6 => NumericType::Int32,
-            7 => NumericType::Float32,
-            8 => NumericType::Float64,
-            _ => return None,
-        })
-    }
-}
-
-/// Byte order of multi-byte values.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub enum Endianness {
-    /// Least significant byte first (Foxglove; ROS `is_bigendian = false`).
-    Little,
-    /// Most significant byte first (ROS `is_bigendian = true`).
-    Big,
-}
-
-/// Where and how one field is read in a point.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub struct FieldPlan {
-    /// Byte offset in the point.
-    pub offset: usize,
-    /// Element type.
-    pub numeric: NumericType,
-    /// Byte order.
-    pub endianness: Endianness,
-}
-
-impl FieldPlan {
-    /// The field's value in `point` (the bytes of one point), widened to `f64` (exact for
-    /// every type). Reads 0 if the field does not fit, which a validated
-    /// [`PointLayout`] rules out.
-    #[inline(always)]
-    pub fn read(self, point: &[u8]) -> f64 {
-        macro_rules! get {
-            ($t:ty) => {{
-                let bytes = array::<{ size_of::<$t>() }>(point, self.offset);
-                match self.endianness {
-                    Endianness::Little => <$t>::from_le_bytes(bytes),
-                    Endianness::Big => <$t>::from_be_bytes(bytes),
-                }
-            }};
-        }
-        match self.numeric {
-            NumericType::Int8 => f64::from(get!(i8)),
-            NumericType::Uint8 => f64::from(get!(u8)),
-            NumericType::Int16 => f64::from(get!(i16)),
-            NumericType::Uint16 => f64::from(get!(u16)),
-            NumericType::Int32 => f64::from(get!(i32)),
-            NumericType::Uint32 => f64::from(get!(u32)),
-            NumericType::Float32 => f64::from(get!(f32)),
-            NumericType::Float64 => get!(f64),
-        }
-    }
-}
-
-/// `N` bytes of `point` at `offset`, zeros if they are not all there.
-#[inline(always)]
-pub(super) fn array<const N: usize>(point: &[u8], offset: usize) -> [u8; N] {
-    point
-        .get(offset..)
-        .and_then(<[u8]>::first_chunk::<N>)
-        .copied()
-        .unwrap_or([0; N])
-}
-
-/// A used field: its name and how to read it.
-#[derive(Debug, Clone, PartialEq, Eq, Hash)]
-pub struct NamedField {
-    /// The field's name in the message.
-    pub name: String,
-    /// Where and how to read it.
-    pub plan: FieldPlan,
-}
 
 /// The decoding plan of one message's point layout: for each used field its offset,
 /// element type and byte order, checked against the point size.
@@ -229,7 +94,7 @@ impl<'a> FieldList<'a> {
             })
             .collect();
         Ok(FieldList {
-            ctx: super::dialect::foxglove_ctx(msg)?,
+            ctx: foxglove_ctx(msg)?,
             fields,
             point_step: msg.point_stride,
             endianness: Endianness::Little,
@@ -455,4 +320,11 @@ impl FieldList<'_> {
             rule: TimeRule::Fixed(spec.unit, spec.reference),
         }))
     }
+}
+
+/// The context of a Foxglove cloud: its frame and stamp (an error without a timestamp).
+pub(super) fn foxglove_ctx(msg: &fox::PointCloud) -> Result<Ctx<'_>, PointsError> {
+    Ctx::foxglove(msg).map_err(|_| PointsError::MissingTimestamp {
+        frame_id: msg.frame_id.clone(),
+    })
 }

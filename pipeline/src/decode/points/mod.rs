@@ -123,7 +123,9 @@
 
 mod dialect;
 mod error;
+mod field;
 mod label;
+mod label_cloud;
 mod layout;
 mod read;
 #[cfg(test)]
@@ -135,11 +137,13 @@ pub use dialect::{
     decode_ros2, decode_ros2_with,
 };
 pub use error::PointsError;
-pub use label::{
-    LABEL_NAMES, LabelCloud, LabelFieldSpec, decode_labels_foxglove, decode_labels_message,
-    decode_labels_ros2, field_names, find_label_field,
+pub use field::{Endianness, FieldPlan, NamedField, NumericType};
+pub use label::{LABEL_NAMES, LabelFieldSpec};
+pub use label_cloud::{
+    LabelCloud, decode_labels_foxglove, decode_labels_message, decode_labels_ros2, field_names,
+    find_label_field,
 };
-pub use layout::{Endianness, FieldPlan, NamedField, NumericType, PointLayout};
+pub use layout::PointLayout;
 pub use time::{TimeFieldSpec, TimeReference, TimeUnit};
 
 use superflow_schemas::sensor::PointCloud;

@@ -3,7 +3,7 @@
 //! a stored value into the offset from the message stamp (see the module documentation
 //! of [`super`] for the rules).
 
-use super::layout::{FieldPlan, NamedField};
+use super::field::{FieldPlan, NamedField};
 use superflow_schemas::Stamp;
 
 /// Names of the per-point time field, in order of preference.

@@ -4,7 +4,7 @@
 
 use super::Centre;
 use super::lab::Lab;
-use super::tiles::{Band, TH, TW, Tiles, colour_gap};
+use super::tiles::{Band, TH, TW, Tiles, colour_gap, spatial};
 use std::ops::Range;
 
 /// The assignment passes, the labels and the scratch.
@@ -494,12 +494,6 @@ fn largest<const N: usize>(values: &[f32; N]) -> f32 {
         }
     }
     max(max(lanes[0], lanes[2]), max(lanes[1], lanes[3]))
-}
-
-/// `weight · d²` for a coordinate difference `d`: the spatial term of one axis.
-#[inline(always)]
-pub(super) fn spatial(weight: f32, d: f32) -> f32 {
-    weight * d * d
 }
 
 /// Squared CIELAB distance of a pixel to a centre colour.

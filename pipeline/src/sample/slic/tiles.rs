@@ -4,7 +4,6 @@
 
 use super::Centre;
 use super::lab::Lab;
-use super::search::spatial;
 use std::ops::Range;
 
 /// Tile width, pixels: a row of a tile is offered to a centre as a unit.
@@ -257,4 +256,10 @@ fn column_term([x0, x1, cx]: [f32; 3], cols: Range<usize>, weight: f32) -> f32 {
     let (left, right) = (cols.start as f32, (cols.end - 1) as f32);
     let near = min(max(cx, max(x0, left)), min(x1 - 1.0, right));
     spatial(weight, near - cx)
+}
+
+/// `weight · d²` for a coordinate difference `d`: the spatial term of one axis.
+#[inline(always)]
+pub(super) fn spatial(weight: f32, d: f32) -> f32 {
+    weight * d * d
 }

@@ -2,7 +2,7 @@
 //! rosbag2 directories (one drive in parts) and sidecars (`<name>.<tag>.mcap` joining the
 //! drive of `<name>.mcap`).
 
-use super::dataset::IngestError;
+use super::error::IngestError;
 use std::path::{Path, PathBuf};
 
 /// Groups the inputs into drives: a rosbag2 directory (it holds `metadata.yaml`) is one

@@ -180,7 +180,8 @@ fn next_in_column(sorted: &[u64]) -> Vec<[u32; 2]> {
 ///
 /// Each list gets room for one pair per cell (a cell has at most one neighbour per
 /// offset) and is written through its spare capacity, its length kept in a register
-/// (pushing to a `Vec<Vec<_>>` kept the lengths in memory, and measured slower).
+/// (pushing to a `Vec<Vec<_>>` would keep the lengths in memory, loaded and stored at
+/// every push).
 #[allow(unsafe_code)]
 fn merge_column(sorted: &[u64], delta: u64) -> [Vec<[u32; 2]>; 3] {
     let n = sorted.len();

@@ -1,4 +1,4 @@
-//! `superflow-probe`: a test subscriber. Reads batches of a run and prints one JSON line
+//! `superflow-subscriber`: a test subscriber. Reads batches of a run and prints one JSON line
 //! per batch (sequence, epoch, step, sample ids, a hash of the payload) so end-to-end
 //! tests can account for every sample; can stall (stop reading) or resume at a position.
 
@@ -106,7 +106,7 @@ fn main() -> anyhow::Result<()> {
         }
         let Some(batch) = subscription.receive(Duration::from_secs(args.timeout_secs))? else {
             eprintln!(
-                "superflow-probe: no batch within {} s after {n}",
+                "superflow-subscriber: no batch within {} s after {n}",
                 args.timeout_secs
             );
             std::process::exit(3);

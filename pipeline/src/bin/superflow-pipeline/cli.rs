@@ -1,0 +1,144 @@
+//! The command line: global flags, the service's flags and the subcommands.
+
+use anyhow::bail;
+use clap::{Parser, Subcommand};
+use std::path::PathBuf;
+use superflow_pipeline::config::{Overrides, PipelineConfig};
+use superflow_pipeline::publish::Mode;
+
+/// Streams SuperFlow training batches from recorded drives to trainers over shared memory.
+#[derive(Debug, Parser)]
+#[command(version, about)]
+pub struct Args {
+    /// MCAP files or directories of them (searched for `*.mcap`).
+    #[arg(long, num_args = 1.., global = true)]
+    pub mcap: Vec<PathBuf>,
+    /// Configuration file (TOML); defaults are the paper's.
+    #[arg(long, global = true)]
+    pub config: Option<PathBuf>,
+    /// Run name: the services are `superflow/<run>/...`.
+    #[arg(long, default_value = "default")]
+    pub run: String,
+    /// Stream mode (overrides `[service] mode`): `broadcast` or `shard`.
+    #[arg(long)]
+    pub mode: Option<String>,
+    /// Ranks in shard mode (overrides `[service] world_size`).
+    #[arg(long)]
+    pub world_size: Option<u32>,
+    /// This host's rank for multi-host sharding (overrides `[service] host_rank`):
+    /// host h of N gets a disjoint share of every epoch's keyframes.
+    #[arg(long, env = "SUPERFLOW_HOST_RANK")]
+    pub host_rank: Option<u32>,
+    /// Hosts sharing each epoch, each running its own pipeline on the same drives and
+    /// configuration (overrides `[service] host_count`).
+    #[arg(long, env = "SUPERFLOW_HOST_COUNT")]
+    pub host_count: Option<u32>,
+    /// Samples per batch (overrides `[service] batch_size`).
+    #[arg(long)]
+    pub batch_size: Option<u32>,
+    /// Epochs to stream, 0 = forever (overrides `[service] epochs`).
+    #[arg(long)]
+    pub epochs: Option<u64>,
+    /// Subscribers to wait for before the first batch of each stream (overrides
+    /// `[service] min_subscribers`).
+    #[arg(long)]
+    pub subscribers: Option<u32>,
+    /// Start at this epoch ...
+    #[arg(long, default_value_t = 0)]
+    pub start_epoch: u64,
+    /// ... and this step of it (nothing before it is built).
+    #[arg(long, default_value_t = 0)]
+    pub start_step: u64,
+    /// Serve Prometheus text metrics on this address (e.g. 127.0.0.1:9464).
+    #[arg(long)]
+    pub metrics_addr: Option<std::net::SocketAddr>,
+    /// Isolates this deployment's iceoryx2 resources (also `SUPERFLOW_IOX_PREFIX`).
+    #[arg(long, env = "SUPERFLOW_IOX_PREFIX")]
+    pub iox_prefix: Option<String>,
+    #[command(subcommand)]
+    pub command: Option<Command>,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Lists what the drives hold: dialect, channels and roles, cameras, frame tree,
+    /// time span, usable keyframes, per-point labels (`[labels]` of the configuration)
+    /// and skipped messages.
+    Inspect {
+        /// Print the stable JSON report (`superflow.inspect/1`) instead of text.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Builds one sample and writes it as `.npy` arrays, `sample.json` and PNGs of each
+    /// chosen image with the projected points coloured by depth and by superpixel.
+    Sample {
+        /// Keyframe number in the plan (drive and time order; `inspect` counts them).
+        #[arg(long, default_value_t = 0)]
+        index: usize,
+        /// Epoch of the random draws (cameras, flips, augmentation).
+        #[arg(long, default_value_t = 0)]
+        epoch: u64,
+        /// Output directory.
+        #[arg(long)]
+        out: PathBuf,
+        /// Keep points in their LiDAR frame (no 3D augmentation).
+        #[arg(long)]
+        no_augment: bool,
+    },
+    /// Runs SLIC once on every camera image of each drive, with the configuration's
+    /// recipe, and writes the labels to `<drive>.slic.mcap` beside it; samples then
+    /// read them instead of running SLIC per image and epoch (drives with class maps
+    /// do not need this).
+    Superpixels {
+        /// Rewrite a sidecar that exists (else one written with the same settings is
+        /// kept, and one with other settings is an error).
+        #[arg(long)]
+        force: bool,
+    },
+    /// Builds one batch (keyframes `index..index + batch-size` of the plan) and writes it
+    /// to a file exactly as it goes on the wire: the `BatchHeader` bytes, then the
+    /// payload (`schemas/BATCH_FORMAT.md`). Benchmarks and offline tools read it.
+    Batch {
+        /// First keyframe of the batch.
+        #[arg(long, default_value_t = 0)]
+        index: usize,
+        /// Samples in the batch [default: the service's batch size].
+        #[arg(long)]
+        batch_size: Option<usize>,
+        /// Epoch of the random draws.
+        #[arg(long, default_value_t = 0)]
+        epoch: u64,
+        /// Output file.
+        #[arg(long)]
+        out: PathBuf,
+    },
+}
+
+impl Args {
+    /// The `--config` file, or the defaults without one.
+    pub fn config(&self) -> anyhow::Result<PipelineConfig> {
+        Ok(match &self.config {
+            Some(path) => PipelineConfig::load(path)?,
+            None => PipelineConfig::default(),
+        })
+    }
+
+    /// The service's flags, to lay over the configuration ([`PipelineConfig::apply`]).
+    pub fn overrides(&self) -> anyhow::Result<Overrides> {
+        let mode = match self.mode.as_deref() {
+            None => None,
+            Some("broadcast") => Some(Mode::Broadcast),
+            Some("shard") => Some(Mode::Shard),
+            Some(other) => bail!("--mode {other}: expected broadcast or shard"),
+        };
+        Ok(Overrides {
+            mode,
+            world_size: self.world_size,
+            host_rank: self.host_rank,
+            host_count: self.host_count,
+            batch_size: self.batch_size,
+            epochs: self.epochs,
+            min_subscribers: self.subscribers,
+        })
+    }
+}

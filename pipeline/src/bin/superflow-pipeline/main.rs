@@ -1,0 +1,65 @@
+//! `superflow-pipeline`: the producer process.
+//!
+//! * `superflow-pipeline --mcap <drives>... [--run NAME] [--config pipeline.toml]` — the
+//!   service: streams SuperFlow batches over iceoryx2 (broadcast or shard), with
+//!   backpressure, dead-subscriber cleanup, resume requests and Prometheus metrics.
+//! * `superflow-pipeline inspect --mcap <drives>... [--json]` — what the drives hold.
+//! * `superflow-pipeline sample --mcap <drive> --index K --out DIR [--no-augment]` — one
+//!   sample written as `.npy` arrays, `sample.json` and overlay PNGs.
+//!
+//! This file parses the command line, sets up logging, hands the command to its module
+//! and maps an error to the exit code; the flags are in [`cli`].
+
+mod batch;
+mod cli;
+mod inspect;
+mod open;
+mod sample;
+mod serve;
+mod superpixels;
+
+use clap::Parser as _;
+use cli::{Args, Command};
+
+/// mimalloc, keeping freed pages for the next sample (see `superflow_pipeline::memory`).
+#[global_allocator]
+static ALLOCATOR: superflow_pipeline::memory::Allocator = superflow_pipeline::memory::Allocator;
+
+fn run(args: &Args) -> anyhow::Result<()> {
+    match &args.command {
+        Some(Command::Inspect { json }) => inspect::run(args, *json),
+        Some(Command::Superpixels { force }) => superpixels::run(args, *force),
+        Some(Command::Sample {
+            index,
+            epoch,
+            out,
+            no_augment,
+        }) => sample::run(args, *index, *epoch, out, *no_augment),
+        Some(Command::Batch {
+            index,
+            batch_size,
+            epoch,
+            out,
+        }) => batch::run(args, *index, *batch_size, *epoch, out),
+        None => serve::run(args),
+    }
+}
+
+fn main() -> std::process::ExitCode {
+    superflow_pipeline::memory::keep_freed_pages();
+    tracing_subscriber::fmt()
+        .with_writer(std::io::stderr)
+        // Colour only on a terminal: logs redirected to files stay plain text.
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env().unwrap_or_else(|_| "info".into()),
+        )
+        .init();
+    match run(&Args::parse()) {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(err) => {
+            eprintln!("superflow-pipeline: {err:#}");
+            std::process::ExitCode::from(2)
+        }
+    }
+}
