@@ -56,7 +56,7 @@ use superflow_recordings::{Dialect, DriveOptions, GENERATOR_VERSION, generate_wi
 
 /// The pipeline binary's allocator (see `superflow_pipeline::memory`).
 #[global_allocator]
-static ALLOCATOR: superflow_pipeline::memory::Allocator = superflow_pipeline::memory::Allocator;
+static ALLOCATOR: superflow_common::memory::Allocator = superflow_common::memory::Allocator;
 
 /// Samples in the batch of the batch-write measurement (the service's default).
 const BATCH: usize = 4;
@@ -228,7 +228,7 @@ fn target_ms(width: u32, height: u32) -> Option<f64> {
 }
 
 fn main() -> anyhow::Result<()> {
-    superflow_pipeline::memory::keep_freed_pages();
+    superflow_common::memory::keep_freed_pages();
     let n = arg_count("--samples")?.unwrap_or(48);
     let n_slic = arg_count("--slic-samples")?.unwrap_or(12);
     let sizes = arg_value("--sizes").unwrap_or_else(|| "800x450,1600x900".into());

@@ -16,11 +16,11 @@
 //! [`PipelineConfig::apply`], and the result is validated after.
 
 use crate::drive::{IngestConfig, LabelConfig};
-use crate::invalid::InvalidSetting;
 use crate::publish::{Mode, ServiceConfig};
 use crate::sample::SampleConfig;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
+use superflow_common::InvalidSetting;
 
 /// The pipeline's configuration file.
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]

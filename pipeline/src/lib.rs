@@ -29,8 +29,9 @@
 //!    [`publish::Metrics`].
 //!
 //! Beside them: [`config::PipelineConfig`] (`pipeline.toml`: `[ingest]`, `[sample]`,
-//! `[service]`, `[labels]`; a setting out of range is an [`invalid::InvalidSetting`]) and
-//! [`inspect`] (what `superflow-pipeline inspect` reports about a drive).
+//! `[service]`, `[labels]`; a setting out of range is a `superflow_common::InvalidSetting`,
+//! the trainer's too) and [`inspect`] (what `superflow-pipeline inspect` reports about a
+//! drive).
 //!
 //! For example, the transform tree interpolates between recorded poses:
 //!
@@ -62,9 +63,5 @@ pub mod inspect;
 pub mod publish;
 pub mod sample;
 pub mod source;
-
-// The allocator and the settings error live in `superflow-common`, which the trainer
-// shares without depending on the pipeline; re-exported under their old paths.
-pub use superflow_common::{invalid, memory};
 #[cfg(test)]
 mod test_rng;

@@ -270,10 +270,10 @@ fn trainer(
 
 /// The pipeline binary's allocator (see `superflow_pipeline::memory`).
 #[global_allocator]
-static ALLOCATOR: superflow_pipeline::memory::Allocator = superflow_pipeline::memory::Allocator;
+static ALLOCATOR: superflow_common::memory::Allocator = superflow_common::memory::Allocator;
 
 fn main() -> anyhow::Result<()> {
-    superflow_pipeline::memory::keep_freed_pages();
+    superflow_common::memory::keep_freed_pages();
     let args = Args::parse()?;
     let cores = cores();
     let started = Instant::now();

@@ -65,11 +65,11 @@ use crate::decode::points::{
     CloudOptions, DecodedCloud, LabelFieldSpec, PointsError, decode_labels_message,
     decode_message_with, field_names, find_label_field,
 };
-use crate::invalid::InvalidSetting;
 use crate::source::ChunkCache;
 use rustc_hash::FxHashMap;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
+use superflow_common::InvalidSetting;
 use superflow_schemas::Stamp;
 
 /// Sweeps tried, in order, for the field list that tells whether the LiDAR's clouds carry

@@ -1,8 +1,8 @@
 //! `[service]` of `pipeline.toml`: the stream's mode, ranks and hosts, batch size,
 //! prefetch, epochs, subscriber waits and linger, with their ranges.
 
-use crate::invalid::InvalidSetting;
 use serde::{Deserialize, Serialize};
+use superflow_common::InvalidSetting;
 use superflow_schemas::service::qos;
 
 /// Broadcast (every subscriber sees every batch) or shard (each rank its share).

@@ -35,8 +35,8 @@ pub use metrics::Metrics;
 pub use schedule::{Schedule, Slot};
 pub use serve::serve;
 
-use crate::invalid::InvalidSetting;
 use std::sync::{Mutex, MutexGuard};
+use superflow_common::InvalidSetting;
 use superflow_schemas::batch::BatchError;
 use superflow_schemas::service::{IpcError, ServiceSetupError};
 

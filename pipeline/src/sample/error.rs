@@ -2,7 +2,7 @@
 
 use crate::drive::TfError;
 use crate::drive::{IngestError, ReadError};
-use crate::invalid::InvalidSetting;
+use superflow_common::InvalidSetting;
 use superflow_schemas::Stamp;
 
 /// Why a sample (or a plan) cannot be built. Each names the file, channel and time.

@@ -5,8 +5,8 @@ use super::image_ops::resize_bilinear_mirrored;
 use super::slic::SlicParams;
 use super::voxel::VoxelGrid;
 use crate::decode::image::Scale;
-use crate::invalid::InvalidSetting;
 use serde::{Deserialize, Serialize};
+use superflow_common::InvalidSetting;
 use superflow_schemas::sensor::Image;
 
 /// What to do with a keyframe whose t−Δt or t+Δt frame falls outside the drive.

@@ -2,8 +2,8 @@
 //! the map from every point to its cell.
 
 use super::cellkey::{Keyed, count_runs, sort_cells};
-use crate::invalid::InvalidSetting;
 use serde::{Deserialize, Serialize};
+use superflow_common::InvalidSetting;
 
 /// How points are binned.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]

@@ -6,8 +6,8 @@
 //! glibc's malloc for blocks over its mmap threshold) hands freed pages back to the
 //! kernel, and the next sample or step faults them in again, each fault zeroing a page
 //! (2 MiB with transparent huge pages). With purging off, the process keeps its
-//! high-water mark of memory and reuses it. (What that saves is measured in the
-//! pipeline's FIELD_NOTES, "allocator".)
+//! high-water mark of memory and reuses it (the figures: pipeline/docs/FIELD_NOTES.md,
+//! "mimalloc: keeping freed pages").
 //!
 //! The binaries declare `#[global_allocator] static A: Allocator = Allocator;` and call
 //! [`keep_freed_pages`] first thing in `main`.

@@ -23,7 +23,7 @@ use cli::{Args, Command};
 
 /// mimalloc, keeping freed pages for the next sample (see `superflow_pipeline::memory`).
 #[global_allocator]
-static ALLOCATOR: superflow_pipeline::memory::Allocator = superflow_pipeline::memory::Allocator;
+static ALLOCATOR: superflow_common::memory::Allocator = superflow_common::memory::Allocator;
 
 fn run(args: &Args) -> anyhow::Result<()> {
     match &args.command {
@@ -46,7 +46,7 @@ fn run(args: &Args) -> anyhow::Result<()> {
 }
 
 fn main() -> std::process::ExitCode {
-    superflow_pipeline::memory::keep_freed_pages();
+    superflow_common::memory::keep_freed_pages();
     tracing_subscriber::fmt()
         .with_writer(std::io::stderr)
         // Colour only on a terminal: logs redirected to files stay plain text.

@@ -47,7 +47,6 @@ mod lab;
 mod search;
 mod tiles;
 
-use crate::invalid::InvalidSetting;
 #[cfg(target_arch = "x86_64")]
 use crate::sample::simd;
 use centres::Means;
@@ -56,6 +55,7 @@ use lab::Lab;
 use search::Search;
 use serde::{Deserialize, Serialize};
 use std::cell::RefCell;
+use superflow_common::InvalidSetting;
 
 /// scikit-image's `max_size_factor`: connected components are grown up to this many times
 /// the mean segment size; larger ones are split.
