@@ -28,7 +28,8 @@ pub struct IngestConfig {
     /// How far a transform lookup may extrapolate past the recorded samples, ms.
     pub tf_tolerance_ms: f64,
     /// The most input files kept open at once ([`HandlePool`](crate::source::HandlePool));
-    /// by default the process's soft `RLIMIT_NOFILE` less 64, at least 16
+    /// by default the process's soft `RLIMIT_NOFILE` less 64 and one per rayon thread,
+    /// at least 16
     /// ([`default_max_open_files`](crate::source::default_max_open_files)).
     pub max_open_files: Option<usize>,
 }

@@ -50,12 +50,14 @@ impl FileIdentity {
 }
 
 /// The default `[ingest] max_open_files`: the process's soft `RLIMIT_NOFILE` less
-/// [`HEADROOM`] for everything else it opens, and at least [`MIN_DEFAULT`].
+/// [`HEADROOM`] for everything else it opens and one per rayon thread (the handle each
+/// reading thread may hold beyond the pool), and at least [`MIN_DEFAULT`].
 pub fn default_max_open_files() -> usize {
     let soft = rustix::process::getrlimit(rustix::process::Resource::Nofile)
         .current
         .unwrap_or(u64::MAX);
-    usize::try_from(soft.saturating_sub(HEADROOM))
+    let readers = rayon::current_num_threads() as u64;
+    usize::try_from(soft.saturating_sub(HEADROOM).saturating_sub(readers))
         .unwrap_or(usize::MAX)
         .max(MIN_DEFAULT)
 }
