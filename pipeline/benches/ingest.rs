@@ -1,20 +1,31 @@
 //! Ingest throughput on the sample drives: the index pass (one scan of the file:
 //! decompression, stamps, transforms, calibrations) and random access to every sweep
-//! (read + decode), as a table.
+//! (read + decode), as a table; then `Dataset::open` of 1, 10 and 100 hard links of a
+//! sample drive (with its sidecar) on 1 and 2 threads, drives being indexed in parallel.
 //!
-//! `cargo bench -p superflow-pipeline --bench ingest` (add `-- --runs N`, default 5).
+//! `cargo bench -p superflow-pipeline --bench ingest` (add `-- --runs N`, default 5;
+//! `-- --datasets-only` for the second table alone).
 
 #[allow(dead_code)]
 #[path = "../../tests/src/bench/common.rs"]
 mod common;
 
-use common::{DRIVES, arg_count, drive_path, median};
+use common::{DRIVES, arg_count, drive_path, flag, median};
+use std::path::{Path, PathBuf};
 use std::time::Instant;
-use superflow_pipeline::drive::{Drive, IngestConfig};
+use superflow_pipeline::drive::{Dataset, Drive, IngestConfig};
 use superflow_pipeline::source::ChunkCache;
 
 fn main() -> anyhow::Result<()> {
     let runs = arg_count("--runs")?.unwrap_or(5);
+    if !flag("--datasets-only") {
+        drives(runs)?;
+    }
+    datasets(runs)
+}
+
+/// Index and random-access throughput of each sample drive, on one thread.
+fn drives(runs: usize) -> anyhow::Result<()> {
     println!("ingest throughput, median of {runs} runs, 1 thread");
     println!(
         "| drive | MB | index ms | index MB/s | sweeps | points | read+decode sweeps/s | decode Mpoints/s |"
@@ -64,4 +75,62 @@ fn main() -> anyhow::Result<()> {
         );
     }
     Ok(())
+}
+
+/// `Dataset::open` of many drives: 1, 10 and 100 hard links of `street_ros2` and its
+/// labels sidecar, on 1 and 2 threads.
+fn datasets(runs: usize) -> anyhow::Result<()> {
+    let dir = std::env::temp_dir().join(format!("superflow-ingest-bench-{}", std::process::id()));
+    println!();
+    println!(
+        "Dataset::open of hard-linked street_ros2 drives (+ labels sidecar), median of {runs} runs"
+    );
+    println!("| drives | files | MB | 1 thread ms | 2 threads ms | speed-up | 2 threads MB/s |");
+    println!("|---:|---:|---:|---:|---:|---:|---:|");
+    for count in [1usize, 10, 100] {
+        let inputs = linked(&dir, count)?;
+        let bytes: u64 = std::fs::read_dir(&inputs[0])?
+            .map(|e| Ok(e?.metadata()?.len()))
+            .sum::<std::io::Result<u64>>()?;
+        let mut medians = Vec::new();
+        for threads in [1, 2] {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()?;
+            let mut times = Vec::new();
+            for _ in 0..runs {
+                let started = Instant::now();
+                let dataset = pool.install(|| Dataset::open(&inputs, &IngestConfig::default()))?;
+                times.push(started.elapsed().as_secs_f64());
+                anyhow::ensure!(dataset.drives.len() == count, "{count} drives expected");
+            }
+            medians.push(median(&times));
+        }
+        let (one, two) = (medians[0], medians[1]);
+        println!(
+            "| {count} | {} | {:.1} | {:.0} | {:.0} | {:.2} | {:.0} |",
+            2 * count,
+            bytes as f64 / 1e6,
+            one * 1e3,
+            two * 1e3,
+            one / two,
+            bytes as f64 / 1e6 / two,
+        );
+    }
+    std::fs::remove_dir_all(&dir)?;
+    Ok(())
+}
+
+/// A fresh directory of `count` hard links of `street_ros2` and its labels sidecar.
+fn linked(dir: &Path, count: usize) -> anyhow::Result<Vec<PathBuf>> {
+    let sub = dir.join(count.to_string());
+    let _ = std::fs::remove_dir_all(&sub);
+    std::fs::create_dir_all(&sub)?;
+    let drive = drive_path("street_ros2");
+    let sidecar = drive.with_extension("labels.mcap");
+    for i in 0..count {
+        std::fs::hard_link(&drive, sub.join(format!("d{i:03}.mcap")))?;
+        std::fs::hard_link(&sidecar, sub.join(format!("d{i:03}.labels.mcap")))?;
+    }
+    Ok(vec![sub])
 }

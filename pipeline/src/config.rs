@@ -147,6 +147,13 @@ impl PipelineConfig {
                 "is not in 0..=10000",
             ));
         }
+        if self.ingest.max_open_files == Some(0) {
+            return Err(InvalidSetting::new(
+                "ingest.max_open_files",
+                0,
+                "must be at least 1",
+            ));
+        }
         self.sample.validate()?;
         self.service.validate()?;
         self.labels.validate()

@@ -27,6 +27,19 @@ pub struct IngestConfig {
     pub ego_frame: Option<String>,
     /// How far a transform lookup may extrapolate past the recorded samples, ms.
     pub tf_tolerance_ms: f64,
+    /// The most input files kept open at once ([`HandlePool`](crate::source::HandlePool));
+    /// by default the process's soft `RLIMIT_NOFILE` less 64 and one per rayon thread,
+    /// at least 16
+    /// ([`default_max_open_files`](crate::source::default_max_open_files)).
+    pub max_open_files: Option<usize>,
+}
+
+impl IngestConfig {
+    /// [`max_open_files`](Self::max_open_files), or its default.
+    pub fn max_open_files(&self) -> usize {
+        self.max_open_files
+            .unwrap_or_else(crate::source::default_max_open_files)
+    }
 }
 
 impl Default for IngestConfig {
@@ -37,6 +50,7 @@ impl Default for IngestConfig {
             map_frame: None,
             ego_frame: None,
             tf_tolerance_ms: 60.0,
+            max_open_files: None,
         }
     }
 }

@@ -219,6 +219,7 @@ impl Drive {
         if files.is_empty() {
             return Err(IngestError::NoFiles);
         }
+        crate::source::HandlePool::global().set_limit(config.max_open_files());
         let mut index = Index {
             topics: BTreeMap::new(),
             label_topics: BTreeMap::new(),

@@ -20,7 +20,7 @@ pub mod skips;
 mod streams;
 pub mod tf;
 
-pub use dataset::Dataset;
+pub use dataset::{Dataset, IndexProgress};
 pub use discover::{IngestConfig, Role};
 pub use error::IngestError;
 pub use index::Drive;

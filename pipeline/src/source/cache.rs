@@ -249,7 +249,8 @@ impl McapFile {
         match key {
             CacheKey::Direct(offset) => {
                 let mut head = [0u8; 9];
-                self.file
+                self.handle()
+                    .map_err(LoadError::Source)?
                     .read_exact_at(&mut head, offset)
                     .map_err(|e| LoadError::Source(self.io(e)))?;
                 let body_len = record_len(&head);

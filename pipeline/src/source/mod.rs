@@ -13,12 +13,14 @@
 //! This file holds the file and message types; the work is split by concern: `scan` (the
 //! pass over the records), `summary` (the summary section, its framing checked first),
 //! `framing` (records framed before mcap reads them), `chunk` (decompressing and splitting
-//! one chunk), `cache` (random access) and `damage` (what a scan worked around).
+//! one chunk), `cache` (random access), `damage` (what a scan worked around) and `handles`
+//! (the bounded pool of open files every read goes through).
 
 mod cache;
 mod chunk;
 mod damage;
 mod framing;
+mod handles;
 mod partial;
 mod scan;
 mod summary;
@@ -27,6 +29,7 @@ pub use cache::{ChunkCache, Decompressed};
 pub use chunk::ChunkError;
 pub use damage::Damage;
 pub use framing::FramingError;
+pub use handles::{FileIdentity, HandlePool, default_max_open_files};
 
 use std::collections::{BTreeMap, HashMap};
 use std::fs::File;
@@ -73,6 +76,26 @@ pub enum SourceError {
         offset: u64,
         /// What failed.
         source: ChunkError,
+    },
+    /// The file at this path is no longer the one scanned (another inode, size or
+    /// modification time): its index would point at the wrong bytes.
+    #[error("{path}: the file changed on disk since it was indexed; open the dataset again")]
+    Replaced {
+        /// The file.
+        path: PathBuf,
+    },
+    /// The process ran out of file descriptors opening the file.
+    #[error(
+        "{path}: too many open files ({source}); lower `[ingest] max_open_files` \
+         (now {limit}) in pipeline.toml or raise `ulimit -n`"
+    )]
+    TooManyOpenFiles {
+        /// The file.
+        path: PathBuf,
+        /// The pool's limit when it happened.
+        limit: usize,
+        /// The I/O error (EMFILE or ENFILE).
+        source: std::io::Error,
     },
 }
 
@@ -178,7 +201,11 @@ pub struct McapFile {
     /// Unique to this opening of the file: what chunk caches key on (a file rewritten at
     /// the same path and opened again never gets the old one's chunks).
     id: u64,
-    file: File,
+    /// What the file was when scanned; it is read through [`HandlePool::global`], which
+    /// may close it between reads and checks this on reopening.
+    identity: FileIdentity,
+    /// The handle a scan holds while it reads the file through; `None` afterwards.
+    scanning: Option<Arc<File>>,
     len: u64,
     /// Header profile (`ros2`, `""`, ...).
     pub profile: String,
@@ -223,6 +250,14 @@ impl McapFile {
         self.channels.get(&id)
     }
 
+    /// The open file, from the scan's own handle or the shared pool (reopened if closed).
+    fn handle(&self) -> Result<Arc<File>, SourceError> {
+        match &self.scanning {
+            Some(file) => Ok(Arc::clone(file)),
+            None => HandlePool::global().get(self.id, &self.path, &self.identity),
+        }
+    }
+
     fn io(&self, source: std::io::Error) -> SourceError {
         SourceError::Io {
             path: self.path.clone(),
@@ -264,7 +299,7 @@ impl McapFile {
                 scratch.resize(len, 0);
             }
             let buf = &mut scratch[..len];
-            self.file
+            self.handle()?
                 .read_exact_at(buf, offset)
                 .map_err(|e| self.io(e))?;
             Ok(f(buf))
@@ -278,10 +313,17 @@ impl McapFile {
                 .unwrap_or(usize::MAX)
                 .min(MAX_RECORD_BYTES as usize)
         ];
-        self.file
+        self.handle()?
             .read_exact_at(&mut buf, offset)
             .map_err(|e| self.io(e))?;
         Ok(buf)
+    }
+}
+
+impl Drop for McapFile {
+    /// Closes the file (once no reader holds it): its number is never asked for again.
+    fn drop(&mut self) {
+        HandlePool::global().forget(self.id);
     }
 }
 

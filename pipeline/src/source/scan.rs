@@ -5,12 +5,11 @@
 use super::chunk::decode_chunk;
 use super::framing::record_len;
 use super::{
-    ChannelInfo, ChunkLoc, Damage, MAGIC, MAX_RECORD_BYTES, McapFile, MessageLoc, MessageRef,
-    SchemaInfo, SourceError,
+    ChannelInfo, ChunkLoc, Damage, HandlePool, MAGIC, MAX_RECORD_BYTES, McapFile, MessageLoc,
+    MessageRef, SchemaInfo, SourceError,
 };
 use mcap::records::{self, ChunkHeader, op};
 use std::collections::{BTreeMap, HashMap};
-use std::fs::File;
 use std::os::unix::fs::FileExt;
 use std::path::Path;
 use std::sync::Arc;
@@ -38,40 +37,54 @@ impl McapFile {
         mut progress: impl FnMut(u64, u64),
     ) -> Result<McapFile, SourceError> {
         let mut this = Self::open(path)?;
+        let scanned = this.scan_opened(&mut visit, &mut progress);
+        // Later reads go through the pool, which may close the file between them.
+        this.scanning = None;
+        scanned.map(|()| this)
+    }
+
+    /// The scan of a file [`open`](Self::open) has opened.
+    fn scan_opened(
+        &mut self,
+        visit: &mut impl FnMut(MessageRef<'_>),
+        progress: &mut impl FnMut(u64, u64),
+    ) -> Result<(), SourceError> {
+        let this = self;
         let summary = this.checked_summary();
         let resume_points = match &summary {
             Ok(summary) => this.take_summary(summary),
             Err(_) => Vec::new(),
         };
-        this.scan_records(&resume_points, &mut visit, &mut progress)?;
+        this.scan_records(&resume_points, visit, progress)?;
         match &summary {
             Ok(summary) => this.count_missing_messages(summary),
             Err(e) => this.damage.push(Damage::NoSummary {
                 reason: e.to_string(),
             }),
         }
-        Ok(this)
+        Ok(())
     }
 
-    /// Opens `path` after checking its magic; nothing read yet.
+    /// Opens `path` through the pool after checking its magic; nothing else read yet.
+    /// The scan holds the returned file's handle until it ends.
     fn open(path: &Path) -> Result<McapFile, SourceError> {
-        let io = |source| SourceError::Io {
-            path: path.to_path_buf(),
-            source,
-        };
-        let file = File::open(path).map_err(io)?;
-        let len = file.metadata().map_err(io)?.len();
+        static OPENED: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+        let id = OPENED.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        let pool = HandlePool::global();
+        let (file, identity) = pool.open_new(id, path)?;
+        let len = identity.len;
         let mut magic = [0u8; 8];
         if len < 8 || file.read_exact_at(&mut magic, 0).is_err() || &magic != MAGIC {
+            pool.forget(id);
             return Err(SourceError::NotMcap {
                 path: path.to_path_buf(),
             });
         }
-        static OPENED: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
         Ok(McapFile {
             path: path.to_path_buf(),
-            id: OPENED.fetch_add(1, std::sync::atomic::Ordering::Relaxed),
-            file,
+            id,
+            identity,
+            scanning: Some(file),
             len,
             profile: String::new(),
             library: String::new(),
@@ -138,7 +151,7 @@ impl McapFile {
             return Ok(Next::End);
         }
         let mut head = [0u8; 9];
-        self.file
+        self.handle()?
             .read_exact_at(&mut head, pos)
             .map_err(|e| self.io(e))?;
         let opcode = head[0];

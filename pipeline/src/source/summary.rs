@@ -94,12 +94,13 @@ impl McapFile {
                 .with_file_size(self.len)
                 .with_record_length_limit(MAX_RECORD_BYTES as usize),
         );
+        let file = self.handle().ok()?;
         let mut pos = 0u64;
         while let Some(event) = reader.next_event() {
             match event.ok()? {
                 SummaryReadEvent::ReadRequest(need) => {
                     let buf = reader.insert(need);
-                    let n = self.file.read_at(buf, pos).ok()?;
+                    let n = file.read_at(buf, pos).ok()?;
                     pos += n as u64;
                     reader.notify_read(n);
                 }

@@ -598,3 +598,20 @@ fn a_checked_chunk_read_again_is_decoded_as_far_as_it_is_read_unless_its_bytes_c
         );
     });
 }
+
+#[test]
+fn a_file_replaced_after_its_scan_is_not_read_as_the_old_one() {
+    let (file, seen) = scan_bytes("replaced.mcap", &sample_file(true, 20));
+    let loc = seen[5].3;
+    let mut cache = ChunkCache::new(2);
+    assert_eq!(file.read_message(loc, &mut cache).unwrap().data, seen[5].2);
+    // The pool closed the file (as it does past its limit); another file took its path.
+    HandlePool::global().forget(file.id);
+    let other = file.path().with_extension("new");
+    std::fs::write(&other, sample_file_saying(true, 20, "replaced")).unwrap();
+    std::fs::rename(&other, file.path()).unwrap();
+    let loc = seen[15].3;
+    let err = file.read_message(loc, &mut ChunkCache::new(2)).unwrap_err();
+    assert!(matches!(err, SourceError::Replaced { .. }), "{err}");
+    assert!(err.to_string().contains("replaced.mcap"), "{err}");
+}
