@@ -29,6 +29,24 @@ pub struct GpuInfo {
     /// The adapter's limit on workgroups per dispatch dimension (Vulkan's
     /// `maxComputeWorkGroupCount`, wgpu's `max_compute_workgroups_per_dimension`).
     pub max_workgroups_per_dimension: u32,
+    /// No card behind it: a software rasterizer (llvmpipe, lavapipe) or a CPU.
+    pub software: bool,
+}
+
+impl std::fmt::Display for GpuInfo {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{} ({}, at most {} workgroups per dimension)",
+            self.name,
+            if self.software {
+                "software"
+            } else {
+                "hardware"
+            },
+            self.max_workgroups_per_dimension
+        )
+    }
 }
 
 /// The device of `backend`: `flex` (CPU), `wgpu` (the best adapter; set
@@ -103,6 +121,7 @@ mod wgpu {
         let info = GpuInfo {
             name: properties.identity.name.clone(),
             max_workgroups_per_dimension: x.min(y).min(z),
+            software: properties.identity.physical.is_none(),
         };
         let burn::cubecl::Device::Wgpu(wgpu) = cube else {
             return Err(BackendError::NoDevice {

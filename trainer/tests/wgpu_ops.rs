@@ -27,10 +27,7 @@ use superflow_trainer::unet::{LevelMaps, SparseConv};
 fn wgpu() -> Option<(Device, GpuInfo)> {
     match device::open_wgpu() {
         Ok(found) => {
-            eprintln!(
-                "wgpu device: {} (max workgroups per dimension {})",
-                found.1.name, found.1.max_workgroups_per_dimension
-            );
+            eprintln!("wgpu device: {}", found.1);
             Some(found)
         }
         Err(e) if std::env::var("CI").is_ok_and(|v| v == "true") => {
