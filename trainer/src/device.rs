@@ -67,9 +67,9 @@ pub fn select(backend: &str, index: usize) -> Result<Device, BackendError> {
     }
 }
 
-/// The largest number of index rows one gather or scatter-add may take on `device`, where
-/// burn's kernel for it is wrong past the adapter's workgroup limit (wgpu, see
-/// `pipeline/docs/FIELD_NOTES.md`); `None` (no limit) elsewhere. Known for the wgpu devices
+/// The largest number of index rows one gather or scatter-add may take on `device`: the
+/// adapter's workgroup limit on wgpu, past which burn's scatter-add and row sums were seen
+/// wrong (see `pipeline/docs/FIELD_NOTES.md`); `None` (no limit) elsewhere. Known for the wgpu devices
 /// [`select`] opened.
 pub fn index_rows_limit(device: &Device) -> Option<usize> {
     #[cfg(feature = "wgpu")]

@@ -1,10 +1,10 @@
 //! Row gathers and scatter-adds over index tensors of any length, on every backend.
 //!
 //! burn 0.22.1's scatter-add (`select_assign(0, index, values, IndexingUpdateOp::Add)`) is
-//! silently wrong on `wgpu` once the index has more rows than the adapter's workgroup
-//! limit per dispatch dimension (65 535 on Mesa's llvmpipe and several GPU drivers; see
-//! `pipeline/docs/FIELD_NOTES.md`, burn). A gather's backward is that scatter-add, so
-//! gathers are affected too. Where [`device::index_rows_limit`](crate::device::index_rows_limit)
+//! silently wrong on `wgpu` from 65 536 index rows on Mesa's llvmpipe, whose adapter
+//! reports 65 535 workgroups per dispatch dimension; the trainer takes the adapter's limit
+//! as the bound (see `pipeline/docs/FIELD_NOTES.md`, burn). A gather's backward is that
+//! scatter-add, so gathers are affected too. Where [`device::index_rows_limit`](crate::device::index_rows_limit)
 //! names a limit ([`RowOps::Pieces`]), the ops run in pieces of at most that many index rows
 //! (the same sums: every piece adds into the same output), as burn's `gather` and
 //! `scatter`, which use every thread of the device; elsewhere ([`RowOps::Direct`]) they
@@ -12,7 +12,7 @@
 //!
 //! burn's reductions over the row dimension (`sum_dim(0)`, `mean_dim(0)`, and so the
 //! backward of every broadcast over rows: batch norm, a linear layer's bias) are wrong on
-//! wgpu past the same limit. [`RowOps::batch_norm`] and [`RowOps::linear`] therefore sum
+//! wgpu past the same number of rows. [`RowOps::batch_norm`] and [`RowOps::linear`] therefore sum
 //! and broadcast rows in pieces on such a device; the CPU keeps burn's modules as they are.
 
 use burn::nn::{BatchNorm, Linear};
