@@ -5,7 +5,8 @@
 //! checkpoint and of an untrained network on the drives' labels (linear and fine-tuned)
 //! prints its JSON report. `superflow-trainer check` (the backend
 //! comparison `deploy/gpu/check.sh` runs on a GPU) on a batch file from
-//! `superflow-pipeline batch`.
+//! `superflow-pipeline batch`, and the same on burn's `wgpu` backend against the CPU on a
+//! Vulkan device (Mesa's software llvmpipe in CI).
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
 
@@ -333,6 +334,72 @@ fn check_runs_the_same_steps_on_every_backend_and_compares_their_losses() {
     assert!(
         !ok && err.contains("batch.bin") && err.contains("shorter than a batch header"),
         "{err}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// Whether a missing GPU backend is a failure (CI) rather than a skip.
+fn in_ci() -> bool {
+    std::env::var("CI").is_ok_and(|v| v == "true")
+}
+
+#[test]
+fn check_agrees_on_wgpu_with_the_cpu_on_a_vulkan_device() {
+    let dir = temp_dir("check-wgpu");
+    std::fs::create_dir_all(&dir).unwrap();
+    let batch = dir.join("batch.bin");
+    // 4 samples: the sparse maps and the pooling have more rows than a GPU launches
+    // workgroups in one dimension (65 535 on llvmpipe), where burn's own ops go wrong.
+    let (ok, _, err) = finish(
+        spawn(
+            Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-probe")))
+                .args(["batch", "--mcap", DRIVE, "--batch-size", "4", "--out"])
+                .arg(&batch)
+                .current_dir(workspace_root())
+                .stdout(Stdio::null())
+                .stderr(Stdio::piped()),
+        ),
+        LIMIT,
+    );
+    assert!(ok, "{err}");
+    let started = Instant::now();
+    let (ok, out, err) = finish(
+        spawn(
+            Command::new(workspace_binary(
+                env!("CARGO_BIN_EXE_superflow-probe"),
+                "superflow-trainer",
+            ))
+            .args(["check", "--batch"])
+            .arg(&batch)
+            .args(["--backends", "flex,wgpu", "--steps", "2", "--unet", "tiny"])
+            .args(["--vit", "tiny", "--pixel-stride", "4"])
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped()),
+        ),
+        LIMIT,
+    );
+    let missing = ["is not compiled in", "no device on this machine"]
+        .iter()
+        .find(|m| err.contains(*m));
+    if let (false, Some(missing)) = (ok, missing) {
+        assert!(
+            !in_ci(),
+            "CI=true and wgpu cannot run ({missing}): build with --features \
+             superflow-trainer/wgpu and install mesa-vulkan-drivers libvulkan1\n{err}"
+        );
+        eprintln!("SKIPPED: wgpu cannot run here ({missing})");
+        return;
+    }
+    eprintln!(
+        "{out}check flex,wgpu, 2 steps: {:.0} s",
+        started.elapsed().as_secs_f64()
+    );
+    assert!(ok, "{out}\n{err}");
+    assert!(
+        out.contains("wgpu device: ")
+            && out.contains("| wgpu |")
+            && err.contains("the backends agree"),
+        "{out}\n{err}"
     );
     let _ = std::fs::remove_dir_all(&dir);
 }

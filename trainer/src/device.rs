@@ -11,6 +11,42 @@ pub enum BackendError {
     /// A GPU backend whose cargo feature this build was made without.
     #[error("backend {0} is not compiled in: build with `--features {0}`")]
     NotCompiledIn(&'static str),
+    /// A GPU backend this machine has no device for (no driver, no adapter).
+    #[error("backend {backend}: no device on this machine ({reason})")]
+    NoDevice {
+        /// The backend asked for.
+        backend: &'static str,
+        /// What the runtime said.
+        reason: String,
+    },
+}
+
+/// What the trainer needs to know of a GPU device it opened.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct GpuInfo {
+    /// The adapter as it names itself (`llvmpipe (LLVM 15.0.6, 256 bits)`, `NVIDIA H200`).
+    pub name: String,
+    /// The adapter's limit on workgroups per dispatch dimension (Vulkan's
+    /// `maxComputeWorkGroupCount`, wgpu's `max_compute_workgroups_per_dimension`).
+    pub max_workgroups_per_dimension: u32,
+    /// No card behind it: a software rasterizer (llvmpipe, lavapipe) or a CPU.
+    pub software: bool,
+}
+
+impl std::fmt::Display for GpuInfo {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "{} ({}, at most {} workgroups per dimension)",
+            self.name,
+            if self.software {
+                "software"
+            } else {
+                "hardware"
+            },
+            self.max_workgroups_per_dimension
+        )
+    }
 }
 
 /// The device of `backend`: `flex` (CPU), `wgpu` (the best adapter; set
@@ -20,7 +56,7 @@ pub fn select(backend: &str, index: usize) -> Result<Device, BackendError> {
     match backend {
         "flex" => Ok(Device::flex()),
         #[cfg(feature = "wgpu")]
-        "wgpu" => Ok(Device::wgpu(burn::tensor::DeviceKind::DefaultDevice)),
+        "wgpu" => wgpu::open().map(|(device, _)| device),
         #[cfg(feature = "cuda")]
         "cuda" => Ok(Device::cuda(index)),
         #[cfg(not(feature = "wgpu"))]
@@ -28,6 +64,100 @@ pub fn select(backend: &str, index: usize) -> Result<Device, BackendError> {
         #[cfg(not(feature = "cuda"))]
         "cuda" => Err(BackendError::NotCompiledIn("cuda")),
         other => Err(BackendError::Unknown(other.to_string())),
+    }
+}
+
+/// The largest number of index rows one gather or scatter-add may take on `device`: the
+/// adapter's workgroup limit on wgpu, past which burn's scatter-add and row sums were seen
+/// wrong (see `pipeline/docs/FIELD_NOTES.md`); `None` (no limit) elsewhere. Known for the wgpu devices
+/// [`select`] opened.
+pub fn index_rows_limit(device: &Device) -> Option<usize> {
+    #[cfg(feature = "wgpu")]
+    {
+        wgpu::info(device).map(|info| info.max_workgroups_per_dimension as usize)
+    }
+    #[cfg(not(feature = "wgpu"))]
+    {
+        let _ = device;
+        None
+    }
+}
+
+/// What [`select`] learned of `device` if it is a GPU it opened.
+pub fn gpu_info(device: &Device) -> Option<GpuInfo> {
+    #[cfg(feature = "wgpu")]
+    {
+        wgpu::info(device)
+    }
+    #[cfg(not(feature = "wgpu"))]
+    {
+        let _ = device;
+        None
+    }
+}
+
+#[cfg(feature = "wgpu")]
+mod wgpu {
+    use super::{BackendError, GpuInfo};
+    use burn::cubecl::wgpu::WgpuDeviceKind;
+    use burn::tensor::Device;
+    use std::sync::{Mutex, PoisonError};
+
+    /// The wgpu devices opened so far, with what their adapters report.
+    static OPENED: Mutex<Vec<(Device, GpuInfo)>> = Mutex::new(Vec::new());
+
+    /// The default adapter (the best one; `CUBECL_WGPU_DEFAULT_DEVICE` chooses another)
+    /// as a burn device, with its name and limits.
+    pub(super) fn open() -> Result<(Device, GpuInfo), BackendError> {
+        let cube = burn::cubecl::Device::wgpu(WgpuDeviceKind::DefaultDevice).map_err(|e| {
+            BackendError::NoDevice {
+                backend: "wgpu",
+                reason: e.to_string(),
+            }
+        })?;
+        let client = cube.client();
+        let properties = client.properties();
+        let (x, y, z) = properties.hardware.max_cube_count;
+        let info = GpuInfo {
+            name: properties.identity.name.clone(),
+            max_workgroups_per_dimension: x.min(y).min(z),
+            software: properties.identity.physical.is_none(),
+        };
+        let burn::cubecl::Device::Wgpu(wgpu) = cube else {
+            return Err(BackendError::NoDevice {
+                backend: "wgpu",
+                reason: "the runtime answered with a device of another runtime".into(),
+            });
+        };
+        let device = Device::new(wgpu);
+        let mut opened = OPENED.lock().unwrap_or_else(PoisonError::into_inner);
+        if !opened.iter().any(|(d, _)| *d == device) {
+            opened.push((device.clone(), info.clone()));
+        }
+        Ok((device, info))
+    }
+
+    pub(super) fn info(device: &Device) -> Option<GpuInfo> {
+        let opened = OPENED.lock().unwrap_or_else(PoisonError::into_inner);
+        if opened.is_empty() {
+            return None;
+        }
+        opened
+            .iter()
+            .find(|(d, _)| d == device)
+            .map(|(_, info)| info.clone())
+    }
+}
+
+/// The wgpu device with what its adapter reports (`None` in a build without `wgpu`).
+pub fn open_wgpu() -> Result<(Device, GpuInfo), BackendError> {
+    #[cfg(feature = "wgpu")]
+    {
+        wgpu::open()
+    }
+    #[cfg(not(feature = "wgpu"))]
+    {
+        Err(BackendError::NotCompiledIn("wgpu"))
     }
 }
 

@@ -69,6 +69,7 @@ pub mod lr_schedule;
 pub mod metrics;
 pub mod model;
 pub mod probe;
+pub mod rows;
 pub mod run;
 pub mod stream;
 pub mod subscribe;

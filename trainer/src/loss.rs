@@ -23,9 +23,10 @@
 //!
 //! InfoNCE(a, b) = mean_i −log softmax_j(a_i·b_j / τ)\[i\].
 
+use crate::rows::RowOps;
 use crate::unet::index_tensor;
 use burn::tensor::activation::log_softmax;
-use burn::tensor::{Device, IndexingUpdateOp, Int, Tensor, TensorData};
+use burn::tensor::{Device, Int, Tensor, TensorData};
 use serde::{Deserialize, Serialize};
 use superflow_schemas::batch::Section;
 
@@ -164,6 +165,8 @@ pub struct LossPlan {
     pub d2s: Matched,
     /// Image height and width.
     pub image_size: [usize; 2],
+    /// How the device runs the gathers and scatter-adds ([`RowOps::of`]).
+    ops: RowOps,
 }
 
 impl LossPlan {
@@ -196,6 +199,7 @@ impl LossPlan {
             pixel_slot: index_tensor(sampled.slot, device),
             pixel_counts: counts(sampled.count),
             pixel_slots: slots.pixel_slots,
+            ops: RowOps::of(device),
             sc,
             tc,
             d2s,
@@ -434,15 +438,16 @@ impl<'x, 'a> Slots<'x, 'a> {
 }
 
 /// Mean of `rows` per slot: scatter-add, then divide by the (clamped) counts.
-fn pool(rows: Tensor<2>, slot: &Tensor<1, Int>, slots: usize, counts: &Tensor<2>) -> Tensor<2> {
+fn pool(
+    rows: Tensor<2>,
+    slot: &Tensor<1, Int>,
+    slots: usize,
+    counts: &Tensor<2>,
+    ops: RowOps,
+) -> Tensor<2> {
     let [_, d] = rows.dims();
     let device = rows.device();
-    let sums = Tensor::zeros([slots, d], &device).select_assign(
-        0,
-        slot.clone(),
-        rows,
-        IndexingUpdateOp::Add,
-    );
+    let sums = ops.scatter_add(Tensor::zeros([slots, d], &device), slot, rows);
     sums / counts.clone()
 }
 
@@ -539,6 +544,7 @@ impl SuperFlowLoss {
             &plan.pairing_slot,
             plan.point_slots,
             &plan.point_counts,
+            plan.ops,
         )
     }
 
@@ -550,14 +556,15 @@ impl SuperFlowLoss {
             &plan.pixel_slot,
             plan.pixel_slots,
             &plan.pixel_counts,
+            plan.ops,
         )
     }
 
-    fn nce(&self, a: &Tensor<2>, b: &Tensor<2>, m: &Matched) -> Option<Tensor<1>> {
+    fn nce(&self, a: &Tensor<2>, b: &Tensor<2>, m: &Matched, ops: RowOps) -> Option<Tensor<1>> {
         (m.len > 0).then(|| {
             info_nce(
-                a.clone().select(0, m.a.clone()),
-                b.clone().select(0, m.b.clone()),
+                ops.gather(a.clone(), &m.a),
+                ops.gather(b.clone(), &m.b),
                 self.config.temperature,
             )
         })
@@ -586,20 +593,20 @@ impl SuperFlowLoss {
         let sc_frames: Vec<Tensor<1>> = plan
             .sc
             .iter()
-            .map(|m| self.nce(&k, &q, m).unwrap_or_else(zero))
+            .map(|m| self.nce(&k, &q, m, plan.ops).unwrap_or_else(zero))
             .collect();
         let sc = mean(sc_frames.clone());
         let tc = mean(
             plan.tc
                 .iter()
-                .map(|m| self.nce(&k, &k, m).unwrap_or_else(zero))
+                .map(|m| self.nce(&k, &k, m, plan.ops).unwrap_or_else(zero))
                 .collect(),
         );
         let d2s = if plan.d2s.len == 0 {
             zero()
         } else {
-            let key = k.clone().select(0, plan.d2s.a.clone());
-            let dense = k.select(0, plan.d2s.b.clone());
+            let key = plan.ops.gather(k.clone(), &plan.d2s.a);
+            let dense = plan.ops.gather(k, &plan.d2s.b);
             match self.config.d2s {
                 D2sForm::Cosine => cosine_distance(key, dense),
                 D2sForm::Infonce => info_nce(dense, key, self.config.temperature),

@@ -9,6 +9,7 @@
 //! pixels, at a fraction of the cost.
 
 use crate::init::normal_param;
+use crate::rows::RowOps;
 use crate::unet::{LevelMaps, SparseUNet, UNetConfig, index_tensor, l2_normalize};
 use burn::module::{Module, Param};
 use burn::nn::Linear;
@@ -26,6 +27,7 @@ pub struct ImageHead {
 pub struct PixelSampler {
     corners: [Tensor<1, Int>; 4],
     weights: [Tensor<2>; 4],
+    ops: RowOps,
 }
 
 impl PixelSampler {
@@ -65,6 +67,7 @@ impl PixelSampler {
             }
         }
         Self {
+            ops: RowOps::of(device),
             corners: idx.map(|v| index_tensor(v, device)),
             weights: wt.map(|v| {
                 let len = v.len();
@@ -78,7 +81,7 @@ impl PixelSampler {
         let mut out: Option<Tensor<2>> = None;
         for j in 0..4 {
             let term =
-                grid_rows.clone().select(0, self.corners[j].clone()) * self.weights[j].clone();
+                self.ops.gather(grid_rows.clone(), &self.corners[j]) * self.weights[j].clone();
             out = Some(match out {
                 Some(acc) => acc + term,
                 None => term,
@@ -139,8 +142,8 @@ impl SuperFlowModel {
         levels: &[LevelMaps],
         pairing_voxel: Tensor<1, Int>,
     ) -> Tensor<2> {
-        self.unet
-            .forward(voxel_features, levels)
-            .select(0, pairing_voxel)
+        // The kernel maps know how this device runs gathers.
+        let ops = levels.first().map_or(RowOps::Direct, |l| l.nbr.ops);
+        ops.gather(self.unet.forward(voxel_features, levels), &pairing_voxel)
     }
 }

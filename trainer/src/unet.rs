@@ -17,10 +17,11 @@
 //! (MinkowskiEngine's example uses 5×5×5).
 
 use crate::init::normal_param;
+use crate::rows::RowOps;
 use burn::module::{Module, Param};
 use burn::nn::{BatchNorm, BatchNormConfig, Linear};
 use burn::tensor::activation::relu;
-use burn::tensor::{Device, IndexingUpdateOp, Int, Tensor, TensorData};
+use burn::tensor::{Device, Int, Tensor, TensorData};
 use serde::{Deserialize, Serialize};
 
 /// Number of offsets of a 3×3×3 kernel.
@@ -59,6 +60,8 @@ pub struct KernelPairs {
     pub second_all: Tensor<1, Int>,
     /// First column of all pairs, offset by offset.
     pub first_all: Tensor<1, Int>,
+    /// How the device runs the gathers and scatter-adds ([`RowOps::of`]).
+    pub ops: RowOps,
 }
 
 impl KernelPairs {
@@ -83,6 +86,7 @@ impl KernelPairs {
             second,
             second_all,
             first_all,
+            ops: RowOps::of(device),
         }
     }
 }
@@ -159,6 +163,7 @@ impl SparseConv {
         gather: &[Option<Tensor<1, Int>>],
         scatter_all: &Tensor<1, Int>,
         out_rows: usize,
+        ops: RowOps,
     ) -> Tensor<2> {
         let [offsets, c_in, c_out] = self.dims();
         assert_eq!(gather.len(), offsets, "kernel map has one entry per offset");
@@ -170,23 +175,28 @@ impl SparseConv {
             .filter_map(|(k, rows)| {
                 let rows = rows.as_ref()?;
                 let w = weight.clone().narrow(0, k, 1).reshape([c_in, c_out]);
-                Some(x.clone().select(0, rows.clone()).matmul(w))
+                Some(ops.gather(x.clone(), rows).matmul(w))
             })
             .collect();
         if parts.is_empty() {
             return Tensor::zeros([out_rows, c_out], &device);
         }
-        Tensor::zeros([out_rows, c_out], &device).select_assign(
-            0,
-            scatter_all.clone(),
+        ops.scatter_add(
+            Tensor::zeros([out_rows, c_out], &device),
+            scatter_all,
             Tensor::cat(parts, 0),
-            IndexingUpdateOp::Add,
         )
     }
 
     /// Submanifold 3×3×3 convolution at one level (output rows = input rows).
     pub fn forward(&self, x: Tensor<2>, maps: &LevelMaps) -> Tensor<2> {
-        self.apply(x, &maps.nbr.first, &maps.nbr.second_all, maps.rows)
+        self.apply(
+            x,
+            &maps.nbr.first,
+            &maps.nbr.second_all,
+            maps.rows,
+            maps.nbr.ops,
+        )
     }
 
     /// Stride-2 convolution from `maps`' level to the next (`next_rows` rows).
@@ -195,7 +205,7 @@ impl SparseConv {
             .down
             .as_ref()
             .expect("a level below the coarsest has a down map");
-        self.apply(x, &down.first, &down.second_all, next_rows)
+        self.apply(x, &down.first, &down.second_all, next_rows, down.ops)
     }
 
     /// Transposed stride-2 convolution from the next level back to `maps`' level.
@@ -204,7 +214,7 @@ impl SparseConv {
             .down
             .as_ref()
             .expect("a level below the coarsest has a down map");
-        self.apply(x_next, &down.second, &down.first_all, maps.rows)
+        self.apply(x_next, &down.second, &down.first_all, maps.rows, down.ops)
     }
 }
 
@@ -275,10 +285,11 @@ impl BasicBlock {
     }
 
     fn forward(&self, x: Tensor<2>, maps: &LevelMaps) -> Tensor<2> {
-        let out = relu(self.bn1.forward(self.conv1.forward(x.clone(), maps)));
-        let out = self.bn2.forward(self.conv2.forward(out, maps));
+        let ops = maps.nbr.ops;
+        let out = relu(ops.batch_norm(&self.bn1, self.conv1.forward(x.clone(), maps)));
+        let out = ops.batch_norm(&self.bn2, self.conv2.forward(out, maps));
         let identity = match &self.shortcut {
-            Some(s) => s.bn.forward(s.linear.forward(x)),
+            Some(s) => ops.batch_norm(&s.bn, ops.linear(&s.linear, x)),
             None => x,
         };
         relu(out + identity)
@@ -443,7 +454,8 @@ impl SparseUNet {
     /// Voxel features `[V₀, in_channels]` → L2-normalized head features `[V₀, out_dim]`.
     /// `levels` must hold the maps of 5 levels, finest first.
     pub fn forward(&self, features: Tensor<2>, levels: &[LevelMaps]) -> Tensor<2> {
-        l2_normalize(self.head.forward(self.backbone(features, levels)))
+        let ops = levels.first().map_or(RowOps::Direct, |l| l.nbr.ops);
+        l2_normalize(ops.linear(&self.head, self.backbone(features, levels)))
     }
 
     /// Channels of [`backbone`](Self::backbone)'s output.
@@ -460,32 +472,23 @@ impl SparseUNet {
             UNetConfig::LEVELS,
             levels.len()
         );
-        let mut x = relu(
-            self.stem_bn
-                .forward(self.stem.forward(features, &levels[0])),
-        );
+        let ops = levels[0].nbr.ops;
+        let mut x = relu(ops.batch_norm(&self.stem_bn, self.stem.forward(features, &levels[0])));
         let mut skips = Vec::with_capacity(4);
         for (i, stage) in self.encoder.iter().enumerate() {
             skips.push(x.clone());
             let next = &levels[i + 1];
-            x = relu(
-                stage
-                    .change
-                    .bn
-                    .forward(stage.change.conv.forward_down(x, &levels[i], next.rows)),
-            );
+            x = relu(ops.batch_norm(
+                &stage.change.bn,
+                stage.change.conv.forward_down(x, &levels[i], next.rows),
+            ));
             for block in &stage.blocks {
                 x = block.forward(x, next);
             }
         }
         for (i, stage) in self.decoder.iter().enumerate() {
             let level = &levels[3 - i];
-            x = relu(
-                stage
-                    .change
-                    .bn
-                    .forward(stage.change.conv.forward_up(x, level)),
-            );
+            x = relu(ops.batch_norm(&stage.change.bn, stage.change.conv.forward_up(x, level)));
             let skip = skips.pop().expect("one skip per encoder stage");
             x = Tensor::cat(vec![x, skip], 1);
             for block in &stage.blocks {
