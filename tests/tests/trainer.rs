@@ -264,15 +264,16 @@ fn training_lowers_the_loss_and_a_resumed_run_matches_an_uninterrupted_one() {
     let _ = std::fs::remove_dir_all(&cut);
 }
 
-#[test]
-fn check_runs_the_same_steps_on_every_backend_and_compares_their_losses() {
-    let dir = temp_dir("check");
-    std::fs::create_dir_all(&dir).unwrap();
+/// `dir/batch.bin`: a batch of `samples` samples of the sample drive, written by
+/// `superflow-pipeline batch`.
+fn write_batch(dir: &Path, samples: usize) -> PathBuf {
     let batch = dir.join("batch.bin");
     let (ok, _, err) = finish(
         spawn(
             Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-subscriber")))
-                .args(["batch", "--mcap", DRIVE, "--batch-size", "2", "--out"])
+                .args(["batch", "--mcap", DRIVE, "--batch-size"])
+                .arg(samples.to_string())
+                .arg("--out")
                 .arg(&batch)
                 .current_dir(workspace_root())
                 .stdout(Stdio::null())
@@ -281,6 +282,14 @@ fn check_runs_the_same_steps_on_every_backend_and_compares_their_losses() {
         LIMIT,
     );
     assert!(ok, "{err}");
+    batch
+}
+
+#[test]
+fn check_runs_the_same_steps_on_every_backend_and_compares_their_losses() {
+    let dir = temp_dir("check");
+    std::fs::create_dir_all(&dir).unwrap();
+    let batch = write_batch(&dir, 2);
     let json = dir.join("check.json");
     let (ok, out, err) = finish(
         spawn(
@@ -347,26 +356,14 @@ fn in_ci() -> bool {
 fn check_agrees_on_wgpu_with_the_cpu_on_a_vulkan_device() {
     let dir = temp_dir("check-wgpu");
     std::fs::create_dir_all(&dir).unwrap();
-    let batch = dir.join("batch.bin");
     // 4 samples: the sparse maps and the pooling have more rows than a GPU launches
     // workgroups in one dimension (65 535 on llvmpipe), where burn's own ops go wrong.
-    let (ok, _, err) = finish(
-        spawn(
-            Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-probe")))
-                .args(["batch", "--mcap", DRIVE, "--batch-size", "4", "--out"])
-                .arg(&batch)
-                .current_dir(workspace_root())
-                .stdout(Stdio::null())
-                .stderr(Stdio::piped()),
-        ),
-        LIMIT,
-    );
-    assert!(ok, "{err}");
+    let batch = write_batch(&dir, 4);
     let started = Instant::now();
     let (ok, out, err) = finish(
         spawn(
             Command::new(workspace_binary(
-                env!("CARGO_BIN_EXE_superflow-probe"),
+                env!("CARGO_BIN_EXE_superflow-subscriber"),
                 "superflow-trainer",
             ))
             .args(["check", "--batch"])

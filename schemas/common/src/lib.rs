@@ -3,9 +3,11 @@
 //!
 //! * [`memory`]: the binaries' global allocator (mimalloc, keeping the pages it frees);
 //! * [`invalid`]: [`InvalidSetting`], the one error every `validate` of a configuration
-//!   (`pipeline.toml`, `trainer.toml`) returns.
+//!   (`pipeline.toml`, `trainer.toml`) returns;
+//! * [`logging`]: the binaries' log subscriber.
 
 pub mod invalid;
+pub mod logging;
 pub mod memory;
 
 pub use invalid::InvalidSetting;
