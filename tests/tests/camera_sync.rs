@@ -116,8 +116,9 @@ fn moving_objects_pair_with_their_pixels_when_images_follow_the_scan() {
                 before.1 >= 100 && after.1 >= 100,
                 "too few moving pairings to judge"
             );
-            // Measured (2026-12-02): fixed 89.6 -> 95.0 % (foxglove), 89.1 -> 97.6 % (ros2);
-            // staggered 99.3 and 99.2 % both ways (its first sweeps are already in step).
+            // A fixed trigger must gain at least 4 points of in-step pairings; a staggered
+            // one is already in step from its first sweeps (figures: FIELD_NOTES.md,
+            // "camera sync").
             let rise = match trigger {
                 CameraTrigger::Fixed => 4.0,
                 CameraTrigger::Staggered => 0.0,

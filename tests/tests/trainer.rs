@@ -11,6 +11,7 @@
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
 
 use std::collections::BTreeMap;
+use std::ffi::OsStr;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
@@ -285,28 +286,34 @@ fn write_batch(dir: &Path, samples: usize) -> PathBuf {
     batch
 }
 
-#[test]
-fn check_runs_the_same_steps_on_every_backend_and_compares_their_losses() {
-    let dir = temp_dir("check");
-    std::fs::create_dir_all(&dir).unwrap();
-    let batch = write_batch(&dir, 2);
-    let json = dir.join("check.json");
-    let (ok, out, err) = finish(
+/// `superflow-trainer check` of 2 steps on `batch` with the tiny presets on `backends`:
+/// (success, stdout, stderr).
+fn check_tiny(batch: &Path, backends: &str, extra: &[&OsStr]) -> (bool, String, String) {
+    finish(
         spawn(
             Command::new(workspace_binary(
                 env!("CARGO_BIN_EXE_superflow-subscriber"),
                 "superflow-trainer",
             ))
             .args(["check", "--batch"])
-            .arg(&batch)
-            .args(["--backends", "flex,flex", "--steps", "2", "--unet", "tiny"])
-            .args(["--vit", "tiny", "--pixel-stride", "4", "--json"])
-            .arg(&json)
+            .arg(batch)
+            .args(["--backends", backends, "--steps", "2", "--unet", "tiny"])
+            .args(["--vit", "tiny", "--pixel-stride", "4"])
+            .args(extra)
             .stdout(Stdio::piped())
             .stderr(Stdio::piped()),
         ),
         LIMIT,
-    );
+    )
+}
+
+#[test]
+fn check_runs_the_same_steps_on_every_backend_and_compares_their_losses() {
+    let dir = temp_dir("check");
+    std::fs::create_dir_all(&dir).unwrap();
+    let batch = write_batch(&dir, 2);
+    let json = dir.join("check.json");
+    let (ok, out, err) = check_tiny(&batch, "flex,flex", &["--json".as_ref(), json.as_os_str()]);
     assert!(ok, "{out}\n{err}");
     assert!(
         out.contains("| flex |") && err.contains("the backends agree"),
@@ -360,21 +367,7 @@ fn check_agrees_on_wgpu_with_the_cpu_on_a_vulkan_device() {
     // workgroups in one dimension (65 535 on llvmpipe), where burn's own ops go wrong.
     let batch = write_batch(&dir, 4);
     let started = Instant::now();
-    let (ok, out, err) = finish(
-        spawn(
-            Command::new(workspace_binary(
-                env!("CARGO_BIN_EXE_superflow-subscriber"),
-                "superflow-trainer",
-            ))
-            .args(["check", "--batch"])
-            .arg(&batch)
-            .args(["--backends", "flex,wgpu", "--steps", "2", "--unet", "tiny"])
-            .args(["--vit", "tiny", "--pixel-stride", "4"])
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped()),
-        ),
-        LIMIT,
-    );
+    let (ok, out, err) = check_tiny(&batch, "flex,wgpu", &[]);
     let missing = ["is not compiled in", "no device on this machine"]
         .iter()
         .find(|m| err.contains(*m));
