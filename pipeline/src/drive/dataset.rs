@@ -1,13 +1,13 @@
 //! A dataset: many drives, each one or more MCAP files (a recording split in parts),
-//! grouped by [`super::files`] and each indexed by [`Drive::open`](super::Drive::open).
-//! Drives are indexed in parallel (one per rayon thread at a time), the result in input
-//! order and the first error in input order returned, as if one after the other.
+//! grouped by [`super::files`]. Every file is indexed on its own ([`index_file`]: from the
+//! index cache, or scanned), all files in parallel (one per rayon thread at a time); then
+//! each drive joins its files' indexes ([`Drive::join`]). Drives come in input order and
+//! the first error in input order is returned, as if one file after the other.
 
 use super::discover::IngestConfig;
 use super::error::IngestError;
 use super::files::drive_groups;
-use super::index::Drive;
-use crate::source::McapFile;
+use super::index::{Drive, IndexedBy, index_file};
 use rayon::prelude::*;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
@@ -17,16 +17,39 @@ use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 pub struct Dataset {
     /// The drives, in input order.
     pub drives: Vec<Drive>,
+    /// How the files' indexes were had.
+    pub indexed: IndexStats,
+}
+
+/// How many files' indexes came from the index cache and how many from a scan.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct IndexStats {
+    /// Read from the index cache.
+    pub from_cache: usize,
+    /// Scanned (and stored in the cache, if there is one).
+    pub scanned: usize,
+    /// Scanned and not cacheable (no footer and summary to fingerprint).
+    pub uncacheable: usize,
+    /// Bytes of the files scanned.
+    pub bytes_scanned: u64,
+}
+
+impl IndexStats {
+    /// Every file.
+    pub fn files(&self) -> usize {
+        self.from_cache + self.scanned + self.uncacheable
+    }
 }
 
 /// How far [`Dataset::open_with_progress`] has come.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct IndexProgress {
-    /// Bytes indexed so far, over every drive.
+    /// Bytes indexed so far, over every drive (a file read from the index cache counts
+    /// whole).
     pub bytes_done: u64,
     /// Bytes of every input file.
     pub bytes_total: u64,
-    /// Files of drives already indexed.
+    /// Files already indexed.
     pub files_done: usize,
     /// Every input file (drives and sidecars).
     pub files_total: usize,
@@ -38,7 +61,7 @@ impl Dataset {
         Self::open_with_progress(inputs, config, |_| {})
     }
 
-    /// [`Dataset::open`], reporting its [`IndexProgress`] as it goes. Drives are indexed
+    /// [`Dataset::open`], reporting its [`IndexProgress`] as it goes. Files are indexed
     /// on several threads at once, so `progress` is called from several threads; the
     /// counts it gets only grow, though calls from two threads may arrive out of order.
     pub fn open_with_progress(
@@ -47,17 +70,17 @@ impl Dataset {
         progress: impl Fn(IndexProgress) + Sync,
     ) -> Result<Dataset, IngestError> {
         let groups = drive_groups(inputs)?;
-        let sizes: Vec<u64> = groups
-            .iter()
-            .map(|files| {
-                files
-                    .iter()
-                    .map(|f| std::fs::metadata(f).map_or(0, |m| m.len()))
-                    .sum()
-            })
-            .collect();
-        let bytes_total: u64 = sizes.iter().sum();
-        let files_total: usize = groups.iter().map(Vec::len).sum();
+        if groups.iter().any(Vec::is_empty) {
+            return Err(IngestError::NoFiles);
+        }
+        crate::source::HandlePool::global().set_limit(config.max_open_files());
+        let cache = config.index_cache();
+        let files: Vec<&PathBuf> = groups.iter().flatten().collect();
+        let bytes_total: u64 = files
+            .par_iter()
+            .map(|f| std::fs::metadata(f).map_or(0, |m| m.len()))
+            .sum();
+        let files_total = files.len();
         let bytes_done = AtomicU64::new(0);
         let files_done = AtomicUsize::new(0);
         let report = |bytes: u64, files: usize| {
@@ -68,49 +91,68 @@ impl Dataset {
                 files_total,
             })
         };
-        // The lowest input position that failed: drives after it are not indexed (their
+        // The lowest input position that failed: files after it are not indexed (their
         // result would be dropped), those before it still are (one of them may fail first).
         let first_failed = AtomicUsize::new(usize::MAX);
-        let results: Vec<Option<Result<Drive, IngestError>>> = groups
+        let results: Vec<_> = files
             .par_iter()
             .enumerate()
-            // One drive per task: a drive is large enough to share out.
+            // One file per task: files differ too much in size to share out in runs.
             .with_max_len(1)
-            .map(|(i, files)| {
+            .map(|(i, path)| {
                 if i > first_failed.load(Ordering::Relaxed) {
                     return None;
                 }
                 let mut reported = 0u64;
-                let opened = Drive::open_with_progress(files, config, |d, _| {
-                    let grown = d.saturating_sub(reported);
-                    reported = reported.max(d);
-                    let bytes = bytes_done.fetch_add(grown, Ordering::Relaxed) + grown;
-                    report(bytes, files_done.load(Ordering::Relaxed));
+                let mut grow = |to: u64| {
+                    let grown = to.saturating_sub(reported);
+                    reported = reported.max(to);
+                    bytes_done.fetch_add(grown, Ordering::Relaxed) + grown
+                };
+                let indexed = index_file(path, cache.as_ref(), |done| {
+                    report(grow(done), files_done.load(Ordering::Relaxed))
                 });
-                match &opened {
-                    Ok(drive) => {
-                        let len: u64 = drive.files.iter().map(McapFile::len).sum();
-                        let grown = len.saturating_sub(reported);
-                        let bytes = bytes_done.fetch_add(grown, Ordering::Relaxed) + grown;
-                        let files =
-                            files_done.fetch_add(files.len(), Ordering::Relaxed) + files.len();
-                        report(bytes, files);
+                match &indexed {
+                    Ok((file, _, _)) => {
+                        let bytes = grow(file.len());
+                        report(bytes, files_done.fetch_add(1, Ordering::Relaxed) + 1);
                     }
                     Err(_) => {
                         first_failed.fetch_min(i, Ordering::Relaxed);
                     }
                 }
-                Some(opened)
+                Some(indexed)
             })
             .collect();
-        let mut drives = Vec::with_capacity(results.len());
-        for result in results {
-            // A skipped drive comes after a failed one, whose error returns first.
-            let Some(result) = result else { break };
-            drives.push(result?);
+        let mut indexed = IndexStats::default();
+        let mut results = results.into_iter();
+        let mut joined = Vec::with_capacity(groups.len());
+        for group in &groups {
+            let mut files = Vec::with_capacity(group.len());
+            for _ in group {
+                // A skipped file comes after a failed one, whose error returns first.
+                let Some(Some(result)) = results.next() else {
+                    unreachable!("a file is skipped only after one that failed")
+                };
+                let (file, index, by) = result?;
+                match by {
+                    IndexedBy::Cache => indexed.from_cache += 1,
+                    IndexedBy::Scan => indexed.scanned += 1,
+                    IndexedBy::ScanUncacheable => indexed.uncacheable += 1,
+                }
+                if by != IndexedBy::Cache {
+                    indexed.bytes_scanned += file.len();
+                }
+                files.push((file, index));
+            }
+            joined.push(files);
         }
-        debug_assert_eq!(drives.len(), sizes.len());
-        Ok(Dataset { drives })
+        let drives = joined
+            .into_par_iter()
+            .with_max_len(1)
+            .map(|files| Drive::join(files, config))
+            .collect();
+        Ok(Dataset { drives, indexed })
     }
 
     /// Checks every drive ([`Drive::check_sensors`]).

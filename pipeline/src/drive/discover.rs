@@ -10,6 +10,7 @@
 use crate::decode::{SchemaKind, schema_kind};
 use crate::source::ChannelInfo;
 use serde::{Deserialize, Serialize};
+use std::path::PathBuf;
 
 /// Overrides of the automatic choices (the `[ingest]` section of `pipeline.toml`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -32,9 +33,22 @@ pub struct IngestConfig {
     /// at least 16
     /// ([`default_max_open_files`](crate::source::default_max_open_files)).
     pub max_open_files: Option<usize>,
+    /// Where the index of every file indexed is kept for the next opening
+    /// ([`IndexCache`](super::IndexCache)); `"off"` keeps none. By default the per-user
+    /// cache directory (`$XDG_CACHE_HOME/superflow/index`, else `~/.cache/...`).
+    pub index_cache: Option<PathBuf>,
 }
 
 impl IngestConfig {
+    /// The index cache [`index_cache`](Self::index_cache) names, `None` when off.
+    pub fn index_cache(&self) -> Option<super::IndexCache> {
+        match &self.index_cache {
+            Some(dir) if dir.as_os_str() == "off" => None,
+            Some(dir) => Some(super::IndexCache::new(dir)),
+            None => super::IndexCache::user_default(),
+        }
+    }
+
     /// [`max_open_files`](Self::max_open_files), or its default.
     pub fn max_open_files(&self) -> usize {
         self.max_open_files
@@ -51,6 +65,7 @@ impl Default for IngestConfig {
             ego_frame: None,
             tf_tolerance_ms: 60.0,
             max_open_files: None,
+            index_cache: None,
         }
     }
 }

@@ -1,26 +1,27 @@
-//! One drive ([`Drive`]) and the building of its index ([`Drive::open`]): one pass per
-//! file, every LiDAR sweep and camera frame with its sensor stamp and location, every
-//! transform in the [`TransformTree`], every calibration; then the frames checked
-//! (repeated stamps, stamps far from their log time) and what was skipped logged. A
+//! One drive ([`Drive`]) and the building of its index ([`Drive::open`]): the index of
+//! each file ([`FileIndex`]: every LiDAR sweep and camera frame with its sensor stamp and
+//! location, every transform, every calibration), read from the [`IndexCache`] or made
+//! by one pass over the file, joined into the drive's: the transforms into its
+//! [`TransformTree`], then the frames checked (repeated stamps, stamps far from their log
+//! time) and what was skipped logged. A
 //! drive then answers sensor checks and keyframes here, and reads one sensor message in
 //! [`super::read`].
 
 use super::discover::IngestConfig;
 use super::error::IngestError;
-use super::heads::stamp_and_frame;
+use super::file_index::{FileIndex, place, same_calibration};
+use super::index_cache::IndexCache;
 use super::skips::{DamageKind, SkipReport};
 use super::streams::{
     CameraStream, ChannelSummary, EGO_FRAMES, FrameRef, LabelCloudStream, LidarStream, Streams,
     TopicData, nearest,
 };
 use super::tf::TransformTree;
-use crate::decode::{DecodeError, foxglove, ros2};
-use crate::decode::{Dialect, SchemaKind, schema_kind};
-use crate::source::{McapFile, MessageRef, SourceError};
+use crate::decode::{SchemaKind, schema_kind};
+use crate::source::{McapFile, SourceError};
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use superflow_schemas::Stamp;
-use superflow_schemas::sensor::StampedTransform;
 
 /// How far a sensor stamp may stray from its channel's usual stamp-to-log-time offset.
 /// Recorder latency, buffering and the nuScenes converter's keyframe log times stay far
@@ -183,7 +184,7 @@ impl Drive {
     }
 }
 
-/// The index of a drive while its files are scanned.
+/// The index of a drive while the indexes of its files are joined.
 struct Index {
     topics: BTreeMap<String, TopicData>,
     /// The point-cloud topics of `<drive>.labels.mcap` sidecars, apart from `topics`: a
@@ -193,19 +194,47 @@ struct Index {
     skipped: SkipReport,
 }
 
-/// A message being indexed, with where it is.
-struct Indexed<'a> {
-    /// Index of its file in the drive.
-    file: u32,
-    /// Path of its file.
-    path: &'a Path,
-    /// Whether the file is a labels sidecar ([`super::files::is_labels_sidecar`]).
-    labels_sidecar: bool,
-    m: MessageRef<'a>,
+/// How the index of a file was had.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum IndexedBy {
+    /// Read from the index cache.
+    Cache,
+    /// Scanned (and stored in the cache, if there is one).
+    Scan,
+    /// Scanned, and not cacheable: no footer and summary to fingerprint it by.
+    ScanUncacheable,
+}
+
+/// Opens and indexes one file: from `cache` when it holds the file's index, by a scan
+/// otherwise (then stored there). `progress` gets the bytes read so far.
+pub(super) fn index_file(
+    path: &Path,
+    cache: Option<&IndexCache>,
+    mut progress: impl FnMut(u64),
+) -> Result<(McapFile, FileIndex, IndexedBy), SourceError> {
+    let file = McapFile::open(path)?;
+    let Some(cache) = cache else {
+        let (file, index) = FileIndex::scan(file, progress)?;
+        return Ok((file, index, IndexedBy::Scan));
+    };
+    let Some(fingerprint) = file.fingerprint()? else {
+        tracing::debug!(file = %path.display(), "no footer and summary to fingerprint: indexed at every opening, not cached");
+        let (file, index) = FileIndex::scan(file, progress)?;
+        return Ok((file, index, IndexedBy::ScanUncacheable));
+    };
+    if let Some(index) = cache.load(&file, fingerprint) {
+        progress(file.len());
+        let file = file.restore(&index.scanned);
+        return Ok((file, index, IndexedBy::Cache));
+    }
+    let (file, index) = FileIndex::scan(file, progress)?;
+    cache.store(fingerprint, &index);
+    Ok((file, index, IndexedBy::Scan))
 }
 
 impl Drive {
-    /// Indexes the files of one drive, in one pass per file.
+    /// Indexes the files of one drive, in one pass per file (or from the index cache of
+    /// `config`).
     pub fn open(files: &[PathBuf], config: &IngestConfig) -> Result<Drive, IngestError> {
         Self::open_with_progress(files, config, |_, _| {})
     }
@@ -220,30 +249,43 @@ impl Drive {
             return Err(IngestError::NoFiles);
         }
         crate::source::HandlePool::global().set_limit(config.max_open_files());
+        let cache = config.index_cache();
+        let total_bytes: u64 = files
+            .iter()
+            .map(|f| std::fs::metadata(f).map_or(0, |m| m.len()))
+            .sum();
+        let mut indexed = Vec::with_capacity(files.len());
+        let mut before = 0u64;
+        for path in files {
+            let (file, index, _) = index_file(path, cache.as_ref(), |done| {
+                progress(before + done, total_bytes)
+            })?;
+            before += file.len();
+            indexed.push((file, index));
+        }
+        Ok(Drive::join(indexed, config))
+    }
+
+    /// The drive of these files and their indexes, in the drive's order.
+    pub(super) fn join(indexed: Vec<(McapFile, FileIndex)>, config: &IngestConfig) -> Drive {
         let mut index = Index {
             topics: BTreeMap::new(),
             label_topics: BTreeMap::new(),
             tf: TransformTree::new((config.tf_tolerance_ms * 1e6) as i64),
             skipped: SkipReport::default(),
         };
-        let total_bytes: u64 = files
-            .iter()
-            .map(|f| std::fs::metadata(f).map_or(0, |m| m.len()))
-            .sum();
-        let mut opened: Vec<McapFile> = Vec::with_capacity(files.len());
-        for (file, path) in files.iter().enumerate() {
-            let before: u64 = opened.iter().map(McapFile::len).sum();
-            let scanned = index.scan_file(file as u32, path, |done| {
-                progress(before + done, total_bytes)
-            })?;
-            opened.push(scanned);
+        let mut files = Vec::with_capacity(indexed.len());
+        for (number, (file, file_index)) in indexed.into_iter().enumerate() {
+            index.add_file(number as u32, &file, file_index);
+            files.push(file);
         }
+        let paths: Vec<PathBuf> = files.iter().map(|f| f.path().to_path_buf()).collect();
         let frozen_edges = index.tf.freeze_constant_edges();
-        index.check_frames(files);
+        index.check_frames(&paths);
         index.log_skips();
         let streams = Streams::assemble(&index.topics, &index.label_topics, &index.tf, config);
-        Ok(Drive {
-            files: opened,
+        Drive {
+            files,
             channels: streams.channels,
             lidar: streams.lidar,
             cameras: streams.cameras,
@@ -254,44 +296,75 @@ impl Drive {
             ego_frame: streams.ego_frame,
             skipped: index.skipped,
             config: config.clone(),
-        })
+        }
     }
 }
 
 impl Index {
-    /// Scans file number `file` of the drive into the index; its damage is counted as
-    /// skips.
-    fn scan_file(
-        &mut self,
-        file: u32,
-        path: &Path,
-        mut progress: impl FnMut(u64),
-    ) -> Result<McapFile, SourceError> {
-        let _span = tracing::info_span!("index", file = %path.display()).entered();
-        let labels_sidecar = super::files::is_labels_sidecar(path);
-        let scanned = McapFile::scan_with_progress(
-            path,
-            |m| {
-                self.index_message(Indexed {
-                    file,
-                    path,
-                    labels_sidecar,
-                    m,
-                })
-            },
-            |done, _| progress(done),
-        )?;
-        tracing::debug!(
-            bytes = scanned.len(),
-            chunks_damaged = scanned.damage.len(),
-            "indexed"
-        );
-        for damage in &scanned.damage {
-            self.skipped.add(DamageKind::of(damage).as_str(), || {
-                format!("{}: {damage}", path.display())
+    /// Adds the index of file number `number` of the drive: its topics (the point clouds
+    /// of a labels sidecar to `label_topics`), its transforms in file order and its skips.
+    fn add_file(&mut self, number: u32, file: &McapFile, index: FileIndex) {
+        let labels_sidecar = super::files::is_labels_sidecar(file.path());
+        for (name, facts) in index.topics {
+            let Some(channel) = file.channel(facts.channel) else {
+                continue; // a channel is always restored with its file's index
+            };
+            let kind = schema_kind(channel);
+            let topics = match kind {
+                Some((SchemaKind::PointCloud, _)) if labels_sidecar => &mut self.label_topics,
+                _ => &mut self.topics,
+            };
+            let topic = topics.entry(name).or_insert_with(|| TopicData {
+                channel: (**channel).clone(),
+                kind,
+                count: 0,
+                frame_id: None,
+                frames: Vec::new(),
+                frame_logs: Vec::new(),
+                calibrations: Vec::new(),
+                first_log: facts.first_log,
+                last_log: facts.last_log,
             });
+            topic.count += facts.count;
+            topic.first_log = topic.first_log.min(facts.first_log);
+            topic.last_log = topic.last_log.max(facts.last_log);
+            if let Some(frame_id) = facts.frame_id {
+                topic.frame_id.get_or_insert(frame_id);
+            }
+            topic
+                .frames
+                .extend(facts.frames.iter().map(|&(stamp, loc)| FrameRef {
+                    stamp,
+                    file: number,
+                    loc,
+                }));
+            topic.frame_logs.extend(facts.frame_logs);
+            for calibration in facts.calibrations {
+                if !topic
+                    .calibrations
+                    .last()
+                    .is_some_and(|last| same_calibration(last, &calibration))
+                {
+                    topic.calibrations.push(calibration);
+                }
+            }
         }
-        Ok(scanned)
+        for (kind, entry) in index.skipped.entries {
+            self.skipped
+                .entries
+                .entry(kind)
+                .and_modify(|e| e.count += entry.count)
+                .or_insert(entry);
+        }
+        for (topic, transform) in index.transforms {
+            let stamp = transform.stamp;
+            if let Err(e) = self.tf.insert(transform) {
+                self.skipped
+                    .add(format!("rejected transform: {topic}"), || {
+                        format!("{}: {e}", place(file.path(), &topic, Some(stamp), 0))
+                    });
+            }
+        }
     }
 
     /// Drops each topic's frames whose stamp is far from its log time, then sorts them
@@ -324,168 +397,6 @@ impl Index {
                 tracing::error!(kind = %kind, count = entry.count, first = %entry.first, "data lost");
             } else {
                 tracing::warn!(kind = %kind, count = entry.count, first = %entry.first, "messages skipped");
-            }
-        }
-    }
-
-    /// Counts a message on its topic and indexes what it holds: a sensor frame, a
-    /// calibration or transforms. The point clouds of a labels sidecar go to
-    /// `label_topics`.
-    fn index_message(&mut self, msg: Indexed<'_>) {
-        let m = &msg.m;
-        let kind = schema_kind(m.channel);
-        let topics = match kind {
-            Some((SchemaKind::PointCloud, _)) if msg.labels_sidecar => &mut self.label_topics,
-            _ => &mut self.topics,
-        };
-        let topic = topics
-            .entry(m.channel.topic.clone())
-            .or_insert_with(|| TopicData {
-                channel: m.channel.clone(),
-                kind,
-                count: 0,
-                frame_id: None,
-                frames: Vec::new(),
-                frame_logs: Vec::new(),
-                calibrations: Vec::new(),
-                first_log: m.log_time,
-                last_log: m.log_time,
-            });
-        topic.count += 1;
-        topic.first_log = topic.first_log.min(m.log_time);
-        topic.last_log = topic.last_log.max(m.log_time);
-        let Some((kind, dialect)) = topic.kind else {
-            return;
-        };
-        match kind {
-            SchemaKind::PointCloud | SchemaKind::CompressedImage | SchemaKind::RawImage => {
-                topic.add_frame(&msg, kind, dialect, &mut self.skipped)
-            }
-            SchemaKind::Calibration => topic.add_calibration(&msg, dialect, &mut self.skipped),
-            SchemaKind::FrameTransform | SchemaKind::FrameTransforms | SchemaKind::TfMessage => {
-                add_transforms(&msg, kind, &mut self.tf, &mut self.skipped)
-            }
-        }
-    }
-}
-
-impl Indexed<'_> {
-    /// `file: topic at stamp`, or `file: topic (log time t)` without a stamp.
-    fn place(&self, stamp: Option<Stamp>) -> String {
-        let (path, topic) = (self.path.display(), &self.m.channel.topic);
-        match stamp {
-            Some(s) => format!("{path}: {topic} at {s}"),
-            None => format!("{path}: {topic} (log time {})", self.m.log_time),
-        }
-    }
-}
-
-impl TopicData {
-    /// Indexes a LiDAR sweep or camera frame by its sensor stamp.
-    fn add_frame(
-        &mut self,
-        msg: &Indexed<'_>,
-        kind: SchemaKind,
-        dialect: Dialect,
-        skipped: &mut SkipReport,
-    ) {
-        let topic = &msg.m.channel.topic;
-        match stamp_and_frame(kind, dialect, msg.m.data) {
-            Ok((stamp, frame_id)) if stamp.nanos() > 0 => {
-                self.frame_id.get_or_insert(frame_id);
-                self.frames.push(FrameRef {
-                    stamp,
-                    file: msg.file,
-                    loc: msg.m.loc,
-                });
-                self.frame_logs.push(msg.m.log_time);
-            }
-            Ok(_) => skipped.add(format!("zero stamp: {topic}"), || msg.place(None)),
-            Err(e) => skipped.add(format!("undecodable: {topic}"), || {
-                format!("{}: {e}", msg.place(None))
-            }),
-        }
-    }
-
-    /// Keeps a calibration unless it equals the previous one.
-    fn add_calibration(&mut self, msg: &Indexed<'_>, dialect: Dialect, skipped: &mut SkipReport) {
-        let decoded = match dialect {
-            Dialect::Ros2 => ros2::decode(msg.m.data)
-                .map_err(DecodeError::from)
-                .and_then(|c| ros2::camera_info(&c)),
-            Dialect::FoxgloveProtobuf => foxglove::decode("foxglove.CameraCalibration", msg.m.data)
-                .and_then(|c| foxglove::camera_calibration(&c)),
-        };
-        match decoded {
-            Ok(calibration) => {
-                self.frame_id.get_or_insert(calibration.frame_id.clone());
-                let same = self.calibrations.last().is_some_and(|last| {
-                    last.k == calibration.k
-                        && last.distortion == calibration.distortion
-                        && (last.width, last.height) == (calibration.width, calibration.height)
-                });
-                if !same {
-                    self.calibrations.push(calibration);
-                }
-            }
-            Err(e) => skipped.add(format!("bad calibration: {}", msg.m.channel.topic), || {
-                format!("{}: {e}", msg.place(None))
-            }),
-        }
-    }
-}
-
-/// Inserts the transforms of a `/tf` or `/tf_static` message into `tf`.
-fn add_transforms(
-    msg: &Indexed<'_>,
-    kind: SchemaKind,
-    tf: &mut TransformTree,
-    skipped: &mut SkipReport,
-) {
-    let topic = &msg.m.channel.topic;
-    let is_static = topic.ends_with("tf_static");
-    for transform in decode_transforms(kind, msg.m.data, is_static) {
-        match transform {
-            Ok(t) => {
-                let stamp = t.stamp;
-                if let Err(e) = tf.insert(t) {
-                    skipped.add(format!("rejected transform: {topic}"), || {
-                        format!("{}: {e}", msg.place(Some(stamp)))
-                    });
-                }
-            }
-            Err(e) => skipped.add(format!("bad transform: {topic}"), || {
-                format!("{}: {e}", msg.place(None))
-            }),
-        }
-    }
-}
-
-/// The transforms of a message of `kind` (a message that does not decode is one error).
-fn decode_transforms(
-    kind: SchemaKind,
-    data: &[u8],
-    is_static: bool,
-) -> Vec<Result<StampedTransform, DecodeError>> {
-    match kind {
-        SchemaKind::TfMessage => match ros2::decode::<ros2::TfMessage>(data) {
-            Ok(msg) => ros2::transforms(&msg, is_static),
-            Err(e) => vec![Err(e.into())],
-        },
-        SchemaKind::FrameTransform => {
-            vec![
-                foxglove::decode::<foxglove::FrameTransform>("foxglove.FrameTransform", data)
-                    .and_then(|t| foxglove::frame_transform(&t, is_static)),
-            ]
-        }
-        _ => {
-            match foxglove::decode::<foxglove::FrameTransforms>("foxglove.FrameTransforms", data) {
-                Ok(msg) => msg
-                    .transforms
-                    .iter()
-                    .map(|t| foxglove::frame_transform(t, is_static))
-                    .collect(),
-                Err(e) => vec![Err(e)],
             }
         }
     }
@@ -560,6 +471,7 @@ mod tests {
     use super::*;
     use crate::source::{ChannelInfo, MessageLoc};
     use nalgebra::Isometry3;
+    use superflow_schemas::sensor::StampedTransform;
 
     fn frame(stamp: i64, index: u32) -> FrameRef {
         FrameRef {

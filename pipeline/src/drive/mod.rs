@@ -2,8 +2,9 @@
 //! over one or more files, and the transform tree.
 //!
 //! `files` finds the files of each drive, `dataset` opens a dataset of drives, `index`
-//! holds a [`Drive`] and builds its index (with `heads` reading just the stamp of a
-//! sensor message and `streams` turning the indexed topics into the drive's streams),
+//! holds a [`Drive`] and joins the indexes of its files (made by `file_index`, with
+//! `heads` reading just the stamp of a sensor message, and kept between runs by
+//! `index_cache`; `streams` turns the indexed topics into the drive's streams),
 //! `read` reads one sensor message of a drive, `skips` reports what was skipped, `error`
 //! says why a dataset cannot be trained on, and `labels` reads the per-point semantic
 //! labels of a sweep (a field of the LiDAR cloud or a `<drive>.labels.mcap` sidecar).
@@ -11,9 +12,11 @@
 pub mod dataset;
 pub mod discover;
 mod error;
+mod file_index;
 pub mod files;
 mod heads;
 mod index;
+pub mod index_cache;
 pub mod labels;
 mod read;
 pub mod skips;
@@ -23,7 +26,8 @@ pub mod tf;
 pub use dataset::{Dataset, IndexProgress};
 pub use discover::{IngestConfig, Role};
 pub use error::IngestError;
-pub use index::Drive;
+pub use index::{Drive, IndexedBy};
+pub use index_cache::IndexCache;
 pub use labels::{DriveLabels, LabelConfig, LabelError, LabelForm, LabelledSweep};
 pub use read::{FrameAt, ImageReadError, ReadError};
 pub use skips::SkipReport;

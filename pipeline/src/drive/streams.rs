@@ -25,7 +25,7 @@ pub struct FrameRef {
 }
 
 /// The LiDAR stream.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct LidarStream {
     /// Its topic.
     pub topic: String,
@@ -40,7 +40,7 @@ pub struct LidarStream {
 /// A point-cloud channel of a `<drive>.labels.mcap` sidecar: label clouds parallel to the
 /// LiDAR's sweeps (same stamps, same point order), one per sweep. Which one labels the
 /// LiDAR is decided when the labels are opened ([`super::labels::DriveLabels::open`]).
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct LabelCloudStream {
     /// Its topic.
     pub topic: String,
@@ -52,7 +52,7 @@ pub struct LabelCloudStream {
 }
 
 /// One camera: its image stream, calibration and optional class-map stream.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct CameraStream {
     /// Name (the last segment of its topic namespace, `CAM_FRONT`, `cam_front`).
     pub name: String,
@@ -81,7 +81,7 @@ pub struct CameraStream {
 }
 
 /// A camera's precomputed SLIC superpixels (a `<drive>.slic.mcap` sidecar).
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct SlicStream {
     /// Topic.
     pub topic: String,

@@ -64,7 +64,7 @@ pub enum TfError {
     },
 }
 
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, PartialEq)]
 struct Edge {
     parent: String,
     fixed: Option<Isometry3<f64>>,
@@ -72,7 +72,7 @@ struct Edge {
 }
 
 /// Every transform of a drive, by child frame.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct TransformTree {
     edges: HashMap<String, Edge>,
     tolerance_nanos: i64,

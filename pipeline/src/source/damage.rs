@@ -2,7 +2,7 @@
 //! error: the file is still read).
 
 /// Something wrong with a file that the scan worked around.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub enum Damage {
     /// The file ends early (no footer, or a record that runs past the end).
     Truncated {

@@ -13,12 +13,14 @@
 //! This file holds the file and message types; the work is split by concern: `scan` (the
 //! pass over the records), `summary` (the summary section, its framing checked first),
 //! `framing` (records framed before mcap reads them), `chunk` (decompressing and splitting
-//! one chunk), `cache` (random access), `damage` (what a scan worked around) and `handles`
-//! (the bounded pool of open files every read goes through).
+//! one chunk), `cache` (random access), `damage` (what a scan worked around), `facts`
+//! (what a scan learned, to be stored, and the fingerprint that says when it still holds)
+//! and `handles` (the bounded pool of open files every read goes through).
 
 mod cache;
 mod chunk;
 mod damage;
+mod facts;
 mod framing;
 mod handles;
 mod partial;
@@ -28,6 +30,7 @@ mod summary;
 pub use cache::{ChunkCache, Decompressed};
 pub use chunk::ChunkError;
 pub use damage::Damage;
+pub use facts::ScannedFile;
 pub use framing::FramingError;
 pub use handles::{FileIdentity, HandlePool, default_max_open_files};
 
@@ -100,7 +103,9 @@ pub enum SourceError {
 }
 
 /// Where a message lives in its file.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+#[derive(
+    Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, serde::Serialize, serde::Deserialize,
+)]
 pub enum MessageLoc {
     /// The `index`-th message record of chunk number `chunk` (in file order).
     Chunk {
@@ -117,7 +122,7 @@ pub enum MessageLoc {
 }
 
 /// A schema record.
-#[derive(Debug, Clone, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub struct SchemaInfo {
     /// Schema id in the file.
     pub id: u16,

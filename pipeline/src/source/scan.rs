@@ -33,14 +33,23 @@ impl McapFile {
     /// [`McapFile::scan`], reporting `(bytes read, file size)` after every record.
     pub fn scan_with_progress(
         path: &Path,
+        visit: impl FnMut(MessageRef<'_>),
+        progress: impl FnMut(u64, u64),
+    ) -> Result<McapFile, SourceError> {
+        Self::open(path)?.scan_with_progress_opened(visit, progress)
+    }
+
+    /// The scan of a file [`open`](Self::open) has opened, as
+    /// [`scan_with_progress`](Self::scan_with_progress) makes it.
+    pub fn scan_with_progress_opened(
+        mut self,
         mut visit: impl FnMut(MessageRef<'_>),
         mut progress: impl FnMut(u64, u64),
     ) -> Result<McapFile, SourceError> {
-        let mut this = Self::open(path)?;
-        let scanned = this.scan_opened(&mut visit, &mut progress);
+        let scanned = self.scan_opened(&mut visit, &mut progress);
         // Later reads go through the pool, which may close the file between them.
-        this.scanning = None;
-        scanned.map(|()| this)
+        self.scanning = None;
+        scanned.map(|()| self)
     }
 
     /// The scan of a file [`open`](Self::open) has opened.
@@ -66,8 +75,8 @@ impl McapFile {
     }
 
     /// Opens `path` through the pool after checking its magic; nothing else read yet.
-    /// The scan holds the returned file's handle until it ends.
-    fn open(path: &Path) -> Result<McapFile, SourceError> {
+    /// The file holds its handle until it is scanned or [restored](Self::restore).
+    pub fn open(path: &Path) -> Result<McapFile, SourceError> {
         static OPENED: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
         let id = OPENED.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
         let pool = HandlePool::global();

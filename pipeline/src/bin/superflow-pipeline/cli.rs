@@ -16,6 +16,11 @@ pub struct Args {
     /// Configuration file (TOML); defaults are the paper's.
     #[arg(long, global = true)]
     pub config: Option<PathBuf>,
+    /// Where the index of every file is kept for the next start (overrides `[ingest]
+    /// index_cache`; `off` keeps none) [default: the per-user cache directory,
+    /// `~/.cache/superflow/index`].
+    #[arg(long, global = true, env = "SUPERFLOW_INDEX_CACHE")]
+    pub index_cache: Option<PathBuf>,
     /// Run name: the services are `superflow/<run>/...`.
     #[arg(long, default_value = "default")]
     pub run: String,
@@ -61,6 +66,10 @@ pub struct Args {
 
 #[derive(Debug, Subcommand)]
 pub enum Command {
+    /// Indexes the drives into the index cache ahead of training (a Slurm step or a
+    /// Kubernetes init job before the pipelines start) and prints what they hold:
+    /// drives, files, keyframes, skipped messages, damaged files, seconds, cache hits.
+    Index,
     /// Lists what the drives hold: dialect, channels and roles, cameras, frame tree,
     /// time span, usable keyframes, per-point labels (`[labels]` of the configuration)
     /// and skipped messages.
@@ -115,12 +124,16 @@ pub enum Command {
 }
 
 impl Args {
-    /// The `--config` file, or the defaults without one.
+    /// The `--config` file, or the defaults without one, with `--index-cache` laid over.
     pub fn config(&self) -> anyhow::Result<PipelineConfig> {
-        Ok(match &self.config {
+        let mut config = match &self.config {
             Some(path) => PipelineConfig::load(path)?,
             None => PipelineConfig::default(),
-        })
+        };
+        if let Some(dir) = &self.index_cache {
+            config.ingest.index_cache = Some(dir.clone());
+        }
+        Ok(config)
     }
 
     /// The service's flags, to lay over the configuration ([`PipelineConfig::apply`]).

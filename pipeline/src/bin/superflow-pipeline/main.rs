@@ -3,6 +3,8 @@
 //! * `superflow-pipeline --mcap <drives>... [--run NAME] [--config pipeline.toml]` — the
 //!   service: streams SuperFlow batches over iceoryx2 (broadcast or shard), with
 //!   backpressure, dead-subscriber cleanup, resume requests and Prometheus metrics.
+//! * `superflow-pipeline index --mcap <drives>... [--index-cache DIR]` — indexes the
+//!   drives into the index cache ahead of training, with a summary.
 //! * `superflow-pipeline inspect --mcap <drives>... [--json]` — what the drives hold.
 //! * `superflow-pipeline sample --mcap <drive> --index K --out DIR [--no-augment]` — one
 //!   sample written as `.npy` arrays, `sample.json` and overlay PNGs.
@@ -12,6 +14,7 @@
 
 mod batch;
 mod cli;
+mod index;
 mod inspect;
 mod open;
 mod sample;
@@ -27,6 +30,7 @@ static ALLOCATOR: superflow_common::memory::Allocator = superflow_common::memory
 
 fn run(args: &Args) -> anyhow::Result<()> {
     match &args.command {
+        Some(Command::Index) => index::run(args),
         Some(Command::Inspect { json }) => inspect::run(args, *json),
         Some(Command::Superpixels { force }) => superpixels::run(args, *force),
         Some(Command::Sample {

@@ -1,0 +1,63 @@
+//! `index`: the drives indexed into the index cache ahead of training, with a summary.
+
+use crate::cli::Args;
+use std::time::Instant;
+use superflow_pipeline::sample::plan::Plan;
+
+pub fn run(args: &Args) -> anyhow::Result<()> {
+    let config = args.config()?;
+    let started = Instant::now();
+    let dataset = crate::open::dataset(args)?;
+    let seconds = started.elapsed().as_secs_f64();
+    let plan = Plan::new(&dataset, &config.sample);
+    let files: usize = dataset.drives.iter().map(|d| d.files.len()).sum();
+    let damaged = dataset
+        .drives
+        .iter()
+        .flat_map(|d| &d.files)
+        .filter(|f| !f.damage.is_empty())
+        .count();
+    let skipped: u64 = dataset.drives.iter().map(|d| d.skipped.total()).sum();
+    let unusable: Vec<String> = dataset
+        .drives
+        .iter()
+        .filter_map(|d| d.check_sensors().err().map(|e| e.to_string()))
+        .collect();
+    for problem in &unusable {
+        tracing::warn!("not trainable: {problem}");
+    }
+    let stats = dataset.indexed;
+    let cache = config.ingest.index_cache();
+    println!("drives          {}", dataset.drives.len());
+    println!(
+        "files           {files} ({:.1} GB)",
+        dataset
+            .drives
+            .iter()
+            .flat_map(|d| &d.files)
+            .map(|f| f.len() as f64)
+            .sum::<f64>()
+            * 1e-9
+    );
+    println!("keyframes       {}", plan.keyframes.len());
+    println!("not trainable   {} drives", unusable.len());
+    println!("skipped         {skipped} messages");
+    println!("damaged         {damaged} files");
+    println!(
+        "cache hits      {} of {files}{}",
+        stats.from_cache,
+        match stats.uncacheable {
+            0 => String::new(),
+            n => format!(" ({n} without a summary: indexed at every start)"),
+        }
+    );
+    println!(
+        "index cache     {}",
+        cache.map_or_else(|| "off".to_string(), |c| c.dir().display().to_string())
+    );
+    println!(
+        "seconds         {seconds:.2} ({:.2} GB scanned)",
+        stats.bytes_scanned as f64 * 1e-9
+    );
+    Ok(())
+}

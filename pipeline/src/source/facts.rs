@@ -1,0 +1,186 @@
+//! What a scan learned about a file, in a form that can be stored ([`ScannedFile`]), and
+//! the fingerprint ([`McapFile::fingerprint`]) that says whether stored facts still
+//! describe the file: a file opened again with the same fingerprint gets its facts back
+//! ([`McapFile::restore`]) instead of a scan.
+
+use super::{ChunkLoc, Damage, McapFile, SchemaInfo, SourceError};
+use mcap::records::op;
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+use std::os::unix::fs::MetadataExt;
+use xxhash_rust::xxh3::Xxh3;
+
+/// Footer: opcode, length, summary start, summary offset start, CRC; then the magic.
+const FOOTER_LEN: u64 = 9 + 20 + 8;
+/// A header record or summary section larger than this is not fingerprinted (nor cached).
+const MAX_FINGERPRINTED: u64 = 256 << 20;
+/// The fixed start of a chunk record: opcode, length, start and end times, uncompressed
+/// size and CRC.
+const CHUNK_HEAD_LEN: u64 = 9 + 8 + 8 + 8 + 4;
+
+/// The facts of a scanned [`McapFile`] that a later opening of the same file can reuse.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ScannedFile {
+    len: u64,
+    profile: String,
+    library: String,
+    schemas: Vec<SchemaInfo>,
+    channels: Vec<ChannelFacts>,
+    /// Chunk records: offset and length.
+    chunks: Vec<(u64, u64)>,
+    damage: Vec<Damage>,
+    message_counts: BTreeMap<u16, u64>,
+}
+
+/// A channel with its schema by id (the schema itself is stored once, in `schemas`).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+struct ChannelFacts {
+    id: u16,
+    schema_id: u16,
+    topic: String,
+    message_encoding: String,
+    metadata: BTreeMap<String, String>,
+}
+
+impl ScannedFile {
+    /// The size of the file scanned.
+    pub fn len(&self) -> u64 {
+        self.len
+    }
+
+    /// Whether the file scanned was empty.
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+}
+
+impl McapFile {
+    /// What the scan learned, to be stored.
+    pub fn scanned(&self) -> ScannedFile {
+        let mut schemas: Vec<SchemaInfo> = self.schemas.values().map(|s| (**s).clone()).collect();
+        schemas.sort_by_key(|s| s.id);
+        ScannedFile {
+            len: self.len,
+            profile: self.profile.clone(),
+            library: self.library.clone(),
+            schemas,
+            channels: self
+                .channels
+                .values()
+                .map(|c| ChannelFacts {
+                    id: c.id,
+                    schema_id: c.schema.as_ref().map_or(0, |s| s.id),
+                    topic: c.topic.clone(),
+                    message_encoding: c.message_encoding.clone(),
+                    metadata: c.metadata.clone(),
+                })
+                .collect(),
+            chunks: self
+                .chunks
+                .iter()
+                .map(|c| (c.offset, c.record_len))
+                .collect(),
+            damage: self.damage.clone(),
+            message_counts: self.message_counts.clone(),
+        }
+    }
+
+    /// This opened, unscanned file with the facts of an earlier scan of the same file (of
+    /// the same [fingerprint](Self::fingerprint)).
+    pub fn restore(mut self, facts: &ScannedFile) -> McapFile {
+        debug_assert_eq!(facts.len, self.len);
+        self.profile.clone_from(&facts.profile);
+        self.library.clone_from(&facts.library);
+        for s in &facts.schemas {
+            self.add_schema(s.id, &s.name, &s.encoding, &s.data);
+        }
+        for c in &facts.channels {
+            self.add_channel(
+                c.id,
+                c.schema_id,
+                &c.topic,
+                &c.message_encoding,
+                &c.metadata,
+            );
+        }
+        self.chunks = facts
+            .chunks
+            .iter()
+            .map(|&(offset, record_len)| ChunkLoc { offset, record_len })
+            .collect();
+        self.damage.clone_from(&facts.damage);
+        self.message_counts.clone_from(&facts.message_counts);
+        self.scanning = None;
+        self
+    }
+
+    /// A fingerprint of the file that a rewrite cannot keep: a 128-bit hash of its size,
+    /// inode, modification and status-change times, header record, summary section and
+    /// footer, and the head of every chunk the summary indexes (sizes and the CRC of its
+    /// content). Hard links of a file share it, and so do the hosts that mount one
+    /// shared file system; a copy of the file does not (it is indexed once more), so that
+    /// a damaged copy — whose chunk heads and summary may still be the original's — is
+    /// never taken for it. `None` for a file without a usable footer and summary (a
+    /// recording cut short, or written without a summary): its content has no cheap
+    /// fingerprint, so it is scanned at every opening.
+    pub fn fingerprint(&self) -> Result<Option<u128>, SourceError> {
+        let len = self.len;
+        let Some(footer_start) = len.checked_sub(FOOTER_LEN).filter(|&f| f >= 8 + 9) else {
+            return Ok(None);
+        };
+        let footer = self.read_exact_at(footer_start, FOOTER_LEN)?;
+        let summary_start = u64_at(&footer, 9);
+        if footer[0] != op::FOOTER
+            || &footer[29..] != super::MAGIC
+            || summary_start < 8 + 9
+            || summary_start >= footer_start
+            || footer_start - summary_start > MAX_FINGERPRINTED
+        {
+            return Ok(None);
+        }
+        let head = self.read_exact_at(8, 9)?;
+        let header_len = u64_at(&head, 1);
+        if head[0] != op::HEADER || header_len > MAX_FINGERPRINTED || 17 + header_len > len {
+            return Ok(None);
+        }
+        let meta = self.handle()?.metadata().map_err(|e| self.io(e))?;
+        let mut hash = Xxh3::new();
+        for word in [
+            len as i64,
+            meta.ino() as i64,
+            meta.mtime(),
+            meta.mtime_nsec(),
+            meta.ctime(),
+            meta.ctime_nsec(),
+        ] {
+            hash.update(&word.to_le_bytes());
+        }
+        self.with_bytes_at(0, 17 + header_len, |b| hash.update(b))?;
+        let summary = self.read_exact_at(summary_start, footer_start - summary_start)?;
+        hash.update(&summary);
+        hash.update(&footer);
+        // Chunk heads, from the chunk indexes of the summary (records: opcode, length, body).
+        let mut pos = 0usize;
+        while let Some(body_len) = summary.get(pos + 1..pos + 9).map(|b| u64_at(b, 0)) {
+            let body = pos + 9..(pos + 9).saturating_add(body_len as usize);
+            let Some(record) = summary.get(body.clone()) else {
+                return Ok(None);
+            };
+            if summary[pos] == op::CHUNK_INDEX && record.len() >= 24 {
+                let chunk_start = u64_at(record, 16);
+                if chunk_start.saturating_add(CHUNK_HEAD_LEN) > summary_start {
+                    return Ok(None);
+                }
+                hash.update(&self.read_exact_at(chunk_start, CHUNK_HEAD_LEN)?);
+            }
+            pos = body.end;
+        }
+        Ok(Some(hash.digest128()))
+    }
+}
+
+fn u64_at(bytes: &[u8], at: usize) -> u64 {
+    let mut b = [0u8; 8];
+    b.copy_from_slice(&bytes[at..at + 8]);
+    u64::from_le_bytes(b)
+}

@@ -1,0 +1,338 @@
+//! The persistent index cache: a drive opened from the cache is the drive a scan makes
+//! (streams, stamps, transforms, skip and damage reports) and builds the same samples
+//! bit for bit; a file rewritten in place is scanned again even at the same size and
+//! modification time; damaged or foreign entries are ignored with a reason; two
+//! processes filling one cache at once both succeed and leave whole entries.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+use superflow_pipeline::drive::{Dataset, Drive, IngestConfig};
+use superflow_pipeline::sample::{SampleBuilder, SampleConfig};
+use superflow_recordings::Dialect;
+use superflow_recordings::damaged::write_damaged;
+use superflow_tests::{pipeline_binary, sample_drive, workspace_root};
+
+fn scratch(tag: &str) -> PathBuf {
+    let dir = std::env::temp_dir().join(format!(
+        "superflow-index-cache-{tag}-{}",
+        std::process::id()
+    ));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    dir
+}
+
+fn config(cache: Option<&Path>) -> IngestConfig {
+    IngestConfig {
+        index_cache: Some(cache.map_or_else(|| PathBuf::from("off"), Path::to_path_buf)),
+        ..IngestConfig::default()
+    }
+}
+
+/// Every part of a drive that indexing determines.
+fn assert_same_drive(a: &Drive, b: &Drive, what: &str) {
+    assert_eq!(a.files.len(), b.files.len(), "{what}");
+    for (fa, fb) in a.files.iter().zip(&b.files) {
+        assert_eq!(fa.path(), fb.path(), "{what}");
+        assert_eq!(
+            fa.scanned(),
+            fb.scanned(),
+            "{what}: {}",
+            fa.path().display()
+        );
+    }
+    assert_eq!(a.channels, b.channels, "{what}: channels");
+    assert_eq!(a.lidar, b.lidar, "{what}: lidar");
+    assert_eq!(a.cameras, b.cameras, "{what}: cameras");
+    assert_eq!(a.label_clouds, b.label_clouds, "{what}: label clouds");
+    assert!(a.tf == b.tf, "{what}: transforms differ");
+    assert_eq!(a.frozen_edges, b.frozen_edges, "{what}: frozen edges");
+    assert_eq!(a.map_frame, b.map_frame, "{what}");
+    assert_eq!(a.ego_frame, b.ego_frame, "{what}");
+    assert_eq!(a.skipped, b.skipped, "{what}: skips");
+}
+
+/// The sample drives (the ROS 2 one with its labels sidecar) and every damaged
+/// recording, in `dir`.
+fn inputs(dir: &Path) -> Vec<PathBuf> {
+    let drives = workspace_root().join("recordings/drives");
+    for name in [
+        "street_ros2.mcap",
+        "street_ros2.labels.mcap",
+        "street_foxglove.mcap",
+    ] {
+        std::fs::copy(drives.join(name), dir.join(name)).unwrap();
+    }
+    let damaged = dir.join("damaged");
+    std::fs::create_dir_all(&damaged).unwrap();
+    write_damaged(&damaged).unwrap();
+    vec![
+        dir.join("street_ros2.mcap"),
+        dir.join("street_foxglove.mcap"),
+        damaged,
+    ]
+}
+
+#[test]
+fn a_cache_hit_is_the_drive_a_scan_makes_and_builds_the_same_samples() {
+    let dir = scratch("same");
+    let cache = dir.join("cache");
+    let inputs = inputs(&dir);
+    let scanned = Dataset::open(&inputs, &config(None)).unwrap();
+    let filled = Dataset::open(&inputs, &config(Some(&cache))).unwrap();
+    let hit = Dataset::open(&inputs, &config(Some(&cache))).unwrap();
+    let files = scanned.indexed.files();
+    assert_eq!(scanned.indexed.scanned, files);
+    assert_eq!(filled.indexed.from_cache, 0);
+    // Only the recordings without a usable summary (cut short) are scanned every time.
+    let uncacheable = filled.indexed.uncacheable;
+    assert!(
+        (1..files / 2).contains(&uncacheable),
+        "{:?}",
+        filled.indexed
+    );
+    assert_eq!(
+        hit.indexed.from_cache,
+        files - uncacheable,
+        "{:?}",
+        hit.indexed
+    );
+    assert!(hit.indexed.bytes_scanned < filled.indexed.bytes_scanned);
+    let entries = std::fs::read_dir(&cache).unwrap().count();
+    assert_eq!(entries, files - uncacheable);
+    for ((a, b), c) in scanned.drives.iter().zip(&filled.drives).zip(&hit.drives) {
+        let name = a.file_list();
+        assert_same_drive(a, b, &format!("{name}, scanned into the cache"));
+        assert_same_drive(a, c, &format!("{name}, from the cache"));
+    }
+    // Damage is reported the same through the cache.
+    let damaged = |d: &Dataset| {
+        d.drives
+            .iter()
+            .flat_map(|d| &d.files)
+            .filter(|f| !f.damage.is_empty())
+            .count()
+    };
+    assert!(damaged(&hit) > 3);
+    assert_eq!(damaged(&hit), damaged(&scanned));
+
+    // The same samples, bit for bit, from the two sample drives.
+    let two = &inputs[..2];
+    let scanned = Dataset::open(two, &config(None)).unwrap();
+    let hit = Dataset::open(two, &config(Some(&cache))).unwrap();
+    assert_eq!(hit.indexed.from_cache, 3);
+    let mut recipe = SampleConfig::default();
+    recipe.augment.enabled = true;
+    let a = SampleBuilder::new(&scanned, recipe.clone()).unwrap();
+    let b = SampleBuilder::new(&hit, recipe).unwrap();
+    assert_eq!(a.plan().keyframes.len(), b.plan().keyframes.len());
+    assert!(a.plan().keyframes.len() >= 10);
+    for k in 0..a.plan().keyframes.len() {
+        let mut x = a.build(1, k as u64).unwrap();
+        let mut y = b.build(1, k as u64).unwrap();
+        x.times = Default::default();
+        y.times = Default::default();
+        assert!(x == y, "keyframe {k}: the samples differ");
+    }
+    std::fs::remove_dir_all(dir).unwrap();
+}
+
+/// `bytes` written again by mcap's writer, uncompressed, with every LiDAR sweep's stamp
+/// moved by `shift_nanos` (the ROS 2 header's nanoseconds): the same records of the same
+/// sizes, so the same file size and summary, and other content.
+fn rewritten(bytes: &[u8], shift_nanos: u32) -> Vec<u8> {
+    let mut out = std::io::Cursor::new(Vec::new());
+    let mut writer = mcap::WriteOptions::new()
+        .compression(None)
+        .chunk_size(Some(256 * 1024))
+        .create(&mut out)
+        .unwrap();
+    for message in mcap::MessageStream::new(bytes).unwrap() {
+        let mut message = message.unwrap();
+        let schema = message.channel.schema.as_ref().map(|s| s.name.as_str());
+        if schema == Some("sensor_msgs/msg/PointCloud2") {
+            // CDR: 4 bytes of encapsulation, then header.stamp.sec (4) and .nanosec (4).
+            let mut data = message.data.into_owned();
+            let nanos = u32::from_le_bytes(data[8..12].try_into().unwrap());
+            assert!(
+                nanos < 999_000_000,
+                "a stamp this close to a second is not moved"
+            );
+            data[8..12].copy_from_slice(&(nanos + shift_nanos).to_le_bytes());
+            message.data = data.into();
+        }
+        writer.write(&message).unwrap();
+    }
+    writer.finish().unwrap();
+    drop(writer);
+    out.into_inner()
+}
+
+#[test]
+fn a_file_rewritten_in_place_with_its_size_and_time_is_indexed_again() {
+    let dir = scratch("rewrite");
+    let cache = dir.join("cache");
+    let original = sample_drive(Dialect::Ros2).unwrap().bytes;
+    let before = rewritten(&original, 0);
+    let after = rewritten(&original, 1_000);
+    assert_eq!(before.len(), after.len());
+    assert_ne!(before, after);
+    let path = dir.join("drive.mcap");
+    std::fs::write(&path, &before).unwrap();
+    let mtime = std::fs::metadata(&path).unwrap().modified().unwrap();
+    let first = Drive::open(std::slice::from_ref(&path), &config(Some(&cache))).unwrap();
+    let stamps = |d: &Drive| {
+        d.lidar
+            .as_ref()
+            .unwrap()
+            .sweeps
+            .iter()
+            .map(|s| s.stamp.nanos())
+            .collect::<Vec<_>>()
+    };
+    // Rewritten in place (same inode), then given back its size's twin and old time.
+    std::fs::OpenOptions::new()
+        .write(true)
+        .open(&path)
+        .and_then(|mut f| {
+            use std::io::Write;
+            f.write_all(&after)?;
+            f.set_times(std::fs::FileTimes::new().set_modified(mtime))
+        })
+        .unwrap();
+    assert_eq!(std::fs::metadata(&path).unwrap().modified().unwrap(), mtime);
+    let again = Dataset::open(std::slice::from_ref(&path), &config(Some(&cache))).unwrap();
+    assert_eq!(again.indexed.from_cache, 0, "{:?}", again.indexed);
+    let moved: Vec<i64> = stamps(&first).iter().map(|s| s + 1_000).collect();
+    assert_eq!(stamps(&again.drives[0]), moved);
+    let scanned = Drive::open(std::slice::from_ref(&path), &config(None)).unwrap();
+    assert_same_drive(&scanned, &again.drives[0], "the rewritten file");
+    std::fs::remove_dir_all(dir).unwrap();
+}
+
+fn index(inputs: &[PathBuf], cache: &Path) -> Output {
+    Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-subscriber")))
+        .arg("index")
+        .arg("--mcap")
+        .args(inputs)
+        .arg("--index-cache")
+        .arg(cache)
+        .env("RUST_LOG", "info")
+        .env("NO_COLOR", "1")
+        .output()
+        .unwrap()
+}
+
+fn text(output: &Output) -> (String, String) {
+    (
+        String::from_utf8_lossy(&output.stdout).into_owned(),
+        String::from_utf8_lossy(&output.stderr).into_owned(),
+    )
+}
+
+#[test]
+fn damaged_or_foreign_cache_entries_are_ignored_with_a_reason() {
+    let dir = scratch("entries");
+    let cache = dir.join("cache");
+    let inputs = inputs(&dir)[..2].to_vec();
+    let filled = index(&inputs, &cache);
+    let (out, err) = text(&filled);
+    assert!(filled.status.success(), "{out}\n{err}");
+    assert!(out.contains("cache hits      0 of 3"), "{out}");
+    let mut entries: Vec<PathBuf> = std::fs::read_dir(&cache)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
+    entries.sort();
+    assert_eq!(entries.len(), 3);
+    let hit = index(&inputs, &cache);
+    assert!(
+        text(&hit).0.contains("cache hits      3 of 3"),
+        "{:?}",
+        text(&hit)
+    );
+
+    // One entry cut short, one with a flipped bit, one of another format version.
+    let whole: Vec<Vec<u8>> = entries.iter().map(|e| std::fs::read(e).unwrap()).collect();
+    std::fs::write(&entries[0], &whole[0][..whole[0].len() / 2]).unwrap();
+    let mut flipped = whole[1].clone();
+    let at = flipped.len() - 100;
+    flipped[at] ^= 0x10;
+    std::fs::write(&entries[1], &flipped).unwrap();
+    let mut other = whole[2].clone();
+    other[8..12].copy_from_slice(&999u32.to_le_bytes());
+    std::fs::write(&entries[2], &other).unwrap();
+    let again = index(&inputs, &cache);
+    let (out, err) = text(&again);
+    assert!(again.status.success(), "{out}\n{err}");
+    assert!(out.contains("cache hits      0 of 3"), "{out}");
+    assert!(!err.contains("panicked"), "{err}");
+    for reason in [
+        "truncated: payload",
+        "its checksum does not match its content",
+        "written in index format 999",
+    ] {
+        let line = err
+            .lines()
+            .find(|l| l.contains(reason))
+            .unwrap_or_else(|| panic!("no INFO line with `{reason}`:\n{err}"));
+        assert!(
+            line.contains("INFO") && line.contains("indexing the file again"),
+            "{line}"
+        );
+    }
+    // Scanned again, the entries are whole again.
+    let healed = index(&inputs, &cache);
+    assert!(
+        text(&healed).0.contains("cache hits      3 of 3"),
+        "{:?}",
+        text(&healed)
+    );
+    std::fs::remove_dir_all(dir).unwrap();
+}
+
+#[test]
+fn two_processes_filling_one_cache_at_once_both_succeed() {
+    let dir = scratch("concurrent");
+    let cache = dir.join("cache");
+    let inputs = inputs(&dir);
+    let spawn = || {
+        Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-subscriber")))
+            .arg("index")
+            .arg("--mcap")
+            .args(&inputs)
+            .arg("--index-cache")
+            .arg(&cache)
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap()
+    };
+    let (a, b) = (spawn(), spawn());
+    let (a, b) = (a.wait_with_output().unwrap(), b.wait_with_output().unwrap());
+    for output in [&a, &b] {
+        let (out, err) = text(output);
+        assert!(output.status.success(), "{out}\n{err}");
+    }
+    let alone = Dataset::open(&inputs, &config(None)).unwrap();
+    let files = alone.indexed.files();
+    let hit = Dataset::open(&inputs, &config(Some(&cache))).unwrap();
+    assert_eq!(
+        hit.indexed.from_cache + hit.indexed.uncacheable,
+        files,
+        "{:?}",
+        hit.indexed
+    );
+    for (x, y) in alone.drives.iter().zip(&hit.drives) {
+        assert_same_drive(x, y, &x.file_list());
+    }
+    let names: Vec<String> = std::fs::read_dir(&cache)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    assert!(names.iter().all(|n| n.ends_with(".sfidx")), "{names:?}");
+    assert_eq!(names.len(), files - hit.indexed.uncacheable);
+    std::fs::remove_dir_all(dir).unwrap();
+}
