@@ -1,5 +1,10 @@
 //! Receiving batches: a subscriber on the run's broadcast service or on one rank's
 //! shard, woken by the ready event; and the resume request of the control service.
+//!
+//! A [`Received`] batch holds its iceoryx2 sample, and a [`BatchView`] of it borrows it:
+//! the compiler keeps every view from outliving the sample, so nothing here can read
+//! memory the pipeline has reused (the Python package gets the same guarantee at run
+//! time, by handing a sample back only once its last view is gone).
 
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::subscriber::Subscriber;

@@ -22,6 +22,7 @@ from .stream import (
     SectionArray,
     Stream,
     SuperflowError,
+    TooManyBatchesHeld,
 )
 
 __version__ = "0.1.0"
@@ -50,6 +51,7 @@ __all__ = [
     "SectionArray",
     "Stream",
     "SuperflowError",
+    "TooManyBatchesHeld",
     "TorchIterable",
     "read_batch",
     "section_dtype",

@@ -5,7 +5,7 @@ non-zero when a check fails.
 
     check_stream.py read --run R [--count N] [--timeout S]   # one line per batch
     check_stream.py resume --run R                           # resume replays bit-identically
-    check_stream.py released --run R                         # use after release raises
+    check_stream.py kept --run R                             # views outlive their release
     check_stream.py torch_views --run R                      # torch tensors share the memory
     check_stream.py timeout --run R --timeout S              # no pipeline: PipelineTimeout
     check_stream.py malformed --run R                        # bad batches: typed errors
@@ -64,10 +64,19 @@ def emit(record: dict) -> None:
 
 
 def read(args: argparse.Namespace) -> int:
+    """One line per batch; with --keep, views of the second batch are kept to the end and
+    checked against copies made at receive (a last line)."""
     stream = superflow.Stream(args.run, prefix=args.prefix, timeout_s=args.timeout)
-    for _ in range(args.count):
+    kept = None
+    for i in range(args.count):
         batch = next(stream)
         emit(describe(batch, payload_range(batch)))
+        if args.keep and i == 1:
+            view = batch["points"]
+            kept = (view, np.array(view), batch)
+    if kept is not None:
+        view, copy, batch = kept
+        emit({"kept_equal": bool(np.array_equal(view, copy)), "kept_returned": batch.returned})
     stream.close()
     return 0
 
@@ -99,45 +108,56 @@ def resume(args: argparse.Namespace) -> int:
     return 0 if again == [(0, 1), (0, 2), (0, 3)] else 1
 
 
-def released(args: argparse.Namespace) -> int:
-    """Every way of reading a released batch's array raises BatchReleased."""
+def kept(args: argparse.Namespace) -> int:
+    """Views kept past their batch's release keep their bytes while later batches come;
+    holding more than max_held raises TooManyBatchesHeld; once the views are dropped the
+    batches go back and the stream goes on."""
+    import torch
+
     stream = superflow.Stream(args.run, prefix=args.prefix, timeout_s=args.timeout)
-    batch = next(stream)
-    points = batch["points"]
+    first = next(stream)
+    tensors = first.torch()
+    points = first["points"]
     row = points[0]
-    before = float(points[:, 0].sum())
-    with batch:
+    copies = {name: t.clone() for name, t in tensors.items()}
+    points_copy = np.array(points)
+    with first:
         pass
-    uses = {
-        "index": lambda: points[0],
-        "slice view": lambda: row[1],
-        "ufunc": lambda: points + 1,
-        "reduction": lambda: points.sum(),
-        "numpy function": lambda: np.mean(points),
-        "copy": lambda: points.copy(),
-        "tolist": lambda: points.tolist(),
-        "iteration": lambda: list(points),
-        "section": lambda: batch["points"],
-    }
-    raised = {}
-    for what, use in uses.items():
-        try:
-            use()
-            raised[what] = False
-        except superflow.BatchReleased:
-            raised[what] = True
-    # The next iteration releases the batch before.
-    second = next(stream)
-    images = second["images"]
-    next(stream)
+    checks = {"released": first.released, "deferred": not first.returned}
     try:
-        images[0]
-        raised["after next()"] = False
+        first["points"]
+        checks["section of a released batch raises"] = False
     except superflow.BatchReleased:
-        raised["after next()"] = True
-    emit({"raised": raised, "sum_before": before, "repr": repr(points)})
+        checks["section of a released batch raises"] = True
+    positions = []
+    same = []
+    for _ in range(10):
+        batch = next(stream)
+        positions.append([batch.epoch, batch.step])
+        same.append(all(torch.equal(tensors[n], copies[n]) for n in tensors)
+                    and np.array_equal(points, points_copy) and np.array_equal(row, points_copy[0]))
+    checks["kept bytes across 10 batches"] = all(same)
+    checks["numpy ops on a kept view"] = float(points.sum()) == float(points_copy.sum())
+    # The current batch's view kept too: the next receive would hold 3 of 2.
+    current = batch
+    images = current["images"]
+    try:
+        next(stream)
+        checks["max_held raises"] = False
+        held = []
+    except superflow.TooManyBatchesHeld as e:
+        held = e.held
+        checks["max_held raises"] = (len(held) == 2 and list(held[0]) == [first.epoch, first.step]
+                                     and str(list(held[0])[0]) in str(e) and "del" in str(e))
+    del tensors, points, row, images
+    checks["returned after del"] = first.returned and current.returned and stream.held() == []
+    for _ in range(3):
+        batch = next(stream)
+        positions.append([batch.epoch, batch.step])
+    emit({"checks": checks, "positions": positions, "held": [list(h) for h in held],
+          "repr": repr(first)})
     stream.close()
-    return 0 if all(raised.values()) else 1
+    return 0 if all(checks.values()) else 1
 
 
 def torch_views(args: argparse.Namespace) -> int:
@@ -153,6 +173,9 @@ def torch_views(args: argparse.Namespace) -> int:
               for name in batch.names() if batch[name].size}
     inside = all(start <= tensors[n].data_ptr() < end for n in shared)
     equal = all(torch.equal(tensors[n], torch.from_numpy(np.array(batch[n]))) for n in shared)
+    # The loop below holds two batches (its item while the next is received): these
+    # tensors would be a third, past max_held.
+    del tensors
     loader = torch.utils.data.DataLoader(superflow.TorchIterable(stream), batch_size=None)
     steps = []
     for i, item in enumerate(loader):
@@ -244,12 +267,13 @@ def malformed(args: argparse.Namespace) -> int:
 
 def main() -> int:
     parser = argparse.ArgumentParser()
-    parser.add_argument("scenario", choices=["read", "resume", "released", "torch_views", "timeout",
+    parser.add_argument("scenario", choices=["read", "resume", "kept", "torch_views", "timeout",
                                              "malformed"])
     parser.add_argument("--run", required=True)
     parser.add_argument("--prefix")
     parser.add_argument("--count", type=int, default=1)
     parser.add_argument("--timeout", type=float, default=120.0)
+    parser.add_argument("--keep", action="store_true")
     args = parser.parse_args()
     return globals()[args.scenario](args)
 
