@@ -273,6 +273,54 @@ fn python_views_kept_past_release_keep_their_bytes_within_max_held() {
     no_shared_memory_left(&p);
 }
 
+/// `--epochs 2`, batches of 4 (2 per epoch: 4 and 2 keyframes): `stream.epoch()` gives
+/// every keyframe once per epoch and stops, twice; then the stream has ended. Rewound,
+/// `for batch in stream` (no `timeout_s`) stops by itself after epoch 1, and
+/// `TorchIterable` in a `DataLoader` gives the same batches, one epoch per `iter()`,
+/// nothing past the last. The pipeline then ends by itself.
+#[test]
+fn python_epochs_end_and_the_stream_stops_after_the_last() {
+    let p = prefix("pyepochs");
+    let python = scenario(&p, &["epochs", "--run", "pyepochs"], &[]);
+    let pipe = pipeline(&p, "pyepochs", &["--batch-size", "4", "--epochs", "2"]);
+    let out = succeeded(python);
+    let (ok, _, err) = finish(pipe, LIMIT);
+    assert!(ok, "{err}");
+    let got = &out[0];
+    assert_eq!(
+        (&got["len"], &got["loader_len"]),
+        (&2.into(), &2.into()),
+        "{got}"
+    );
+    let epochs = got["epochs"].as_array().unwrap();
+    let mut whole = Vec::new();
+    for (e, batches) in epochs.iter().enumerate() {
+        let batches = batches.as_array().unwrap();
+        assert_eq!(batches.len(), 2, "{got}");
+        let mut keyframes: Vec<u64> = Vec::new();
+        for (step, b) in batches.iter().enumerate() {
+            assert_eq!(
+                (b[0].as_u64(), b[1].as_u64()),
+                (Some(e as u64), Some(step as u64))
+            );
+            keyframes.extend(b[2].as_array().unwrap().iter().map(|k| k.as_u64().unwrap()));
+            whole.push(b.clone());
+        }
+        keyframes.sort_unstable();
+        assert_eq!(keyframes, (0..KEYFRAMES).collect::<Vec<_>>(), "epoch {e}");
+    }
+    assert_eq!(got["ended"], true, "{got}");
+    assert_eq!(got["after_end"], serde_json::json!([]), "{got}");
+    assert_eq!(got["whole"], serde_json::json!(whole), "{got}");
+    let loaded: Vec<Value> = whole.iter().map(|b| b[2].clone()).collect();
+    assert_eq!(
+        got["loaded"],
+        serde_json::json!([&loaded[..2], &loaded[2..], []]),
+        "{got}"
+    );
+    no_shared_memory_left(&p);
+}
+
 /// SIGKILL the pipeline after 2 batches: the Python iterator waits, and when a new
 /// pipeline comes up it asks for the position after the last batch it got, so the steps
 /// go on without a gap or a repeat and every keyframe comes once. A view of the second
@@ -368,13 +416,14 @@ fn python_torch_tensors_share_the_shared_memory_and_feed_a_data_loader() {
     no_shared_memory_left(&p);
 }
 
-/// `torchrun --nproc-per-node 2` of the example on a pipeline with 2 shards: each rank
-/// trains on its own keyframes, DDP keeps the parameters equal, and the loss falls.
+/// `torchrun --nproc-per-node 2` of the example on a pipeline with 2 shards and 2
+/// epochs, without a step count: each rank trains on its own keyframes, DDP keeps the
+/// parameters equal, the loss falls, and both ranks end together when the stream ends
+/// (after 2 epochs of 3 batches), as does the pipeline.
 #[test]
 fn torchrun_trains_the_example_with_ddp_on_two_shards() {
     let p = prefix("pyddp");
     let example = workspace_root().join("trainer/python/examples/train_torch.py");
-    let steps = "6";
     let trainer = superflow_tests::process::spawn(
         Command::new(package_python())
             .args([
@@ -386,7 +435,7 @@ fn torchrun_trains_the_example_with_ddp_on_two_shards() {
                 "--",
             ])
             .arg(example)
-            .args(["--run", "pyddp", "--steps", steps, "--timeout", "120"])
+            .args(["--run", "pyddp", "--timeout", "120"])
             .env("SUPERFLOW_IOX_PREFIX", &p)
             .env("OMP_NUM_THREADS", "1")
             .current_dir(env!("CARGO_TARGET_TMPDIR"))
@@ -396,14 +445,21 @@ fn torchrun_trains_the_example_with_ddp_on_two_shards() {
     let pipe = pipeline(
         &p,
         "pyddp",
-        &["--world-size", "2", "--batch-size", "1", "--epochs", "3"],
+        &["--world-size", "2", "--batch-size", "1", "--epochs", "2"],
     );
     let out = succeeded(trainer);
-    stop(pipe);
+    let (ok, _, err) = finish(pipe, LIMIT);
+    assert!(ok, "{err}");
     let (ends, steps): (Vec<&Value>, Vec<&Value>) =
         out.iter().partition(|l| l.get("params_hash").is_some());
     assert_eq!(ends.len(), 2, "{out:?}");
     assert_eq!(ends[0]["params_hash"], ends[1]["params_hash"], "{ends:?}");
+    for end in &ends {
+        assert_eq!(
+            (&end["steps"], &end["stream_ended"]),
+            (&6.into(), &true.into())
+        );
+    }
     assert_eq!(steps.len(), 12, "{out:?}");
     // Every keyframe once per epoch over the two ranks (3 steps of 1 sample an epoch each).
     for epoch in 0..2u64 {

@@ -2,9 +2,11 @@
 
     import superflow
     stream = superflow.Stream(run="exp1")          # RANK / WORLD_SIZE select a shard
-    for batch in stream:
-        points = batch["points"]                   # numpy view into shared memory
-        tensors = batch.torch()                    # torch.Tensor views (torch optional)
+    for epoch in range(E):
+        for batch in stream.epoch():               # this rank's batches of one epoch
+            points = batch["points"]               # numpy view into shared memory
+            tensors = batch.torch()                # torch.Tensor views (torch optional)
+    for batch in stream: ...                       # every batch until the pipeline's last epoch
 
 The sections and their meaning: schemas/BATCH_FORMAT.md in the superflow repository
 (``superflow.sections`` has the names and dtypes).
@@ -15,10 +17,12 @@ from .sections import BATCH_SECTIONS, LEVEL_SECTIONS, section_dtype
 from .stream import (
     Batch,
     BatchReleased,
+    Epoch,
     FormatVersionMismatch,
     MalformedBatch,
     PipelineTimeout,
     ResumeRefused,
+    Schedule,
     SectionArray,
     Stream,
     SuperflowError,
@@ -43,11 +47,13 @@ __all__ = [
     "Batch",
     "BatchFormatError",
     "BatchReleased",
+    "Epoch",
     "FormatVersionError",
     "FormatVersionMismatch",
     "MalformedBatch",
     "PipelineTimeout",
     "ResumeRefused",
+    "Schedule",
     "SectionArray",
     "Stream",
     "SuperflowError",

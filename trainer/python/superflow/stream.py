@@ -19,7 +19,7 @@ import os
 import time
 import warnings
 import weakref
-from typing import Any, Iterator
+from typing import Any, Iterator, NamedTuple
 
 import iceoryx2 as iox2
 import numpy as np
@@ -114,6 +114,45 @@ class _ResumeReply(ctypes.Structure):
     def type_name() -> str:
         return "superflow::ResumeReply"
 
+
+class _ScheduleRequest(ctypes.Structure):
+    """`superflow::ScheduleRequest` (schemas/src/service.rs)."""
+
+    _fields_ = [("rank", ctypes.c_uint32), ("broadcast", ctypes.c_uint32)]
+
+    @staticmethod
+    def type_name() -> str:
+        return "superflow::ScheduleRequest"
+
+
+class _ScheduleReply(ctypes.Structure):
+    """`superflow::ScheduleReply` (schemas/src/service.rs)."""
+
+    _fields_ = [("known", ctypes.c_uint32), ("reserved", ctypes.c_uint32),
+                ("steps", ctypes.c_uint64), ("min_steps", ctypes.c_uint64),
+                ("epochs", ctypes.c_uint64), ("publisher_lo", ctypes.c_uint64),
+                ("publisher_hi", ctypes.c_uint64)]
+
+    @staticmethod
+    def type_name() -> str:
+        return "superflow::ScheduleReply"
+
+
+class Schedule(NamedTuple):
+    """How the pipeline schedules this stream: ``steps`` batches per epoch (this rank's),
+    ``min_steps`` the fewest of any rank, ``epochs`` served (0: endless), and the
+    ``publisher`` (pipeline process) that said so."""
+
+    steps: int
+    min_steps: int
+    epochs: int
+    publisher: int
+
+
+# How long a stream waits for the schedule of a pipeline that just sent it a batch (it
+# answers from a thread of its own); without an answer the stream does not know where
+# epochs end and goes on without ending.
+_SCHEDULE_WAIT_S = 5.0
 
 _REFUSALS = {1: "no such stream (rank out of range, or the pipeline runs in the other mode)",
              2: "the position is past the end of the configured epochs"}
@@ -238,6 +277,9 @@ class Batch:
         self.seed: int = meta["seed"]
         self.run: str = meta["run"]
         self.publisher: int = sample.header.publisher_id.value
+        # Set by the stream from the pipeline's schedule (None while it is unknown).
+        self.last_in_epoch: bool | None = None
+        self.last_in_stream: bool | None = None
         self._memory = _Memory(sample, (self.epoch, self.step),
                               set() if held is None else held, port)
         # Runs when the last view of the payload is gone (at once if the batch has none);
@@ -413,7 +455,13 @@ class Stream:
         self.max_held = max_held
         self._held: set[_Memory] = set()
         self._current: Batch | None = None
+        self._pending: Batch | None = None  # received, handed out by the next next()
         self._stash: Any = None
+        self._schedule: Schedule | None = None
+        self._schedule_client: Any = None
+        self._schedule_missing: set[int] = set()  # publishers that did not answer
+        self._position: tuple[int, int] | None = None  # of the next batch, once known
+        self._ended = False
         self._last: tuple[int, int, int] | None = None  # publisher, epoch, step
 
     # -- receiving -------------------------------------------------------------------
@@ -474,7 +522,13 @@ class Stream:
             "(tensor.clone(), np.array(view))", self.run, self.service, held)
 
     def next(self) -> Batch:
-        """The next batch (releasing the one before)."""
+        """The next batch (releasing the one before); ``StopIteration`` once the stream
+        ended (the last batch of the pipeline's last epoch was handed out)."""
+        if self._pending is not None:
+            batch, self._pending = self._pending, None
+            return batch
+        if self._ended:
+            raise StopIteration
         self.release_current()
         self._room(self.max_held)
         deadline = None if self.timeout_s is None else time.monotonic() + self.timeout_s
@@ -490,13 +544,114 @@ class Stream:
         batch = Batch(sample, self.run, self.service, self._held, self._subscriber)
         self._last = (publisher, batch.epoch, batch.step)
         self._current = batch
+        self._mark(batch)
         return batch
+
+    def _mark(self, batch: Batch) -> None:
+        """Marks whether ``batch`` ends its epoch and the stream, from the schedule of the
+        pipeline that sent it."""
+        schedule = self._schedule
+        if schedule is None or schedule.publisher != batch.publisher:
+            if batch.publisher in self._schedule_missing:
+                schedule = None
+            else:
+                schedule = self._ask_schedule(time.monotonic() + _SCHEDULE_WAIT_S)
+                if schedule is None:
+                    self._schedule_missing.add(batch.publisher)
+                    warnings.warn(f"run {self.run!r}: the pipeline publishing {self.service!r} "
+                                  "did not say how its epochs are scheduled: the stream will "
+                                  "not end by itself", RuntimeWarning, stacklevel=3)
+        if schedule is None:
+            self._position = None
+            return
+        batch.last_in_epoch = batch.step + 1 >= schedule.steps
+        batch.last_in_stream = (batch.last_in_epoch and schedule.epochs > 0
+                                and batch.epoch + 1 >= schedule.epochs)
+        self._ended = batch.last_in_stream
+        self._position = ((batch.epoch + 1, 0) if batch.last_in_epoch
+                          else (batch.epoch, batch.step + 1))
 
     def __iter__(self) -> Iterator[Batch]:
         return self
 
     def __next__(self) -> Batch:
         return self.next()
+
+    @property
+    def ended(self) -> bool:
+        """Whether the stream's last batch (of the pipeline's last epoch) was handed out;
+        iteration stops then (``stream.resume`` rewinds it)."""
+        return self._ended and self._pending is None
+
+    def position(self) -> tuple[int, int] | None:
+        """``(epoch, step)`` of the next batch this stream hands out, when known (after a
+        batch whose schedule is known, or a resume)."""
+        if self._pending is not None:
+            return (self._pending.epoch, self._pending.step)
+        return self._position
+
+    def epoch(self, drop_uneven: bool = False) -> Epoch:
+        """This rank's batches of the current epoch (the one of the next batch), then
+        stops; ``len()`` is the epoch's batch count from the pipeline's schedule.
+        ``drop_uneven``: stop every rank at the fewest batches any rank has in an epoch
+        (keyframes that do not divide evenly give some ranks one more): data-parallel
+        ranks then stay in step; the extra batch is received and released unused."""
+        return Epoch(self, drop_uneven)
+
+    def schedule(self, timeout_s: float | None = None) -> Schedule:
+        """The pipeline's schedule of this stream, asked on ``superflow/<run>/schedule``
+        (waiting ``timeout_s``, default the stream's, for a pipeline to answer)."""
+        timeout_s = self.timeout_s if timeout_s is None else timeout_s
+        if self._schedule is not None:
+            return self._schedule
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        schedule = self._ask_schedule(deadline)
+        if schedule is None:
+            raise PipelineTimeout(f"run {self.run!r}: no pipeline answered the schedule request "
+                                  f"of {self.service!r} within {timeout_s} s",
+                                  self.run, self.service)
+        return schedule
+
+    def _ask_schedule(self, deadline: float | None) -> Schedule | None:
+        """Asks the pipeline for this stream's schedule; None when none answers by
+        ``deadline``. The answer is kept (it belongs to the publisher named in it)."""
+        try:
+            if self._schedule_client is None:
+                service = (
+                    self._node.service_builder(
+                        iox2.ServiceName.new(f"superflow/{self.run}/schedule"))
+                    .request_response(_ScheduleRequest, _ScheduleReply)
+                    .max_clients(MAX_SUBSCRIBERS * 4)
+                    .max_servers(MAX_PUBLISHERS)
+                    .max_nodes(MAX_NODES * 2)
+                    .open_or_create()
+                )
+                self._schedule_client = (service, service.client_builder().create())
+        except Exception as e:
+            raise SuperflowError(f"run {self.run!r}: opening its schedule service: {e}",
+                                 self.run, self.service) from e
+        client = self._schedule_client[1]
+        request = _ScheduleRequest(rank=self.rank or 0, broadcast=int(self.rank is None))
+        while True:
+            # A fresh client may not be connected to the server yet: resend until one
+            # answers.
+            pending = client.send_copy(request)
+            attempt = time.monotonic()
+            while time.monotonic() - attempt < 0.5:
+                response = pending.receive()
+                if response is not None:
+                    reply = _ScheduleReply.from_buffer_copy(response.payload().contents)
+                    response.delete()
+                    if not reply.known:
+                        raise SuperflowError(
+                            f"run {self.run!r}: the pipeline has no stream {self.service!r} "
+                            f"({_REFUSALS[1]})", self.run, self.service)
+                    self._schedule = Schedule(reply.steps, reply.min_steps, reply.epochs,
+                                              (reply.publisher_hi << 64) | reply.publisher_lo)
+                    return self._schedule
+                if deadline is not None and time.monotonic() >= deadline:
+                    return None
+                time.sleep(0.005)
 
     def release_current(self) -> None:
         """Releases the batch handed out last, if it is still held."""
@@ -511,6 +666,9 @@ class Stream:
         received is that one. Batches of the old position still queued are dropped (told
         apart by the reply's sequence number). Raises :class:`ResumeRefused` when the
         pipeline refuses, :class:`PipelineTimeout` when none answers in ``timeout_s``."""
+        if self._pending is not None:
+            self._pending.release()
+            self._pending = None
         self.release_current()
         # The requests go out while batches are taken off the queue: room for one.
         self._room(MAX_BORROWED)
@@ -581,16 +739,24 @@ class Stream:
             else:
                 sample.delete()
         self._last = None
+        self._ended = False
+        self._position = (epoch, step)
 
     # -- lifetime --------------------------------------------------------------------
 
     def close(self) -> None:
         """Releases the current batch and leaves the service (the port stays open, unseen,
         while views of held batches are alive: their memory is its to hand back)."""
+        if self._pending is not None:
+            self._pending.release()
+            self._pending = None
         self.release_current()
         if self._stash is not None:
             self._stash.delete()
             self._stash = None
+        if self._schedule_client is not None:
+            self._schedule_client[1].delete()
+            self._schedule_client = None
         ports = ("_listener",) if self._held else ("_subscriber", "_listener")
         for port in ports:
             obj = getattr(self, port, None)
@@ -606,3 +772,42 @@ class Stream:
 
     def __repr__(self) -> str:
         return f"Stream(run={self.run!r}, service={self.service!r})"
+
+
+class Epoch:
+    """The batches of one epoch of a :class:`Stream` (``stream.epoch()``): iterating
+    yields this rank's batches of the current epoch and stops after its last one (or
+    when a batch of a later epoch comes first: it is kept for the next iteration).
+    Breaking out and iterating again continues the same epoch."""
+
+    def __init__(self, stream: Stream, drop_uneven: bool = False):
+        self.stream = stream
+        self.drop_uneven = drop_uneven
+
+    def __len__(self) -> int:
+        schedule = self.stream.schedule()
+        return schedule.min_steps if self.drop_uneven else schedule.steps
+
+    def __iter__(self) -> Iterator[Batch]:
+        stream = self.stream
+        if stream.ended:
+            return
+        stream.schedule()  # where the epoch ends
+        epoch = None
+        while not stream.ended:
+            batch = stream.next()
+            if epoch is None:
+                epoch = batch.epoch
+            elif batch.epoch != epoch:
+                stream._pending = batch
+                return
+            schedule = stream._schedule
+            if not (self.drop_uneven and schedule is not None
+                    and schedule.publisher == batch.publisher
+                    and batch.step >= schedule.min_steps):
+                yield batch
+            if batch.last_in_epoch:
+                return
+
+    def __repr__(self) -> str:
+        return f"Epoch({self.stream!r}, drop_uneven={self.drop_uneven})"

@@ -6,6 +6,7 @@ non-zero when a check fails.
     check_stream.py read --run R [--count N] [--timeout S]   # one line per batch
     check_stream.py resume --run R                           # resume replays bit-identically
     check_stream.py kept --run R                             # views outlive their release
+    check_stream.py epochs --run R                           # epochs that end
     check_stream.py torch_views --run R                      # torch tensors share the memory
     check_stream.py timeout --run R --timeout S              # no pipeline: PipelineTimeout
     check_stream.py malformed --run R                        # bad batches: typed errors
@@ -189,6 +190,34 @@ def torch_views(args: argparse.Namespace) -> int:
     return 0 if all(shared.values()) and inside and equal else 1
 
 
+def epochs(args: argparse.Namespace) -> int:
+    """On a pipeline with --epochs 2: stream.epoch() twice, then the stream has ended;
+    rewound, `for batch in stream` stops by itself after epoch 1; rewound again,
+    TorchIterable in a DataLoader gives one epoch per iter(), the same batches."""
+    import torch
+
+    stream = superflow.Stream(args.run, prefix=args.prefix)  # no timeout_s: nothing to wait out
+    length = len(stream.epoch())
+    per_epoch = []
+    for _ in range(2):
+        per_epoch.append([[b.epoch, b.step, b.keyframes] for b in stream.epoch()])
+    ended = stream.ended
+    after = [b.step for b in stream]  # nothing: the stream ended
+    stream.resume(0, 0)
+    whole = [[b.epoch, b.step, b.keyframes] for b in stream]
+    dataset = superflow.TorchIterable(stream)
+    loader = torch.utils.data.DataLoader(dataset, batch_size=None)
+    dataset.set_epoch(0)  # the stream ended at epoch 2: back to 0
+    loaded = []
+    for e in range(3):
+        dataset.set_epoch(e)  # at e already: nothing happens
+        loaded.append([[int(x) for x in item["sample_ids"][:, 2]] for item in loader])
+    emit({"len": length, "loader_len": len(loader), "epochs": per_epoch, "ended": ended,
+          "after_end": after, "whole": whole, "loaded": loaded})
+    stream.close()
+    return 0
+
+
 def timeout(args: argparse.Namespace) -> int:
     stream = superflow.Stream(args.run, prefix=args.prefix, timeout_s=args.timeout)
     started = time.monotonic()
@@ -267,7 +296,7 @@ def malformed(args: argparse.Namespace) -> int:
 
 def main() -> int:
     parser = argparse.ArgumentParser()
-    parser.add_argument("scenario", choices=["read", "resume", "kept", "torch_views", "timeout",
+    parser.add_argument("scenario", choices=["read", "resume", "kept", "epochs", "torch_views", "timeout",
                                              "malformed"])
     parser.add_argument("--run", required=True)
     parser.add_argument("--prefix")
