@@ -5,14 +5,16 @@
 //! malformed batches. The
 //! scenarios are `trainer/python/tests/check_stream.py`.
 //!
-//! With torch: `batch.torch()` shares the memory, `TorchIterable` feeds a `DataLoader`,
+//! With torch: `batch.torch()` shares the memory, `TorchIterable` feeds a `DataLoader`
+//! one epoch per `iter()`, `superflow.torch.spconv_tensor` gives spconv its voxels,
 //! and `torchrun` trains the example (trainer/python/examples/train_torch.py) on two
 //! shards with DistributedDataParallel (gloo): the same parameters on both ranks, the loss
 //! falling.
 //!
 //! The environment is `SUPERFLOW_PYTHON` (`.ci/run` makes a fresh one), else one made
 //! here under the target directory (`python3 -m venv`, `pip install
-//! "./trainer/python[torch]" safetensors`: PyPI's torch brings its CUDA libraries, ~5 GB).
+//! "./trainer/python[torch,spconv]" safetensors`: PyPI's torch brings its CUDA libraries,
+//! ~5 GB; spconv is its CPU build).
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
 
@@ -59,7 +61,7 @@ fn package_python() -> PathBuf {
             let mut pip = Command::new(&python);
             pip.args(["-m", "pip", "install", "-q", "--disable-pip-version-check"]);
             if fresh {
-                pip.args(["./trainer/python[torch]", "safetensors"]);
+                pip.args(["./trainer/python[torch,spconv]", "safetensors"]);
             } else {
                 pip.args(["--force-reinstall", "--no-deps", "./trainer/python"]);
             }
@@ -318,6 +320,53 @@ fn python_epochs_end_and_the_stream_stops_after_the_last() {
         serde_json::json!([&loaded[..2], &loaded[2..], []]),
         "{got}"
     );
+    no_shared_memory_left(&p);
+}
+
+/// `superflow.torch.spconv_tensor` with the CPU `spconv` package (the `[spconv]` extra):
+/// the indices are the batch's level-0 coordinates shifted to be non-negative, in the
+/// batch's row order, `batch_size` the clouds, the features the batch's own memory; a
+/// `SubMConv3d` forward keeps the rows. Beside it, `examples/train_spconv.py` on the same
+/// batch: the spconv MinkUNet's forward pass and the SuperFlow losses, then it stops,
+/// saying why (spconv's CPU build has no backward).
+#[test]
+fn python_spconv_tensor_holds_the_batch_voxels_and_runs_a_submanifold_convolution() {
+    let p = prefix("pyspconv");
+    let python = scenario(&p, &["spconv", "--run", "pyspconv"], &[]);
+    let example = superflow_tests::process::spawn(
+        Command::new(package_python())
+            .arg(workspace_root().join("trainer/python/examples/train_spconv.py"))
+            .args(["--run", "pyspconv", "--timeout", "120"])
+            .env("SUPERFLOW_IOX_PREFIX", &p)
+            .env("OMP_NUM_THREADS", "1")
+            .current_dir(env!("CARGO_TARGET_TMPDIR"))
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped()),
+    );
+    let pipe = pipeline(
+        &p,
+        "pyspconv",
+        &["--batch-size", "2", "--epochs", "1", "--subscribers", "2"],
+    );
+    let out = succeeded(python);
+    let checks = out[0]["checks"].as_object().unwrap();
+    assert_eq!(checks.len(), 8, "{out:?}");
+    assert!(checks.values().all(|v| v == true), "{out:?}");
+    assert!(out[0]["voxels"].as_u64().unwrap() > 1000, "{out:?}");
+    let trained = succeeded(example);
+    assert_eq!(trained.len(), 1, "{trained:?}");
+    for term in ["total", "l_sc", "l_tc", "l_d2s"] {
+        let loss = trained[0][term].as_f64().unwrap();
+        assert!(loss.is_finite() && loss > 0.0, "{term}: {trained:?}");
+    }
+    assert!(
+        trained[0]["stopped"]
+            .as_str()
+            .unwrap()
+            .contains("forward passes only"),
+        "{trained:?}"
+    );
+    stop(pipe);
     no_shared_memory_left(&p);
 }
 

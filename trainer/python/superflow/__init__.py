@@ -39,6 +39,10 @@ def __getattr__(name: str):
         from .torch_data import TorchIterable
 
         return TorchIterable
+    if name == "torch":  # superflow.torch.spconv_tensor, without `import superflow.torch`
+        import importlib
+
+        return importlib.import_module(".torch", __name__)
     raise AttributeError(f"module 'superflow' has no attribute {name!r}")
 
 __all__ = [

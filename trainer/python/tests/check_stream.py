@@ -7,6 +7,7 @@ non-zero when a check fails.
     check_stream.py resume --run R                           # resume replays bit-identically
     check_stream.py kept --run R                             # views outlive their release
     check_stream.py epochs --run R                           # epochs that end
+    check_stream.py spconv --run R                           # spconv's SparseConvTensor
     check_stream.py torch_views --run R                      # torch tensors share the memory
     check_stream.py timeout --run R --timeout S              # no pipeline: PipelineTimeout
     check_stream.py malformed --run R                        # bad batches: typed errors
@@ -218,6 +219,42 @@ def epochs(args: argparse.Namespace) -> int:
     return 0
 
 
+def spconv(args: argparse.Namespace) -> int:
+    """superflow.torch.spconv_tensor of a batch: indices equal the batch's coordinates
+    (shifted), rows in order, features shared with the batch; a SubMConv3d forward on it
+    (CPU spconv runs forward only) keeps the rows."""
+    import spconv.pytorch as sp
+    import torch
+
+    import superflow.torch as sft
+
+    stream = superflow.Stream(args.run, prefix=args.prefix, timeout_s=args.timeout)
+    batch = next(stream)
+    x = sft.spconv_tensor(batch)
+    coords = np.asarray(batch["l0_coords"])
+    low = coords[:, 1:].min(axis=0)
+    indices = x.indices.numpy()
+    torch.manual_seed(0)
+    conv = sp.SubMConv3d(4, 8, 3, bias=False, indice_key="subm0")
+    with torch.no_grad():
+        y = conv(x)
+    checks = {
+        "indices": bool(np.array_equal(indices[:, 0], coords[:, 0])
+                        and np.array_equal(indices[:, 1:], coords[:, 1:] - low)),
+        "non-negative": bool((indices >= 0).all()),
+        "spatial shape": list(x.spatial_shape) == [int(v) + 1 for v in (coords[:, 1:] - low).max(axis=0)],
+        "batch size = clouds": x.batch_size == len(batch["l0_clouds"]) - 1,
+        "features shared": x.features.data_ptr() == np.asarray(batch["voxel_features"]).__array_interface__["data"][0],
+        "forward rows": tuple(y.features.shape) == (len(coords), 8),
+        "forward indices": bool(torch.equal(y.indices, x.indices)),
+        "forward finite": bool(torch.isfinite(y.features).all()),
+    }
+    emit({"checks": checks, "voxels": len(coords), "clouds": x.batch_size,
+          "spatial_shape": list(x.spatial_shape)})
+    stream.close()
+    return 0 if all(checks.values()) else 1
+
+
 def timeout(args: argparse.Namespace) -> int:
     stream = superflow.Stream(args.run, prefix=args.prefix, timeout_s=args.timeout)
     started = time.monotonic()
@@ -296,7 +333,7 @@ def malformed(args: argparse.Namespace) -> int:
 
 def main() -> int:
     parser = argparse.ArgumentParser()
-    parser.add_argument("scenario", choices=["read", "resume", "kept", "epochs", "torch_views", "timeout",
+    parser.add_argument("scenario", choices=["read", "resume", "kept", "epochs", "spconv", "torch_views", "timeout",
                                              "malformed"])
     parser.add_argument("--run", required=True)
     parser.add_argument("--prefix")
