@@ -117,7 +117,11 @@ pub mod qos {
     pub const MAX_SUBSCRIBERS: usize = 8;
     /// Largest receive queue a subscriber may ask for (batches).
     pub const MAX_BUFFER: usize = 4;
-    /// Batches a subscriber may hold at once.
+    /// Batches a subscriber may hold at once. The Python package's `max_held` (batches
+    /// released while views of them are alive, plus the current one) is bounded by it.
+    /// Every process opening a service must agree: raising it means raising it in
+    /// `trainer/python/superflow/stream.py` too, and a reader asking for more than an
+    /// older pipeline created the service with cannot open it.
     pub const MAX_BORROWED: usize = 2;
     /// Publishers: the pipeline, plus one restarting while the old one is cleaned up.
     pub const MAX_PUBLISHERS: usize = 2;

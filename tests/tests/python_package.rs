@@ -320,6 +320,7 @@ fn python_epochs_end_and_the_stream_stops_after_the_last() {
         serde_json::json!([&loaded[..2], &loaded[2..], []]),
         "{got}"
     );
+    assert_eq!(got["continued"], serde_json::json!(&loaded[..2]), "{got}");
     no_shared_memory_left(&p);
 }
 
@@ -367,6 +368,46 @@ fn python_spconv_tensor_holds_the_batch_voxels_and_runs_a_submanifold_convolutio
         "{trained:?}"
     );
     stop(pipe);
+    no_shared_memory_left(&p);
+}
+
+/// 6 keyframes dealt to 4 ranks in batches of 1: ranks 0 and 1 get 2 batches an epoch,
+/// ranks 2 and 3 get 1. `len(stream.epoch())` says so; `stream.epoch(drop_uneven=True)`
+/// gives every rank 1 batch an epoch (the ranks stay in step), and every rank's stream
+/// ends after epoch 1.
+#[test]
+fn python_uneven_shards_stay_in_step_with_drop_uneven() {
+    let p = prefix("pyuneven");
+    let readers: Vec<Proc> = (0..4)
+        .map(|r| {
+            let rank = r.to_string();
+            let env = [("RANK", rank.as_str()), ("WORLD_SIZE", "4")];
+            scenario(&p, &["uneven", "--run", "pyuneven"], &env)
+        })
+        .collect();
+    let pipe = pipeline(
+        &p,
+        "pyuneven",
+        &["--world-size", "4", "--batch-size", "1", "--epochs", "2"],
+    );
+    for (rank, reader) in readers.into_iter().enumerate() {
+        let out = succeeded(reader);
+        let got = &out[0];
+        let steps = if rank < 2 { 2 } else { 1 };
+        assert_eq!(got["rank"], rank, "{got}");
+        assert_eq!(
+            (&got["steps"], &got["min_steps"]),
+            (&steps.into(), &1.into())
+        );
+        assert_eq!(got["lengths"], serde_json::json!([steps, 1]), "{got}");
+        assert_eq!(
+            got["epochs"],
+            serde_json::json!([[[0, 0]], [[1, 0]]]),
+            "{got}"
+        );
+    }
+    let (ok, _, err) = finish(pipe, LIMIT);
+    assert!(ok, "{err}");
     no_shared_memory_left(&p);
 }
 

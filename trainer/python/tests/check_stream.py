@@ -7,6 +7,7 @@ non-zero when a check fails.
     check_stream.py resume --run R                           # resume replays bit-identically
     check_stream.py kept --run R                             # views outlive their release
     check_stream.py epochs --run R                           # epochs that end
+    check_stream.py uneven --run R                           # ranks in step on uneven shards
     check_stream.py spconv --run R                           # spconv's SparseConvTensor
     check_stream.py torch_views --run R                      # torch tensors share the memory
     check_stream.py timeout --run R --timeout S              # no pipeline: PipelineTimeout
@@ -209,12 +210,17 @@ def epochs(args: argparse.Namespace) -> int:
     dataset = superflow.TorchIterable(stream)
     loader = torch.utils.data.DataLoader(dataset, batch_size=None)
     dataset.set_epoch(0)  # the stream ended at epoch 2: back to 0
+    # Broken out of after one batch, the next iter() continues the same epoch.
+    first_of_epoch = [int(x) for x in next(iter(loader))["sample_ids"][:, 2]]
+    rest_of_epoch = [[int(x) for x in item["sample_ids"][:, 2]] for item in loader]
+    dataset.set_epoch(0)  # at epoch 1 now: back to 0
     loaded = []
     for e in range(3):
         dataset.set_epoch(e)  # at e already: nothing happens
         loaded.append([[int(x) for x in item["sample_ids"][:, 2]] for item in loader])
     emit({"len": length, "loader_len": len(loader), "epochs": per_epoch, "ended": ended,
-          "after_end": after, "whole": whole, "loaded": loaded})
+          "after_end": after, "whole": whole, "loaded": loaded,
+          "continued": [first_of_epoch, *rest_of_epoch]})
     stream.close()
     return 0
 
@@ -253,6 +259,21 @@ def spconv(args: argparse.Namespace) -> int:
           "spatial_shape": list(x.spatial_shape)})
     stream.close()
     return 0 if all(checks.values()) else 1
+
+
+def uneven(args: argparse.Namespace) -> int:
+    """One rank of a pipeline whose shards differ by a batch: stream.epoch(drop_uneven=True)
+    gives every rank the fewest batches per epoch; the stream ends all the same."""
+    stream = superflow.Stream(args.run, prefix=args.prefix)
+    schedule = stream.schedule()
+    lengths = [len(stream.epoch()), len(stream.epoch(drop_uneven=True))]
+    epochs = []
+    while not stream.ended:
+        epochs.append([[b.epoch, b.step] for b in stream.epoch(drop_uneven=True)])
+    emit({"rank": stream.rank, "steps": schedule.steps, "min_steps": schedule.min_steps,
+          "epochs_served": schedule.epochs, "lengths": lengths, "epochs": epochs})
+    stream.close()
+    return 0
 
 
 def timeout(args: argparse.Namespace) -> int:
@@ -333,7 +354,7 @@ def malformed(args: argparse.Namespace) -> int:
 
 def main() -> int:
     parser = argparse.ArgumentParser()
-    parser.add_argument("scenario", choices=["read", "resume", "kept", "epochs", "spconv", "torch_views", "timeout",
+    parser.add_argument("scenario", choices=["read", "resume", "kept", "epochs", "uneven", "spconv", "torch_views", "timeout",
                                              "malformed"])
     parser.add_argument("--run", required=True)
     parser.add_argument("--prefix")
