@@ -504,7 +504,9 @@ class Stream:
     def held(self) -> list[tuple[int, int]]:
         """``(epoch, step)`` of the batches this stream holds: the current one and released
         ones whose views are alive."""
-        return sorted(m.position for m in self._held)
+        # A copy first: a finalizer (garbage collection, or another thread dropping the
+        # last view) may hand a batch back while this runs.
+        return sorted(m.position for m in list(self._held))
 
     def _room(self, limit: int) -> None:
         """Raises :class:`TooManyBatchesHeld` unless fewer than ``limit`` batches are held."""

@@ -22,6 +22,7 @@ import argparse
 import ctypes
 import json
 import sys
+import threading
 import time
 
 import numpy as np
@@ -157,6 +158,14 @@ def kept(args: argparse.Namespace) -> int:
     for _ in range(3):
         batch = next(stream)
         positions.append([batch.epoch, batch.step])
+    # A prefetching wrapper may drop the last view on its own thread.
+    box = [batch.torch()["points"]]
+    batch.release()
+    deferred = not batch.returned
+    worker = threading.Thread(target=box.clear)
+    worker.start()
+    worker.join()
+    checks["returned after a drop on another thread"] = deferred and batch.returned
     emit({"checks": checks, "positions": positions, "held": [list(h) for h in held],
           "repr": repr(first)})
     stream.close()
