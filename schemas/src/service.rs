@@ -5,6 +5,7 @@
 //! | `superflow/<run>/batches` | publish-subscribe | broadcast: every subscriber sees every batch |
 //! | `superflow/<run>/rank/<r>` | publish-subscribe | shard: rank `r` gets its disjoint share |
 //! | `superflow/<run>/control` | request-response | a trainer tells the pipeline where it resumes |
+//! | `superflow/<run>/schedule` | request-response | a subscriber asks how long its stream's epochs are and how many there are |
 //! | `superflow/<run>/ready` | event | wakes subscribers when a batch was published |
 
 use crate::batch::BatchError;
@@ -52,6 +53,62 @@ impl ResumeReply {
     }
 }
 
+/// Asks the pipeline how its stream `rank` (0 in broadcast mode) is scheduled. Sent on
+/// the schedule service; the answer comes from a thread of its own, so it never waits
+/// behind a publisher blocked on a full queue.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, ZeroCopySend)]
+#[type_name("superflow::ScheduleRequest")]
+#[repr(C)]
+pub struct ScheduleRequest {
+    /// Shard rank (0 for the broadcast stream).
+    pub rank: u32,
+    /// 1 when the request is for the broadcast stream.
+    pub broadcast: u32,
+}
+
+/// The pipeline's answer to a [`ScheduleRequest`]. With it a subscriber knows which batch
+/// ends an epoch of its stream (step `steps - 1`) and which ends the stream (that step of
+/// epoch `epochs - 1`): only `--epochs` reached ends a stream, a pipeline stopped by a
+/// signal and restarted does not.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, ZeroCopySend)]
+#[type_name("superflow::ScheduleReply")]
+#[repr(C)]
+pub struct ScheduleReply {
+    /// 1: the fields below hold the stream's schedule; 0: no such stream (rank out of
+    /// range, or the pipeline runs in the other mode).
+    pub known: u32,
+    /// 0, reserved.
+    pub reserved: u32,
+    /// Batches per epoch of this stream.
+    pub steps: u64,
+    /// The fewest batches per epoch of any stream of the run, all hosts included: where
+    /// data-parallel ranks stop an epoch together when the keyframes do not divide evenly.
+    pub min_steps: u64,
+    /// Epochs the pipeline serves (`--epochs`); 0: endless.
+    pub epochs: u64,
+    /// Low 64 bits of the id of the stream's publisher.
+    pub publisher_lo: u64,
+    /// High 64 bits of that id.
+    pub publisher_hi: u64,
+}
+
+impl ScheduleReply {
+    /// The publisher id (iceoryx2 `UniquePublisherId` value).
+    pub fn publisher(&self) -> u128 {
+        (u128::from(self.publisher_hi) << 64) | u128::from(self.publisher_lo)
+    }
+
+    /// Whether the batch at `(epoch, step)` is the last of its epoch in this stream.
+    pub fn ends_epoch(&self, step: u64) -> bool {
+        self.known == 1 && step + 1 >= self.steps
+    }
+
+    /// Whether the batch at `(epoch, step)` is the last of the stream.
+    pub fn ends_stream(&self, epoch: u64, step: u64) -> bool {
+        self.ends_epoch(step) && self.epochs > 0 && epoch + 1 >= self.epochs
+    }
+}
+
 /// Quality of service of a batch service, the same for every process that opens it
 /// (iceoryx2 refuses to open a service with incompatible settings). Lossless:
 /// no safe overflow, so a full subscriber queue makes the publisher wait.
@@ -60,7 +117,11 @@ pub mod qos {
     pub const MAX_SUBSCRIBERS: usize = 8;
     /// Largest receive queue a subscriber may ask for (batches).
     pub const MAX_BUFFER: usize = 4;
-    /// Batches a subscriber may hold at once.
+    /// Batches a subscriber may hold at once. The Python package's `max_held` (batches
+    /// released while views of them are alive, plus the current one) is bounded by it.
+    /// Every process opening a service must agree: raising it means raising it in
+    /// `trainer/python/superflow/stream.py` too, and a reader asking for more than an
+    /// older pipeline created the service with cannot open it.
     pub const MAX_BORROWED: usize = 2;
     /// Publishers: the pipeline, plus one restarting while the old one is cleaned up.
     pub const MAX_PUBLISHERS: usize = 2;
@@ -131,7 +192,7 @@ pub enum ServiceSetupError {
         /// iceoryx2's reason.
         source: iceoryx2::service::builder::event::EventOpenOrCreateError,
     },
-    /// Opening or creating the control service failed.
+    /// Opening or creating the control or the schedule service failed.
     #[error("opening service `{name}`: {source}")]
     Control {
         /// The service.
@@ -202,6 +263,30 @@ pub fn open_ready_service(
         .max_notifiers(qos::MAX_PUBLISHERS)
         .open_or_create()
         .map_err(|source| ServiceSetupError::Ready { name, source })
+}
+
+/// The schedule service type (request-response).
+pub type ScheduleService = iceoryx2::service::port_factory::request_response::PortFactory<
+    iceoryx2::prelude::ipc::Service,
+    ScheduleRequest,
+    (),
+    ScheduleReply,
+    (),
+>;
+
+/// Opens (or creates) the schedule service of a run.
+pub fn open_schedule_service(
+    node: &iceoryx2::prelude::Node<iceoryx2::prelude::ipc::Service>,
+    run: &str,
+) -> Result<ScheduleService, ServiceSetupError> {
+    let name = schedule_service(run)?;
+    node.service_builder(&service_name(&name)?)
+        .request_response::<ScheduleRequest, ScheduleReply>()
+        .max_clients(qos::MAX_SUBSCRIBERS * 4)
+        .max_servers(qos::MAX_PUBLISHERS)
+        .max_nodes(qos::MAX_NODES * 2)
+        .open_or_create()
+        .map_err(|source| ServiceSetupError::Control { name, source })
 }
 
 /// The control service type (request-response).
@@ -277,6 +362,12 @@ pub fn control_service(run: &str) -> Result<String, BatchError> {
     Ok(format!("{SERVICE_PREFIX}/{run}/control"))
 }
 
+/// The schedule service of a run: `superflow/<run>/schedule`.
+pub fn schedule_service(run: &str) -> Result<String, BatchError> {
+    crate::batch::validate_run_name(run)?;
+    Ok(format!("{SERVICE_PREFIX}/{run}/schedule"))
+}
+
 /// The wake-up event service that goes with a batch service: `<service>/ready`.
 pub fn ready_event_service(batch_service: &str) -> String {
     format!("{batch_service}/ready")
@@ -291,11 +382,29 @@ mod tests {
         assert_eq!(batches_service("exp1").unwrap(), "superflow/exp1/batches");
         assert_eq!(rank_service("exp1", 3).unwrap(), "superflow/exp1/rank/3");
         assert_eq!(control_service("exp1").unwrap(), "superflow/exp1/control");
+        assert_eq!(schedule_service("exp1").unwrap(), "superflow/exp1/schedule");
         assert_eq!(
             ready_event_service("superflow/exp1/rank/3"),
             "superflow/exp1/rank/3/ready"
         );
         assert!(batches_service("a/b").is_err());
+    }
+
+    #[test]
+    fn a_schedule_says_which_batches_end_an_epoch_and_the_stream() {
+        let reply = ScheduleReply {
+            known: 1,
+            steps: 3,
+            min_steps: 2,
+            epochs: 2,
+            ..ScheduleReply::default()
+        };
+        assert!(!reply.ends_epoch(1) && reply.ends_epoch(2));
+        assert!(!reply.ends_stream(0, 2) && !reply.ends_stream(1, 1));
+        assert!(reply.ends_stream(1, 2));
+        let endless = ScheduleReply { epochs: 0, ..reply };
+        assert!(endless.ends_epoch(2) && !endless.ends_stream(7, 2));
+        assert!(!ScheduleReply::default().ends_epoch(0));
     }
 
     #[test]

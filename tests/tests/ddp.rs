@@ -6,7 +6,8 @@
 //!   batches — short and empty per-rank batches included;
 //! * a hung rank: the collective watchdog aborts the job within its timeout;
 //! * the real pipeline in shard mode feeding 2 trainer ranks: equal `params_hash` on both
-//!   ranks at every step, different from a run without `--ddp`; a rank SIGKILLed
+//!   ranks at every step, different from a run without `--ddp`, both ranks ending
+//!   together at the end of the stream (asked for more steps than it holds); a rank SIGKILLed
 //!   mid-epoch ends the job, and the job restarted with `--resume` continues both ranks
 //!   from the checkpoint with every keyframe trained exactly once per epoch.
 //!
@@ -400,6 +401,8 @@ fn assert_replicas_agree(out: &Path, steps: u64) -> [BTreeMap<u64, StepRecord>; 
 
 #[test]
 fn two_ranks_hold_the_same_model_at_every_step_and_differ_from_one_rank_alone() {
+    // Asked for more steps than the 2 epochs hold: every trainer ends with the stream.
+    const ASKED: u64 = 20;
     const STEPS: u64 = 6;
     let p = prefix("tworanks");
     let out = temp_dir("two-ranks");
@@ -409,7 +412,7 @@ fn two_ranks_hold_the_same_model_at_every_step_and_differ_from_one_rank_alone() 
             Some(mpirun(2)),
             &p,
             "ddp",
-            STEPS,
+            ASKED,
             &out,
             &["--ddp", "--plot"],
         ),
@@ -429,6 +432,11 @@ fn two_ranks_hold_the_same_model_at_every_step_and_differ_from_one_rank_alone() 
         stderr.contains("every rank starts from rank 0's parameters"),
         "{stderr}"
     );
+    assert_eq!(
+        stderr.matches("trained 6 of the 20 steps asked").count(),
+        2,
+        "both ranks end with the stream, together: {stderr}"
+    );
 
     // The same 2 shards trained by 2 independent trainers (no --ddp): what a skipped
     // all-reduce would give.
@@ -443,7 +451,7 @@ fn two_ranks_hold_the_same_model_at_every_step_and_differ_from_one_rank_alone() 
                 None,
                 &p,
                 "alone",
-                STEPS,
+                ASKED,
                 &out,
                 &["--rank", &rank, "--world-size", "2"],
             )
@@ -452,6 +460,10 @@ fn two_ranks_hold_the_same_model_at_every_step_and_differ_from_one_rank_alone() 
     for proc in independent {
         let (ok, stdout, stderr) = finish(proc, LIMIT);
         assert!(ok, "{stdout}\n{stderr}");
+        assert!(
+            stderr.contains("trained 6 of the 20 steps asked"),
+            "{stderr}"
+        );
     }
     send_signal(&pipe, "-TERM");
     let _ = finish(pipe, LIMIT);

@@ -1,7 +1,8 @@
 //! The real `superflow-pipeline` feeding the real `superflow-trainer` (tiny presets) on
 //! the sample drive: the loss goes down, checkpoints are written, and a trainer killed
 //! after a checkpoint and restarted with `--resume` continues with the same batches and
-//! the same losses as an uninterrupted run; `superflow-trainer probe` of the trained
+//! the same losses as an uninterrupted run; a trainer asked for more steps than the
+//! stream has ends at the end of the stream; `superflow-trainer probe` of the trained
 //! checkpoint and of an untrained network on the drives' labels (linear and fine-tuned)
 //! prints its JSON report. `superflow-trainer check` (the backend
 //! comparison `deploy/gpu/check.sh` runs on a GPU) on a batch file from
@@ -263,6 +264,42 @@ fn training_lowers_the_loss_and_a_resumed_run_matches_an_uninterrupted_one() {
     );
     let _ = std::fs::remove_dir_all(&full);
     let _ = std::fs::remove_dir_all(&cut);
+}
+
+/// A pipeline serving 1 epoch (6 batches of 1) to a trainer asked for 24 steps: the
+/// trainer ends after the stream's last batch, saying it trained 6 of the 24 steps
+/// asked, well before its `--timeout-secs` (120 s), and the pipeline ends by itself.
+#[test]
+fn the_trainer_ends_at_the_end_of_the_stream_saying_how_many_steps_it_trained() {
+    let p = prefix("ends");
+    let out = temp_dir("train-ends");
+    let pipe = spawn(
+        Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-subscriber")))
+            .args(["--mcap", DRIVE, "--run", "ends", "--batch-size", "1"])
+            .args(["--epochs", "1"])
+            .env("SUPERFLOW_IOX_PREFIX", &p)
+            .env("RUST_LOG", "warn")
+            .current_dir(workspace_root())
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped()),
+    );
+    let started = Instant::now();
+    let (ok, _, err) = finish(trainer(&p, "ends", &out, &[]), LIMIT);
+    let took = started.elapsed();
+    assert!(ok, "{err}");
+    assert!(
+        err.contains("trained 6 of the 24 steps asked"),
+        "the end of the stream is said: {err}"
+    );
+    assert!(err.contains("done training"), "{err}");
+    assert!(took < Duration::from_secs(100), "took {took:?}: {err}");
+    let records = metrics::read(&out.join("metrics.jsonl")).unwrap();
+    assert_eq!(records.len(), 6);
+    assert!(out.join("checkpoints/step-00000006").exists(), "{err}");
+    let (ok, _, err) = finish(pipe, LIMIT);
+    assert!(ok, "the pipeline ends once the trainer left: {err}");
+    no_shared_memory_left(&p);
+    let _ = std::fs::remove_dir_all(&out);
 }
 
 /// `dir/batch.bin`: a batch of `samples` samples of the sample drive, written by

@@ -96,6 +96,8 @@ fn sync_dir(dir: &Path) -> std::io::Result<()> {
 }
 
 /// Writes a checkpoint into `root` atomically and removes all but the `keep` newest.
+/// A checkpoint that fails (a full disk) leaves nothing behind: its temporary files are
+/// removed, so the failure does not keep the disk full.
 pub fn save(
     root: &Path,
     state: &CheckpointState,
@@ -103,38 +105,62 @@ pub fn save(
     optim: &[u8],
     keep: usize,
 ) -> Result<PathBuf, TrainerError> {
+    save_with(root, state, [model, optim], keep, write_synced)
+}
+
+/// [`save`] with the function that writes (and syncs) one file.
+fn save_with(
+    root: &Path,
+    state: &CheckpointState,
+    [model, optim]: [&[u8]; 2],
+    keep: usize,
+    write: impl Fn(&Path, &[u8]) -> std::io::Result<()>,
+) -> Result<PathBuf, TrainerError> {
     let ctx = |action: &'static str, p: &Path, e| TrainerError::io(action, p, e);
     fs::create_dir_all(root).map_err(|e| ctx("checkpoint: creating", root, e))?;
     let name = format!("step-{:08}", state.step);
     let tmp = root.join(format!(".{name}.tmp-{}", std::process::id()));
-    if tmp.exists() {
-        fs::remove_dir_all(&tmp).map_err(|e| ctx("checkpoint: removing", &tmp, e))?;
-    }
-    fs::create_dir(&tmp).map_err(|e| ctx("checkpoint: creating", &tmp, e))?;
-    let json = serde_json::to_vec_pretty(state).map_err(|error| TrainerError::Json {
-        path: tmp.join("state.json"),
-        error,
-    })?;
-    for (file, bytes) in [
-        ("model.bpk", model),
-        ("optim.bpk", optim),
-        ("state.json", &json[..]),
-    ] {
-        let p = tmp.join(file);
-        write_synced(&p, bytes).map_err(|e| ctx("checkpoint: writing", &p, e))?;
-    }
-    sync_dir(&tmp).map_err(|e| ctx("checkpoint: syncing", &tmp, e))?;
-    let dir = root.join(&name);
-    if dir.exists() {
-        fs::remove_dir_all(&dir).map_err(|e| ctx("checkpoint: replacing", &dir, e))?;
-    }
-    fs::rename(&tmp, &dir).map_err(|e| ctx("checkpoint: renaming into", &dir, e))?;
     let latest_tmp = root.join(format!(".latest.tmp-{}", std::process::id()));
-    write_synced(&latest_tmp, name.as_bytes())
-        .map_err(|e| ctx("checkpoint: writing", &latest_tmp, e))?;
-    let latest = root.join("latest");
-    fs::rename(&latest_tmp, &latest).map_err(|e| ctx("checkpoint: renaming into", &latest, e))?;
-    sync_dir(root).map_err(|e| ctx("checkpoint: syncing", root, e))?;
+    let written = (|| {
+        if tmp.exists() {
+            fs::remove_dir_all(&tmp).map_err(|e| ctx("checkpoint: removing", &tmp, e))?;
+        }
+        fs::create_dir(&tmp).map_err(|e| ctx("checkpoint: creating", &tmp, e))?;
+        let json = serde_json::to_vec_pretty(state).map_err(|error| TrainerError::Json {
+            path: tmp.join("state.json"),
+            error,
+        })?;
+        for (file, bytes) in [
+            ("model.bpk", model),
+            ("optim.bpk", optim),
+            ("state.json", &json[..]),
+        ] {
+            let p = tmp.join(file);
+            write(&p, bytes).map_err(|e| ctx("checkpoint: writing", &p, e))?;
+        }
+        sync_dir(&tmp).map_err(|e| ctx("checkpoint: syncing", &tmp, e))?;
+        let dir = root.join(&name);
+        if dir.exists() {
+            fs::remove_dir_all(&dir).map_err(|e| ctx("checkpoint: replacing", &dir, e))?;
+        }
+        fs::rename(&tmp, &dir).map_err(|e| ctx("checkpoint: renaming into", &dir, e))?;
+        write(&latest_tmp, name.as_bytes())
+            .map_err(|e| ctx("checkpoint: writing", &latest_tmp, e))?;
+        let latest = root.join("latest");
+        fs::rename(&latest_tmp, &latest)
+            .map_err(|e| ctx("checkpoint: renaming into", &latest, e))?;
+        sync_dir(root).map_err(|e| ctx("checkpoint: syncing", root, e))?;
+        Ok(dir)
+    })();
+    let dir = match written {
+        Ok(dir) => dir,
+        Err(e) => {
+            // Best effort: the error being reported is the one that matters.
+            let _ = fs::remove_dir_all(&tmp);
+            let _ = fs::remove_file(&latest_tmp);
+            return Err(e);
+        }
+    };
     prune(root, keep)?;
     Ok(dir)
 }
@@ -243,6 +269,42 @@ mod tests {
                 .step,
             40
         );
+        fs::remove_dir_all(&root).expect("cleanup");
+    }
+
+    #[test]
+    fn a_checkpoint_that_fails_on_a_full_disk_leaves_no_temporary_files() {
+        let root = std::env::temp_dir().join(format!("superflow-ckpt-full-{}", std::process::id()));
+        let _ = fs::remove_dir_all(&root);
+        save(&root, &state(10), b"model", b"optim", 2).expect("saved");
+        let before = fs::read_dir(&root).expect("dir").count();
+        for failing in ["optim.bpk", "state.json", ".latest.tmp"] {
+            let full = |p: &Path, bytes: &[u8]| {
+                if p.to_string_lossy().contains(failing) {
+                    // What a full disk answers; the part written so far stays.
+                    fs::write(p, &bytes[..bytes.len() / 2])?;
+                    return Err(std::io::Error::from(std::io::ErrorKind::StorageFull));
+                }
+                write_synced(p, bytes)
+            };
+            let err = save_with(&root, &state(20), [b"model", b"optim"], 2, full)
+                .expect_err("the disk is full");
+            assert!(err.to_string().contains("checkpoint: writing"), "{err}");
+            let left: Vec<String> = fs::read_dir(&root)
+                .expect("dir")
+                .filter_map(|e| e.ok()?.file_name().into_string().ok())
+                .filter(|n| n.starts_with('.'))
+                .collect();
+            assert!(left.is_empty(), "{failing}: left behind {left:?}");
+            let latest = latest(&root).expect("readable").expect("present");
+            if failing == ".latest.tmp" {
+                // The directory was complete and renamed; `latest` still names step 10.
+                assert!(root.join("step-00000020").exists());
+                fs::remove_dir_all(root.join("step-00000020")).expect("reset");
+            }
+            assert_eq!(latest.state.step, 10, "{failing}");
+            assert_eq!(fs::read_dir(&root).expect("dir").count(), before);
+        }
         fs::remove_dir_all(&root).expect("cleanup");
     }
 }

@@ -1,5 +1,10 @@
 //! Receiving batches: a subscriber on the run's broadcast service or on one rank's
 //! shard, woken by the ready event; and the resume request of the control service.
+//!
+//! A [`Received`] batch holds its iceoryx2 sample, and a [`BatchView`] of it borrows it:
+//! the compiler keeps every view from outliving the sample, so nothing here can read
+//! memory the pipeline has reused (the Python package gets the same guarantee at run
+//! time, by handing a sample back only once its last view is gone).
 
 use iceoryx2::port::listener::Listener;
 use iceoryx2::port::subscriber::Subscriber;
@@ -8,7 +13,8 @@ use iceoryx2::sample::Sample;
 use std::time::{Duration, Instant};
 use superflow_schemas::batch::{BatchError, BatchHeader, BatchView};
 use superflow_schemas::service::{
-    self as names, IpcError, ResumeReply, ResumeRequest, ServiceSetupError,
+    self as names, IpcError, ResumeReply, ResumeRequest, ScheduleReply, ScheduleRequest,
+    ServiceSetupError,
 };
 
 /// Which stream to read.
@@ -266,5 +272,40 @@ impl Subscription {
             run: self.run.clone(),
             waited: timeout,
         })
+    }
+
+    /// Asks the pipeline how this stream is scheduled (batches per epoch, epochs served:
+    /// where the epochs and the stream end); `None` when no pipeline answers within
+    /// `timeout`. The batch queue is left alone: the pipeline answers from a thread of
+    /// its own, even while its publisher waits on this subscriber's full queue.
+    pub fn schedule(&self, timeout: Duration) -> Result<Option<ScheduleReply>, SubscribeError> {
+        let service = names::open_schedule_service(&self.node, &self.run)?;
+        let client = service
+            .client_builder()
+            .create()
+            .map_err(SubscribeError::ipc("schedule client"))?;
+        let request = ScheduleRequest {
+            rank: match self.target {
+                Target::Broadcast => 0,
+                Target::Rank(r) => r,
+            },
+            broadcast: u32::from(self.target == Target::Broadcast),
+        };
+        let started = Instant::now();
+        // A fresh client may not be connected to the server yet: resend until one answers.
+        while started.elapsed() < timeout {
+            let pending = client
+                .send_copy(request)
+                .map_err(SubscribeError::ipc("schedule request"))?;
+            let attempt = Instant::now();
+            while attempt.elapsed() < Duration::from_millis(500) && started.elapsed() < timeout {
+                match pending.receive() {
+                    Ok(Some(reply)) => return Ok(Some(*reply.payload())),
+                    Ok(None) => std::thread::sleep(Duration::from_millis(5)),
+                    Err(e) => return Err(SubscribeError::ipc("schedule reply")(e)),
+                }
+            }
+        }
+        Ok(None)
     }
 }

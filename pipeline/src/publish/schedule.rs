@@ -65,6 +65,11 @@ impl Schedule {
         self.share(rank).div_ceil(self.batch_size) as u64
     }
 
+    /// The fewest batches per epoch of any stream of the run, every host's included.
+    pub fn min_steps(&self) -> u64 {
+        (self.keyframes / self.total_streams).div_ceil(self.batch_size) as u64
+    }
+
     /// The slots of batch `step` of `epoch` for `rank` given the epoch's `order`
     /// (`Plan::epoch_order`), or `None` past the epoch's end.
     pub fn batch(&self, order: &[u32], rank: usize, step: u64) -> Option<Vec<Slot>> {
@@ -122,6 +127,8 @@ mod tests {
                 assert!(schedule.batch(&order, rank, steps).is_none());
             }
             assert!(seen.iter().all(|c| *c == 1), "{n} {b} {w}: {seen:?}");
+            let fewest = (0..w).map(|r| schedule.steps(r)).min().unwrap();
+            assert_eq!(schedule.min_steps(), fewest, "{n} {b} {w}");
             assert!(positions.iter().all(|c| *c == 1));
         }
     }

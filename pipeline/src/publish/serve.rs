@@ -2,7 +2,7 @@
 //! producer thread, and publishes what it builds until the epochs are done and the
 //! subscribers gone, or until `stop`.
 
-use super::control::{ControlServer, ResumeContext};
+use super::control::{ControlServer, ResumeContext, ScheduleAnswers};
 use super::metrics::log_counters;
 use super::ports::{Stamp, StreamPorts};
 use super::producer::{Prepared, Producer};
@@ -33,7 +33,13 @@ pub fn serve(
     for name in service_names(run, config)? {
         streams.push(StreamPorts::open(&node, &name, iox, config, stop, metrics)?);
     }
-    let publisher_ids = streams.iter().map(StreamPorts::publisher_id).collect();
+    let publisher_ids: Vec<u128> = streams.iter().map(StreamPorts::publisher_id).collect();
+    let schedule_answers = ScheduleAnswers {
+        iox,
+        run,
+        broadcast: config.mode == Mode::Broadcast,
+        replies: ScheduleAnswers::replies(config, &schedule, &publisher_ids),
+    };
     let control = ControlServer::open(&node, run, publisher_ids)?;
     tracing::info!(
         services = %streams.iter().map(|s| s.name.as_str()).collect::<Vec<_>>().join(", "),
@@ -61,6 +67,7 @@ pub fn serve(
         node,
         streams,
         control,
+        schedule: schedule_answers,
         resume: ResumeContext {
             config,
             schedule: &schedule,
@@ -148,6 +155,7 @@ struct Publisher<'a> {
     node: Node<ipc::Service>,
     streams: Vec<StreamPorts>,
     control: ControlServer,
+    schedule: ScheduleAnswers<'a>,
     resume: ResumeContext<'a>,
     stop: &'a AtomicBool,
     metrics: &'a Metrics,
@@ -171,6 +179,8 @@ impl Publisher<'_> {
         let (tx, rx) = sync_channel::<Prepared>(self.config.prefetch as usize);
         let producer_done = AtomicBool::new(false);
         let result = std::thread::scope(|scope| {
+            let (schedule, stop) = (&self.schedule, self.stop);
+            scope.spawn(move || schedule.serve(stop));
             scope.spawn(|| {
                 producer.run(&tx);
                 producer_done.store(true, Ordering::SeqCst);

@@ -4,12 +4,15 @@ spatial, temporal and dense-to-sparse contrastive losses, from trainer/reference
 `superflow.Stream`, with DistributedDataParallel across ranks.
 
     superflow-pipeline --mcap recordings/drives --run exp1 --world-size 2 --batch-size 1 &
-    torchrun --standalone --nproc-per-node 2 -- trainer/python/examples/train_torch.py --run exp1 --steps 20
+    torchrun --standalone --nproc-per-node 2 -- trainer/python/examples/train_torch.py --run exp1 --epochs 2
 
 (the `--` keeps torchrun from taking `--run` for an abbreviation of its `--run-path`).
 
-Each rank reads its own shard (``RANK``/``WORLD_SIZE`` from torchrun); gradients are
-averaged by DDP (gloo on CPU, nccl on GPU). One process without torchrun reads the
+Each rank reads its own shard (``RANK``/``WORLD_SIZE`` from torchrun) epoch by epoch
+(``stream.epoch(drop_uneven=True)``: every rank stops an epoch at the same batch count,
+so the ranks stay in step and end together when the pipeline's last epoch is done, or
+after ``--epochs`` / ``--steps``); gradients are averaged by DDP (gloo on CPU, nccl on
+GPU). One process without torchrun reads the
 broadcast stream. Prints one JSON line per step and rank: losses, the samples, and at the
 end a hash of the parameters (equal on every rank when DDP keeps them in step) and the
 steps per second.
@@ -72,10 +75,26 @@ def params_hash(module: nn.Module) -> str:
     return digest.hexdigest()[:16]
 
 
+def batches(stream: superflow.Stream, epochs: int | None, steps: int | None):
+    """This rank's batches epoch by epoch, every rank the same count per epoch, until the
+    stream ends (the pipeline's last epoch), or after `epochs` epochs or `steps` batches."""
+    taken = 0
+    epoch = 0
+    while not stream.ended and (epochs is None or epoch < epochs):
+        for batch in stream.epoch(drop_uneven=True):
+            yield batch
+            taken += 1
+            if steps is not None and taken >= steps:
+                return
+        epoch += 1
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--run", required=True)
-    parser.add_argument("--steps", type=int, default=20)
+    parser.add_argument("--epochs", type=int, default=None,
+                        help="epochs to train (default: until the pipeline's last epoch)")
+    parser.add_argument("--steps", type=int, default=None, help="stop after this many steps")
     parser.add_argument("--preset", default="tiny", choices=sorted(ref.PRESETS))
     parser.add_argument("--lr", type=float, default=1e-3)
     parser.add_argument("--pixel-stride", type=int, default=4)
@@ -102,8 +121,9 @@ def main() -> int:
 
     stream = superflow.Stream(args.run, prefix=args.prefix, timeout_s=args.timeout)
     started = time.perf_counter()
-    for step in range(args.steps):
-        with next(stream) as batch:
+    step = -1
+    for step, batch in enumerate(batches(stream, args.epochs, args.steps)):
+        with batch:
             arrays = {name: np.asarray(batch[name]) for name in batch.names()}
             inputs = ref.prepare(arrays, args.pixel_stride)  # copies out of the shared memory
             position = (batch.epoch, batch.step, batch.sample_ids)
@@ -118,8 +138,9 @@ def main() -> int:
               "stream_step": position[1], "sample_ids": position[2],
               **{k: losses[k].item() for k in ("total", "l_sc", "l_tc", "l_d2s")}})
     elapsed = time.perf_counter() - started
-    emit({"rank": rank, "world_size": world, "steps": args.steps,
-          "steps_per_s": args.steps / elapsed, "params_hash": params_hash(net)})
+    steps = step + 1
+    emit({"rank": rank, "world_size": world, "steps": steps, "stream_ended": stream.ended,
+          "steps_per_s": steps / elapsed, "params_hash": params_hash(net)})
     stream.close()
     if world > 1:
         dist.destroy_process_group()

@@ -2,9 +2,11 @@
 
     import superflow
     stream = superflow.Stream(run="exp1")          # RANK / WORLD_SIZE select a shard
-    for batch in stream:
-        points = batch["points"]                   # numpy view into shared memory
-        tensors = batch.torch()                    # torch.Tensor views (torch optional)
+    for epoch in range(E):
+        for batch in stream.epoch():               # this rank's batches of one epoch
+            points = batch["points"]               # numpy view into shared memory
+            tensors = batch.torch()                # torch.Tensor views (torch optional)
+    for batch in stream: ...                       # every batch until the pipeline's last epoch
 
 The sections and their meaning: schemas/BATCH_FORMAT.md in the superflow repository
 (``superflow.sections`` has the names and dtypes).
@@ -15,13 +17,16 @@ from .sections import BATCH_SECTIONS, LEVEL_SECTIONS, section_dtype
 from .stream import (
     Batch,
     BatchReleased,
+    Epoch,
     FormatVersionMismatch,
     MalformedBatch,
     PipelineTimeout,
     ResumeRefused,
+    Schedule,
     SectionArray,
     Stream,
     SuperflowError,
+    TooManyBatchesHeld,
 )
 
 __version__ = "0.1.0"
@@ -34,6 +39,10 @@ def __getattr__(name: str):
         from .torch_data import TorchIterable
 
         return TorchIterable
+    if name == "torch":  # superflow.torch.spconv_tensor, without `import superflow.torch`
+        import importlib
+
+        return importlib.import_module(".torch", __name__)
     raise AttributeError(f"module 'superflow' has no attribute {name!r}")
 
 __all__ = [
@@ -42,14 +51,17 @@ __all__ = [
     "Batch",
     "BatchFormatError",
     "BatchReleased",
+    "Epoch",
     "FormatVersionError",
     "FormatVersionMismatch",
     "MalformedBatch",
     "PipelineTimeout",
     "ResumeRefused",
+    "Schedule",
     "SectionArray",
     "Stream",
     "SuperflowError",
+    "TooManyBatchesHeld",
     "TorchIterable",
     "read_batch",
     "section_dtype",

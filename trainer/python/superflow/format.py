@@ -7,7 +7,7 @@ raises :class:`BatchFormatError` naming the rule and the section; a batch of ano
 format version raises :class:`FormatVersionError`.
 
 The arrays stay valid only while the payload buffer does: :class:`superflow.Stream`
-guards them for you.
+keeps each batch's memory until its last view is gone.
 """
 
 from __future__ import annotations

@@ -2,18 +2,24 @@
 
 A :class:`Stream` subscribes to one run's batches (broadcast, or one rank's shard) and
 yields :class:`Batch` objects whose sections are numpy arrays *inside* the shared memory:
-nothing is copied. A batch stays valid until it is released (``batch.release()``, the
-end of a ``with batch:`` block, or the next iteration); an array read after that raises
-:class:`BatchReleased` instead of reading memory the pipeline may already have reused.
+nothing is copied. The lifetime rule: a batch's shared memory goes back to the pipeline
+only when the batch is released (``batch.release()``, the end of a ``with batch:``
+block, or the next iteration) *and* no view of it is alive (its numpy sections, the
+tensors of ``batch.torch()``, anything made from them without a copy). A view kept past
+the release stays valid; the hand-back waits until the last one is garbage-collected.
+A stream holds at most ``max_held`` batches that way; the receive that would hold more
+raises :class:`TooManyBatchesHeld` naming them.
 """
 
 from __future__ import annotations
 
 import ctypes
+import gc
 import os
 import time
 import warnings
-from typing import Any, Iterator
+import weakref
+from typing import Any, Iterator, NamedTuple
 
 import iceoryx2 as iox2
 import numpy as np
@@ -23,7 +29,8 @@ from .format import (HEADER, HEADER_SIZE, RUN_CHARS, BatchFormatError, FormatVer
 from .sections import section_dtype
 
 # The service settings every superflow process uses (schemas/src/service.rs, `qos`):
-# iceoryx2 refuses to open a service with other ones.
+# iceoryx2 refuses to open a service with other ones. MAX_BORROWED bounds the batches a
+# subscriber holds at once, so `max_held` too.
 MAX_SUBSCRIBERS, MAX_BUFFER, MAX_BORROWED, MAX_PUBLISHERS, MAX_NODES = 8, 4, 2, 2, 16
 
 # How long one wait on the ready event lasts before the queue is looked at again (a
@@ -57,7 +64,18 @@ class FormatVersionMismatch(MalformedBatch):
 
 
 class BatchReleased(SuperflowError, RuntimeError):
-    """An array of a batch was used after the batch was released."""
+    """A released batch was asked for a section (``batch[name]``, ``batch.torch()``).
+    Views taken before the release stay valid."""
+
+
+class TooManyBatchesHeld(SuperflowError, RuntimeError):
+    """Receiving another batch would hold more than the stream's ``max_held``: released
+    batches whose views are still alive keep their shared memory. ``held`` lists their
+    ``(epoch, step)``."""
+
+    def __init__(self, message: str, run: str, service: str, held: list[tuple[int, int]]):
+        super().__init__(message, run, service)
+        self.held = held
 
 
 class ResumeRefused(SuperflowError):
@@ -97,82 +115,98 @@ class _ResumeReply(ctypes.Structure):
         return "superflow::ResumeReply"
 
 
+class _ScheduleRequest(ctypes.Structure):
+    """`superflow::ScheduleRequest` (schemas/src/service.rs)."""
+
+    _fields_ = [("rank", ctypes.c_uint32), ("broadcast", ctypes.c_uint32)]
+
+    @staticmethod
+    def type_name() -> str:
+        return "superflow::ScheduleRequest"
+
+
+class _ScheduleReply(ctypes.Structure):
+    """`superflow::ScheduleReply` (schemas/src/service.rs)."""
+
+    _fields_ = [("known", ctypes.c_uint32), ("reserved", ctypes.c_uint32),
+                ("steps", ctypes.c_uint64), ("min_steps", ctypes.c_uint64),
+                ("epochs", ctypes.c_uint64), ("publisher_lo", ctypes.c_uint64),
+                ("publisher_hi", ctypes.c_uint64)]
+
+    @staticmethod
+    def type_name() -> str:
+        return "superflow::ScheduleReply"
+
+
+class Schedule(NamedTuple):
+    """How the pipeline schedules this stream: ``steps`` batches per epoch (this rank's),
+    ``min_steps`` the fewest of any rank, ``epochs`` served (0: endless), and the
+    ``publisher`` (pipeline process) that said so."""
+
+    steps: int
+    min_steps: int
+    epochs: int
+    publisher: int
+
+
+# How long a stream waits for the schedule of a pipeline that just sent it a batch (it
+# answers from a thread of its own); without an answer the stream does not know where
+# epochs end and goes on without ending.
+_SCHEDULE_WAIT_S = 5.0
+
 _REFUSALS = {1: "no such stream (rank out of range, or the pipeline runs in the other mode)",
              2: "the position is past the end of the configured epochs"}
 
 
-class _Lease:
-    """Whether the shared memory of a batch is still this process's to read."""
-
-    __slots__ = ("released", "what")
-
-    def __init__(self, what: str):
-        self.released = False
-        self.what = what
-
-    def check(self) -> None:
-        if self.released:
-            raise BatchReleased(f"{self.what} was released: its shared memory may already hold "
-                                "another batch (copy what you keep before releasing)")
-
-
 class SectionArray(np.ndarray):
-    """A numpy view into a batch's shared memory. Indexing, ufuncs (arithmetic,
-    reductions), numpy functions and the usual methods check that the batch is still
-    held and raise :class:`BatchReleased` otherwise. A plain array taken out of it
-    (``np.asarray``, ``torch.from_numpy``) is not guarded: keep it only while the batch
-    is held, or copy it."""
+    """A read-only numpy view into a batch's shared memory. While it (or any array or
+    tensor made from it without a copy) is alive, the memory stays this process's: the
+    batch's release hands it back to the pipeline only once the last view is gone."""
 
-    _lease: _Lease | None = None
 
-    def __array_finalize__(self, obj: Any) -> None:
-        self._lease = getattr(obj, "_lease", None)
+class _Buffer:
+    """The payload of one received sample as a numpy-readable buffer. Every view of the
+    batch refers to it (through numpy's ``base`` chain, and torch's storage for
+    ``torch.from_numpy``), so its finalizer runs when the last view is gone."""
 
-    def _check(self) -> None:
-        if self._lease is not None:
-            self._lease.check()
+    __slots__ = ("__array_interface__", "__weakref__")
 
-    def __getitem__(self, key: Any) -> Any:
-        self._check()
-        return super().__getitem__(key)
+    def __init__(self, address: int, length: int):
+        self.__array_interface__ = {"shape": (length,), "typestr": "|u1",
+                                    "data": (address, True), "version": 3}
 
-    def __array_ufunc__(self, ufunc: Any, method: str, *inputs: Any, **kwargs: Any) -> Any:
-        for x in inputs + tuple(kwargs.get("out", ())):
-            if isinstance(x, SectionArray):
-                x._check()
-        plain = tuple(np.asarray(x) if isinstance(x, SectionArray) else x for x in inputs)
-        if "out" in kwargs:
-            kwargs["out"] = tuple(np.asarray(x) if isinstance(x, SectionArray) else x
-                                  for x in kwargs["out"])
-        return getattr(ufunc, method)(*plain, **kwargs)
 
-    def __array_function__(self, func: Any, types: Any, args: Any, kwargs: Any) -> Any:
-        self._check()
-        return super().__array_function__(func, types, args, kwargs)
+class _Memory:
+    """A received sample's shared memory: handed back to the pipeline (``sample.delete()``)
+    when the batch is released and its views are gone, whichever comes last."""
 
-    def _guarded(name: str):  # noqa: N805 - builds methods below
-        method = getattr(np.ndarray, name)
+    __slots__ = ("sample", "released", "views_alive", "position", "held", "port")
 
-        def guarded(self: SectionArray, *args: Any, **kwargs: Any) -> Any:
-            self._check()
-            return method(self, *args, **kwargs)
+    def __init__(self, sample: Any, position: tuple[int, int], held: set[_Memory], port: Any):
+        self.sample = sample
+        self.port = port  # the subscriber it came from, kept open until the hand-back
+        self.released = False
+        self.views_alive = True
+        self.position = position
+        self.held = held
+        held.add(self)
 
-        guarded.__name__ = name
-        guarded.__doc__ = method.__doc__
-        return guarded
+    def release(self) -> None:
+        self.released = True
+        if not self.views_alive:
+            self._hand_back()
 
-    for _name in ("copy", "astype", "tolist", "tobytes", "item", "__iter__", "__bool__",
-                  "__float__", "__int__", "__index__", "__array__", "__reduce__",
-                  "__reduce_ex__", "__copy__", "__deepcopy__"):
-        locals()[_name] = _guarded(_name)
-    del _name, _guarded
+    def views_gone(self) -> None:
+        self.views_alive = False
+        if self.released:
+            self._hand_back()
 
-    def __repr__(self) -> str:
-        if self._lease is not None and self._lease.released:
-            return f"SectionArray(<{self._lease.what} was released>)"
-        return super().__repr__()
-
-    __str__ = __repr__
+    def _hand_back(self) -> None:
+        sample, self.sample = self.sample, None
+        self.held.discard(self)
+        if sample is not None:
+            sample.delete()
+        self.port = None
 
 
 def _header_bytes(sample: Any) -> np.ndarray:
@@ -191,11 +225,12 @@ def _position(sample: Any) -> tuple[int, int]:
     return int(h["epoch"]), int(h["step"])
 
 
-def _read(sample: Any, run: str, service: str) -> tuple[np.void, dict[str, np.ndarray]]:
-    """The header and sections of a received sample, checked against the format and the
-    section table; :class:`MalformedBatch` names the run and service otherwise."""
+def _read(sample: Any, payload: np.ndarray, run: str,
+          service: str) -> tuple[np.void, dict[str, np.ndarray]]:
+    """The header and sections of a received sample (``payload``: its payload bytes),
+    checked against the format and the section table; :class:`MalformedBatch` names the
+    run and service otherwise."""
     header = _header_bytes(sample)
-    payload = sample.payload().as_memory_view()
     where = f"run {run!r}, service {service!r}"
     try:
         h, arrays = read_batch(header, payload)
@@ -224,14 +259,15 @@ class Batch:
     ``names()``); ``batch.torch()`` the same as ``torch.Tensor``s sharing the memory.
     """
 
-    def __init__(self, sample: Any, run: str, service: str):
-        self._sample = sample
+    def __init__(self, sample: Any, run: str, service: str, held: set[_Memory] | None = None,
+                 port: Any = None):
         self.run_service = (run, service)
+        payload = sample.payload()
+        buffer = _Buffer(payload.as_ptr(), payload.len())
         try:
-            h, arrays = _read(sample, run, service)
+            h, arrays = _read(sample, np.asarray(buffer), run, service)
         except MalformedBatch:
             # Hand the memory back: the stream goes on with the next batch.
-            self._sample = None
             sample.delete()
             raise
         meta = batch_meta(h)
@@ -241,20 +277,38 @@ class Batch:
         self.seed: int = meta["seed"]
         self.run: str = meta["run"]
         self.publisher: int = sample.header.publisher_id.value
-        self._lease = _Lease(f"batch (epoch {self.epoch}, step {self.step}) of run {run!r}")
-        self._arrays: dict[str, SectionArray] = {}
-        for name, array in arrays.items():
-            view = array.view(SectionArray)
-            view._lease = self._lease
-            self._arrays[name] = view
-        ids = arrays.get("sample_ids", np.zeros((0, 5), np.uint64))
+        # Set by the stream from the pipeline's schedule (None while it is unknown).
+        self.last_in_epoch: bool | None = None
+        self.last_in_stream: bool | None = None
+        self._memory = _Memory(sample, (self.epoch, self.step),
+                              set() if held is None else held, port)
+        # Runs when the last view of the payload is gone (at once if the batch has none);
+        # not at interpreter exit, when iceoryx2 may already be torn down (the process's
+        # ports go with it then).
+        weakref.finalize(buffer, self._memory.views_gone).atexit = False
+        self._arrays: dict[str, SectionArray] = {
+            name: array.view(SectionArray) for name, array in arrays.items()}
+        del buffer, arrays
+        ids = self._arrays.get("sample_ids", np.zeros((0, 5), np.uint64))
         self.sample_ids: list[int] = [int(i) for i in ids[:, 1]]
         self.keyframes: list[int] = [int(k) for k in ids[:, 2]]
+        del ids
+
+    @property
+    def _sample(self) -> Any:
+        """The iceoryx2 sample while this process holds its memory, else None."""
+        return self._memory.sample
 
     @property
     def released(self) -> bool:
-        """Whether the batch was released (its arrays may no longer be read)."""
-        return self._lease.released
+        """Whether the batch was released (its views taken before stay valid)."""
+        return self._memory.released
+
+    @property
+    def returned(self) -> bool:
+        """Whether the batch's shared memory went back to the pipeline (released, and no
+        view of it alive)."""
+        return self._memory.sample is None
 
     def names(self) -> list[str]:
         """Every section name, in payload order."""
@@ -263,8 +317,15 @@ class Batch:
     def __contains__(self, name: str) -> bool:
         return name in self._arrays
 
+    def _check(self) -> None:
+        if self._memory.released:
+            raise BatchReleased(
+                f"batch (epoch {self.epoch}, step {self.step}) of run {self.run_service[0]!r} "
+                "was released: take sections before releasing it (views taken before stay valid)",
+                *self.run_service)
+
     def __getitem__(self, name: str) -> SectionArray:
-        self._lease.check()
+        self._check()
         try:
             return self._arrays[name]
         except KeyError:
@@ -272,9 +333,11 @@ class Batch:
 
     def torch(self) -> dict[str, Any]:
         """Every section as a ``torch.Tensor`` sharing the shared memory (``torch.from_numpy``,
-        no copy). The memory is the pipeline's: read it, do not write it, and copy what you
-        keep past the batch's release (``.clone()``, or ``.to(device)``)."""
-        self._lease.check()
+        no copy). The memory is the pipeline's: read it, do not write it. A tensor kept past
+        the release keeps the memory from going back to the pipeline until it is gone
+        (``max_held`` bounds how many batches a stream holds that way): copy what you keep
+        for long (``.clone()``, or ``.to(device)``)."""
+        self._check()
         import torch  # optional dependency: pip install superflow[torch]
 
         with warnings.catch_warnings():
@@ -283,14 +346,12 @@ class Batch:
             return {name: torch.from_numpy(np.asarray(a)) for name, a in self._arrays.items()}
 
     def release(self) -> None:
-        """Hands the batch's memory back to the pipeline; its arrays then raise on use."""
-        if self._lease.released:
+        """Hands the batch's memory back to the pipeline, at once or, while views of it are
+        alive, when the last one is garbage-collected."""
+        if self._memory.released:
             return
-        self._lease.released = True
         self._arrays = {}
-        sample, self._sample = self._sample, None
-        if sample is not None:
-            sample.delete()
+        self._memory.release()
 
     def __enter__(self) -> Batch:
         return self
@@ -299,7 +360,10 @@ class Batch:
         self.release()
 
     def __repr__(self) -> str:
-        state = "released" if self.released else f"{len(self._arrays)} sections"
+        if not self.released:
+            state = f"{len(self._arrays)} sections"
+        else:
+            state = "released" if self.returned else "released, views alive"
         return f"Batch(run={self.run!r}, epoch={self.epoch}, step={self.step}, {state})"
 
 
@@ -328,11 +392,19 @@ class Stream:
     Iterating yields :class:`Batch` objects; each iteration releases the batch before.
     When the pipeline is restarted (another publisher), the stream asks it to continue
     after the last batch received, so the steps go on where they were (``auto_resume``).
+
+    ``max_held`` (1 to ``MAX_BORROWED``, 2): how many batches the stream may hold at once,
+    the current one and released ones whose views (numpy sections, ``batch.torch()``
+    tensors) are still alive. The receive that would hold more raises
+    :class:`TooManyBatchesHeld`; views never read memory the pipeline reused.
     """
 
     def __init__(self, run: str, rank: int | None = None, world_size: int | None = None,
                  prefix: str | None = None, timeout_s: float | None = None, buffer: int = 2,
-                 auto_resume: bool = True):
+                 auto_resume: bool = True, max_held: int = MAX_BORROWED):
+        if not 1 <= max_held <= MAX_BORROWED:
+            raise ValueError(f"max_held {max_held} must be 1 to {MAX_BORROWED} (the service's "
+                             "subscriber_max_borrowed_samples)")
         if not (1 <= len(run) <= 63 and set(run.encode()) <= RUN_CHARS):
             raise ValueError(f"run name {run!r} must be 1 to 63 characters of A-Z a-z 0-9 - _ .")
         world_size = _env_int("WORLD_SIZE") if world_size is None else world_size
@@ -380,8 +452,16 @@ class Stream:
             self._listener = self._ready.listener_builder().create()
         except Exception as e:
             raise SuperflowError(f"run {run!r}: opening {self.service!r}: {e}", run, self.service) from e
+        self.max_held = max_held
+        self._held: set[_Memory] = set()
         self._current: Batch | None = None
+        self._pending: Batch | None = None  # received, handed out by the next next()
         self._stash: Any = None
+        self._schedule: Schedule | None = None
+        self._schedule_client: Any = None
+        self._schedule_missing: set[int] = set()  # publishers that did not answer
+        self._position: tuple[int, int] | None = None  # of the next batch, once known
+        self._ended = False
         self._last: tuple[int, int, int] | None = None  # publisher, epoch, step
 
     # -- receiving -------------------------------------------------------------------
@@ -421,9 +501,38 @@ class Stream:
             pass
         return self._batches.dynamic_config.number_of_publishers > 0
 
+    def held(self) -> list[tuple[int, int]]:
+        """``(epoch, step)`` of the batches this stream holds: the current one and released
+        ones whose views are alive."""
+        # A copy first: a finalizer (garbage collection, or another thread dropping the
+        # last view) may hand a batch back while this runs.
+        return sorted(m.position for m in list(self._held))
+
+    def _room(self, limit: int) -> None:
+        """Raises :class:`TooManyBatchesHeld` unless fewer than ``limit`` batches are held."""
+        if len(self._held) < limit:
+            return
+        gc.collect()  # views caught in reference cycles go now
+        if len(self._held) < limit:
+            return
+        held = self.held()
+        raise TooManyBatchesHeld(
+            f"run {self.run!r}: {self.service!r}: receiving another batch would hold more than "
+            f"{limit} (max_held {self.max_held}): batches {held} (epoch, step) are released but "
+            "views of them (numpy sections, batch.torch() tensors, or arrays made from them "
+            "without a copy) are alive. Drop them (del) or keep copies instead "
+            "(tensor.clone(), np.array(view))", self.run, self.service, held)
+
     def next(self) -> Batch:
-        """The next batch (releasing the one before)."""
+        """The next batch (releasing the one before); ``StopIteration`` once the stream
+        ended (the last batch of the pipeline's last epoch was handed out)."""
+        if self._pending is not None:
+            batch, self._pending = self._pending, None
+            return batch
+        if self._ended:
+            raise StopIteration
         self.release_current()
+        self._room(self.max_held)
         deadline = None if self.timeout_s is None else time.monotonic() + self.timeout_s
         sample = self._wait(deadline)
         publisher = sample.header.publisher_id.value
@@ -434,16 +543,117 @@ class Stream:
             self.resume(epoch, step + 1)
             sample = self._wait(deadline)
             publisher = sample.header.publisher_id.value
-        batch = Batch(sample, self.run, self.service)
+        batch = Batch(sample, self.run, self.service, self._held, self._subscriber)
         self._last = (publisher, batch.epoch, batch.step)
         self._current = batch
+        self._mark(batch)
         return batch
+
+    def _mark(self, batch: Batch) -> None:
+        """Marks whether ``batch`` ends its epoch and the stream, from the schedule of the
+        pipeline that sent it."""
+        schedule = self._schedule
+        if schedule is None or schedule.publisher != batch.publisher:
+            if batch.publisher in self._schedule_missing:
+                schedule = None
+            else:
+                schedule = self._ask_schedule(time.monotonic() + _SCHEDULE_WAIT_S)
+                if schedule is None:
+                    self._schedule_missing.add(batch.publisher)
+                    warnings.warn(f"run {self.run!r}: the pipeline publishing {self.service!r} "
+                                  "did not say how its epochs are scheduled: the stream will "
+                                  "not end by itself", RuntimeWarning, stacklevel=3)
+        if schedule is None:
+            self._position = None
+            return
+        batch.last_in_epoch = batch.step + 1 >= schedule.steps
+        batch.last_in_stream = (batch.last_in_epoch and schedule.epochs > 0
+                                and batch.epoch + 1 >= schedule.epochs)
+        self._ended = batch.last_in_stream
+        self._position = ((batch.epoch + 1, 0) if batch.last_in_epoch
+                          else (batch.epoch, batch.step + 1))
 
     def __iter__(self) -> Iterator[Batch]:
         return self
 
     def __next__(self) -> Batch:
         return self.next()
+
+    @property
+    def ended(self) -> bool:
+        """Whether the stream's last batch (of the pipeline's last epoch) was handed out;
+        iteration stops then (``stream.resume`` rewinds it)."""
+        return self._ended and self._pending is None
+
+    def position(self) -> tuple[int, int] | None:
+        """``(epoch, step)`` of the next batch this stream hands out, when known (after a
+        batch whose schedule is known, or a resume)."""
+        if self._pending is not None:
+            return (self._pending.epoch, self._pending.step)
+        return self._position
+
+    def epoch(self, drop_uneven: bool = False) -> Epoch:
+        """This rank's batches of the current epoch (the one of the next batch), then
+        stops; ``len()`` is the epoch's batch count from the pipeline's schedule.
+        ``drop_uneven``: stop every rank at the fewest batches any rank has in an epoch
+        (keyframes that do not divide evenly give some ranks one more): data-parallel
+        ranks then stay in step; the extra batch is received and released unused."""
+        return Epoch(self, drop_uneven)
+
+    def schedule(self, timeout_s: float | None = None) -> Schedule:
+        """The pipeline's schedule of this stream, asked on ``superflow/<run>/schedule``
+        (waiting ``timeout_s``, default the stream's, for a pipeline to answer)."""
+        timeout_s = self.timeout_s if timeout_s is None else timeout_s
+        if self._schedule is not None:
+            return self._schedule
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        schedule = self._ask_schedule(deadline)
+        if schedule is None:
+            raise PipelineTimeout(f"run {self.run!r}: no pipeline answered the schedule request "
+                                  f"of {self.service!r} within {timeout_s} s",
+                                  self.run, self.service)
+        return schedule
+
+    def _ask_schedule(self, deadline: float | None) -> Schedule | None:
+        """Asks the pipeline for this stream's schedule; None when none answers by
+        ``deadline``. The answer is kept (it belongs to the publisher named in it)."""
+        try:
+            if self._schedule_client is None:
+                service = (
+                    self._node.service_builder(
+                        iox2.ServiceName.new(f"superflow/{self.run}/schedule"))
+                    .request_response(_ScheduleRequest, _ScheduleReply)
+                    .max_clients(MAX_SUBSCRIBERS * 4)
+                    .max_servers(MAX_PUBLISHERS)
+                    .max_nodes(MAX_NODES * 2)
+                    .open_or_create()
+                )
+                self._schedule_client = (service, service.client_builder().create())
+        except Exception as e:
+            raise SuperflowError(f"run {self.run!r}: opening its schedule service: {e}",
+                                 self.run, self.service) from e
+        client = self._schedule_client[1]
+        request = _ScheduleRequest(rank=self.rank or 0, broadcast=int(self.rank is None))
+        while True:
+            # A fresh client may not be connected to the server yet: resend until one
+            # answers.
+            pending = client.send_copy(request)
+            attempt = time.monotonic()
+            while time.monotonic() - attempt < 0.5:
+                response = pending.receive()
+                if response is not None:
+                    reply = _ScheduleReply.from_buffer_copy(response.payload().contents)
+                    response.delete()
+                    if not reply.known:
+                        raise SuperflowError(
+                            f"run {self.run!r}: the pipeline has no stream {self.service!r} "
+                            f"({_REFUSALS[1]})", self.run, self.service)
+                    self._schedule = Schedule(reply.steps, reply.min_steps, reply.epochs,
+                                              (reply.publisher_hi << 64) | reply.publisher_lo)
+                    return self._schedule
+                if deadline is not None and time.monotonic() >= deadline:
+                    return None
+                time.sleep(0.005)
 
     def release_current(self) -> None:
         """Releases the batch handed out last, if it is still held."""
@@ -458,7 +668,12 @@ class Stream:
         received is that one. Batches of the old position still queued are dropped (told
         apart by the reply's sequence number). Raises :class:`ResumeRefused` when the
         pipeline refuses, :class:`PipelineTimeout` when none answers in ``timeout_s``."""
+        if self._pending is not None:
+            self._pending.release()
+            self._pending = None
         self.release_current()
+        # The requests go out while batches are taken off the queue: room for one.
+        self._room(MAX_BORROWED)
         try:
             control = (
                 self._node.service_builder(iox2.ServiceName.new(f"superflow/{self.run}/control"))
@@ -526,16 +741,26 @@ class Stream:
             else:
                 sample.delete()
         self._last = None
+        self._ended = False
+        self._position = (epoch, step)
 
     # -- lifetime --------------------------------------------------------------------
 
     def close(self) -> None:
-        """Releases the current batch and leaves the service."""
+        """Releases the current batch and leaves the service (the port stays open, unseen,
+        while views of held batches are alive: their memory is its to hand back)."""
+        if self._pending is not None:
+            self._pending.release()
+            self._pending = None
         self.release_current()
         if self._stash is not None:
             self._stash.delete()
             self._stash = None
-        for port in ("_subscriber", "_listener"):
+        if self._schedule_client is not None:
+            self._schedule_client[1].delete()
+            self._schedule_client = None
+        ports = ("_listener",) if self._held else ("_subscriber", "_listener")
+        for port in ports:
             obj = getattr(self, port, None)
             if obj is not None:
                 obj.delete()
@@ -549,3 +774,42 @@ class Stream:
 
     def __repr__(self) -> str:
         return f"Stream(run={self.run!r}, service={self.service!r})"
+
+
+class Epoch:
+    """The batches of one epoch of a :class:`Stream` (``stream.epoch()``): iterating
+    yields this rank's batches of the current epoch and stops after its last one (or
+    when a batch of a later epoch comes first: it is kept for the next iteration).
+    Breaking out and iterating again continues the same epoch."""
+
+    def __init__(self, stream: Stream, drop_uneven: bool = False):
+        self.stream = stream
+        self.drop_uneven = drop_uneven
+
+    def __len__(self) -> int:
+        schedule = self.stream.schedule()
+        return schedule.min_steps if self.drop_uneven else schedule.steps
+
+    def __iter__(self) -> Iterator[Batch]:
+        stream = self.stream
+        if stream.ended:
+            return
+        stream.schedule()  # where the epoch ends
+        epoch = None
+        while not stream.ended:
+            batch = stream.next()
+            if epoch is None:
+                epoch = batch.epoch
+            elif batch.epoch != epoch:
+                stream._pending = batch
+                return
+            schedule = stream._schedule
+            if not (self.drop_uneven and schedule is not None
+                    and schedule.publisher == batch.publisher
+                    and batch.step >= schedule.min_steps):
+                yield batch
+            if batch.last_in_epoch:
+                return
+
+    def __repr__(self) -> str:
+        return f"Epoch({self.stream!r}, drop_uneven={self.drop_uneven})"

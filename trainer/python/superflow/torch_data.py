@@ -2,7 +2,8 @@
 
 The pipeline already batches, shuffles, shards and augments, so the dataset yields whole
 batches: use it with ``DataLoader(dataset, batch_size=None)`` and no workers (the batch
-is in shared memory already; a worker process would copy it through a pipe).
+is in shared memory already; a worker process would copy it through a pipe). Each
+``iter()`` is one epoch, as with a map-style dataset.
 """
 
 from __future__ import annotations
@@ -18,18 +19,34 @@ except ImportError:  # torch is optional: TorchIterable then fails when construc
 
 
 class TorchIterable(_Base):  # type: ignore[valid-type,misc]
-    """Yields ``transform(batch)`` for every batch of ``stream``; by default
-    ``batch.torch()``, a dict of tensors sharing the batch's shared memory. The batch is
-    released when the next one is requested, so move or copy what you keep
-    (``tensor.to(device)`` copies)."""
+    """One epoch of ``stream`` per ``iter()``: yields ``transform(batch)`` for this rank's
+    batches of the current epoch (``stream.epoch()``), by default ``batch.torch()``, a
+    dict of tensors sharing the batch's shared memory. ``len()`` is the epoch's batch
+    count; past the pipeline's last epoch an ``iter()`` yields nothing. ``set_epoch(e)``
+    follows ``DistributedSampler``: start at epoch ``e`` (a resume; nothing when the
+    stream is at ``e`` already, so ``iter()`` continues the current epoch). The batch is
+    released when the next one is requested; a tensor kept longer keeps its batch's
+    memory (the stream's ``max_held``), so copy what you keep (``tensor.to(device)``)."""
 
-    def __init__(self, stream: Stream, transform: Callable[[Batch], Any] | None = None):
+    def __init__(self, stream: Stream, transform: Callable[[Batch], Any] | None = None,
+                 drop_uneven: bool = False):
         if _Base is object:
             raise ImportError("superflow.TorchIterable needs torch (pip install superflow[torch])")
         super().__init__()
         self.stream = stream
         self.transform = transform if transform is not None else Batch.torch
+        self.drop_uneven = drop_uneven
 
     def __iter__(self) -> Iterator[Any]:
-        for batch in self.stream:
+        for batch in self.stream.epoch(self.drop_uneven):
             yield self.transform(batch)
+
+    def __len__(self) -> int:
+        return len(self.stream.epoch(self.drop_uneven))
+
+    def set_epoch(self, epoch: int) -> None:
+        """Starts the next ``iter()`` at epoch ``epoch`` (a fresh stream is taken to be at
+        epoch 0, where a pipeline starts)."""
+        at = self.stream.position()
+        if (0 if at is None else at[0]) != epoch:
+            self.stream.resume(epoch, 0)

@@ -5,7 +5,10 @@ non-zero when a check fails.
 
     check_stream.py read --run R [--count N] [--timeout S]   # one line per batch
     check_stream.py resume --run R                           # resume replays bit-identically
-    check_stream.py released --run R                         # use after release raises
+    check_stream.py kept --run R                             # views outlive their release
+    check_stream.py epochs --run R                           # epochs that end
+    check_stream.py uneven --run R                           # ranks in step on uneven shards
+    check_stream.py spconv --run R                           # spconv's SparseConvTensor
     check_stream.py torch_views --run R                      # torch tensors share the memory
     check_stream.py timeout --run R --timeout S              # no pipeline: PipelineTimeout
     check_stream.py malformed --run R                        # bad batches: typed errors
@@ -19,6 +22,7 @@ import argparse
 import ctypes
 import json
 import sys
+import threading
 import time
 
 import numpy as np
@@ -64,10 +68,19 @@ def emit(record: dict) -> None:
 
 
 def read(args: argparse.Namespace) -> int:
+    """One line per batch; with --keep, views of the second batch are kept to the end and
+    checked against copies made at receive (a last line)."""
     stream = superflow.Stream(args.run, prefix=args.prefix, timeout_s=args.timeout)
-    for _ in range(args.count):
+    kept = None
+    for i in range(args.count):
         batch = next(stream)
         emit(describe(batch, payload_range(batch)))
+        if args.keep and i == 1:
+            view = batch["points"]
+            kept = (view, np.array(view), batch)
+    if kept is not None:
+        view, copy, batch = kept
+        emit({"kept_equal": bool(np.array_equal(view, copy)), "kept_returned": batch.returned})
     stream.close()
     return 0
 
@@ -99,45 +112,64 @@ def resume(args: argparse.Namespace) -> int:
     return 0 if again == [(0, 1), (0, 2), (0, 3)] else 1
 
 
-def released(args: argparse.Namespace) -> int:
-    """Every way of reading a released batch's array raises BatchReleased."""
+def kept(args: argparse.Namespace) -> int:
+    """Views kept past their batch's release keep their bytes while later batches come;
+    holding more than max_held raises TooManyBatchesHeld; once the views are dropped the
+    batches go back and the stream goes on."""
+    import torch
+
     stream = superflow.Stream(args.run, prefix=args.prefix, timeout_s=args.timeout)
-    batch = next(stream)
-    points = batch["points"]
+    first = next(stream)
+    tensors = first.torch()
+    points = first["points"]
     row = points[0]
-    before = float(points[:, 0].sum())
-    with batch:
+    copies = {name: t.clone() for name, t in tensors.items()}
+    points_copy = np.array(points)
+    with first:
         pass
-    uses = {
-        "index": lambda: points[0],
-        "slice view": lambda: row[1],
-        "ufunc": lambda: points + 1,
-        "reduction": lambda: points.sum(),
-        "numpy function": lambda: np.mean(points),
-        "copy": lambda: points.copy(),
-        "tolist": lambda: points.tolist(),
-        "iteration": lambda: list(points),
-        "section": lambda: batch["points"],
-    }
-    raised = {}
-    for what, use in uses.items():
-        try:
-            use()
-            raised[what] = False
-        except superflow.BatchReleased:
-            raised[what] = True
-    # The next iteration releases the batch before.
-    second = next(stream)
-    images = second["images"]
-    next(stream)
+    checks = {"released": first.released, "deferred": not first.returned}
     try:
-        images[0]
-        raised["after next()"] = False
+        first["points"]
+        checks["section of a released batch raises"] = False
     except superflow.BatchReleased:
-        raised["after next()"] = True
-    emit({"raised": raised, "sum_before": before, "repr": repr(points)})
+        checks["section of a released batch raises"] = True
+    positions = []
+    same = []
+    for _ in range(10):
+        batch = next(stream)
+        positions.append([batch.epoch, batch.step])
+        same.append(all(torch.equal(tensors[n], copies[n]) for n in tensors)
+                    and np.array_equal(points, points_copy) and np.array_equal(row, points_copy[0]))
+    checks["kept bytes across 10 batches"] = all(same)
+    checks["numpy ops on a kept view"] = float(points.sum()) == float(points_copy.sum())
+    # The current batch's view kept too: the next receive would hold 3 of 2.
+    current = batch
+    images = current["images"]
+    try:
+        next(stream)
+        checks["max_held raises"] = False
+        held = []
+    except superflow.TooManyBatchesHeld as e:
+        held = e.held
+        checks["max_held raises"] = (len(held) == 2 and list(held[0]) == [first.epoch, first.step]
+                                     and str(list(held[0])[0]) in str(e) and "del" in str(e))
+    del tensors, points, row, images
+    checks["returned after del"] = first.returned and current.returned and stream.held() == []
+    for _ in range(3):
+        batch = next(stream)
+        positions.append([batch.epoch, batch.step])
+    # A prefetching wrapper may drop the last view on its own thread.
+    box = [batch.torch()["points"]]
+    batch.release()
+    deferred = not batch.returned
+    worker = threading.Thread(target=box.clear)
+    worker.start()
+    worker.join()
+    checks["returned after a drop on another thread"] = deferred and batch.returned
+    emit({"checks": checks, "positions": positions, "held": [list(h) for h in held],
+          "repr": repr(first)})
     stream.close()
-    return 0 if all(raised.values()) else 1
+    return 0 if all(checks.values()) else 1
 
 
 def torch_views(args: argparse.Namespace) -> int:
@@ -153,6 +185,9 @@ def torch_views(args: argparse.Namespace) -> int:
               for name in batch.names() if batch[name].size}
     inside = all(start <= tensors[n].data_ptr() < end for n in shared)
     equal = all(torch.equal(tensors[n], torch.from_numpy(np.array(batch[n]))) for n in shared)
+    # The loop below holds two batches (its item while the next is received): these
+    # tensors would be a third, past max_held.
+    del tensors
     loader = torch.utils.data.DataLoader(superflow.TorchIterable(stream), batch_size=None)
     steps = []
     for i, item in enumerate(loader):
@@ -164,6 +199,90 @@ def torch_views(args: argparse.Namespace) -> int:
           "loader_types": sorted({type(v).__name__ for v in item.values()})})
     stream.close()
     return 0 if all(shared.values()) and inside and equal else 1
+
+
+def epochs(args: argparse.Namespace) -> int:
+    """On a pipeline with --epochs 2: stream.epoch() twice, then the stream has ended;
+    rewound, `for batch in stream` stops by itself after epoch 1; rewound again,
+    TorchIterable in a DataLoader gives one epoch per iter(), the same batches."""
+    import torch
+
+    stream = superflow.Stream(args.run, prefix=args.prefix)  # no timeout_s: nothing to wait out
+    length = len(stream.epoch())
+    per_epoch = []
+    for _ in range(2):
+        per_epoch.append([[b.epoch, b.step, b.keyframes] for b in stream.epoch()])
+    ended = stream.ended
+    after = [b.step for b in stream]  # nothing: the stream ended
+    stream.resume(0, 0)
+    whole = [[b.epoch, b.step, b.keyframes] for b in stream]
+    dataset = superflow.TorchIterable(stream)
+    loader = torch.utils.data.DataLoader(dataset, batch_size=None)
+    dataset.set_epoch(0)  # the stream ended at epoch 2: back to 0
+    # Broken out of after one batch, the next iter() continues the same epoch.
+    first_of_epoch = [int(x) for x in next(iter(loader))["sample_ids"][:, 2]]
+    rest_of_epoch = [[int(x) for x in item["sample_ids"][:, 2]] for item in loader]
+    dataset.set_epoch(0)  # at epoch 1 now: back to 0
+    loaded = []
+    for e in range(3):
+        dataset.set_epoch(e)  # at e already: nothing happens
+        loaded.append([[int(x) for x in item["sample_ids"][:, 2]] for item in loader])
+    emit({"len": length, "loader_len": len(loader), "epochs": per_epoch, "ended": ended,
+          "after_end": after, "whole": whole, "loaded": loaded,
+          "continued": [first_of_epoch, *rest_of_epoch]})
+    stream.close()
+    return 0
+
+
+def spconv(args: argparse.Namespace) -> int:
+    """superflow.torch.spconv_tensor of a batch: indices equal the batch's coordinates
+    (shifted), rows in order, features shared with the batch; a SubMConv3d forward on it
+    (CPU spconv runs forward only) keeps the rows."""
+    import spconv.pytorch as sp
+    import torch
+
+    import superflow.torch as sft
+
+    stream = superflow.Stream(args.run, prefix=args.prefix, timeout_s=args.timeout)
+    batch = next(stream)
+    x = sft.spconv_tensor(batch)
+    coords = np.asarray(batch["l0_coords"])
+    low = coords[:, 1:].min(axis=0)
+    indices = x.indices.numpy()
+    torch.manual_seed(0)
+    conv = sp.SubMConv3d(4, 8, 3, bias=False, indice_key="subm0")
+    with torch.no_grad():
+        y = conv(x)
+    checks = {
+        "indices": bool(np.array_equal(indices[:, 0], coords[:, 0])
+                        and np.array_equal(indices[:, 1:], coords[:, 1:] - low)),
+        "non-negative": bool((indices >= 0).all()),
+        "spatial shape": list(x.spatial_shape) == [int(v) + 1 for v in (coords[:, 1:] - low).max(axis=0)],
+        "batch size = clouds": x.batch_size == len(batch["l0_clouds"]) - 1,
+        "features shared": x.features.data_ptr() == np.asarray(batch["voxel_features"]).__array_interface__["data"][0],
+        "forward rows": tuple(y.features.shape) == (len(coords), 8),
+        "forward indices": bool(torch.equal(y.indices, x.indices)),
+        "forward finite": bool(torch.isfinite(y.features).all()),
+    }
+    emit({"checks": checks, "voxels": len(coords), "clouds": x.batch_size,
+          "spatial_shape": list(x.spatial_shape)})
+    stream.close()
+    return 0 if all(checks.values()) else 1
+
+
+def uneven(args: argparse.Namespace) -> int:
+    """One rank of a pipeline whose shards differ by a batch: stream.epoch(drop_uneven=True)
+    gives every rank the fewest batches per epoch; the stream ends all the same."""
+    stream = superflow.Stream(args.run, prefix=args.prefix)
+    schedule = stream.schedule()
+    lengths = [len(stream.epoch()), len(stream.epoch(drop_uneven=True))]
+    epochs = []
+    while not stream.ended:
+        epochs.append([[b.epoch, b.step] for b in stream.epoch(drop_uneven=True)])
+    emit({"rank": stream.rank, "steps": schedule.steps, "min_steps": schedule.min_steps,
+          "epochs_served": schedule.epochs, "lengths": lengths, "epochs": epochs})
+    stream.close()
+    return 0
 
 
 def timeout(args: argparse.Namespace) -> int:
@@ -244,12 +363,13 @@ def malformed(args: argparse.Namespace) -> int:
 
 def main() -> int:
     parser = argparse.ArgumentParser()
-    parser.add_argument("scenario", choices=["read", "resume", "released", "torch_views", "timeout",
+    parser.add_argument("scenario", choices=["read", "resume", "kept", "epochs", "uneven", "spconv", "torch_views", "timeout",
                                              "malformed"])
     parser.add_argument("--run", required=True)
     parser.add_argument("--prefix")
     parser.add_argument("--count", type=int, default=1)
     parser.add_argument("--timeout", type=float, default=120.0)
+    parser.add_argument("--keep", action="store_true")
     args = parser.parse_args()
     return globals()[args.scenario](args)
 

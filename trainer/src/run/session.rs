@@ -17,6 +17,11 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicI32, Ordering};
 use std::time::{Duration, Instant};
 use superflow_schemas::batch::BatchMeta;
+use superflow_schemas::service::ScheduleReply;
+
+/// How long to wait for the schedule of a pipeline that just sent a batch (it answers
+/// from a thread of its own; an older pipeline does not answer at all).
+const SCHEDULE_WAIT: Duration = Duration::from_secs(5);
 
 /// Waits for the next batch; says when no pipeline publishes and keeps waiting for one
 /// to come back, up to `timeout`. `None` once a stop signal was caught.
@@ -81,6 +86,13 @@ pub(super) struct Session<'a> {
     /// `--ddp`: a batch received but kept for a later step (this rank's shard began its
     /// next epoch while others finish theirs).
     pub(super) held: Option<Received>,
+    /// The pipeline's schedule of this stream (where its epochs and the stream end).
+    pub(super) schedule: Option<ScheduleReply>,
+    /// Publishers that did not say how their stream is scheduled.
+    pub(super) unscheduled: Vec<u128>,
+    /// The stream ended (the last batch of the pipeline's last epoch was trained on, or
+    /// a data-parallel rank's was).
+    pub(super) ended: bool,
     pub(super) ddp: Option<Ddp>,
     pub(super) bar: ProgressBar,
     pub(super) started: Instant,
@@ -104,34 +116,41 @@ impl Session<'_> {
         Duration::from_secs(self.options.timeout_secs)
     }
 
-    /// Steps until the run's length, the end of the stream or a stop signal.
+    /// Steps until the run's length, the end of the stream (the last batch of the
+    /// pipeline's last epoch, from its schedule) or a stop signal.
     pub fn train(&mut self) -> anyhow::Result<()> {
         while self.trainer.step_count() < self.steps {
             let t = Instant::now();
             let batch = match self.held.take() {
                 Some(batch) => Some(batch),
+                None if self.ended => None,
                 None => self.next_trainable()?,
             };
             let wait = t.elapsed().as_secs_f64();
             let Some(ddp) = &self.ddp else {
                 let Some(batch) = batch else { break };
                 let at = position_of(&batch);
-                if self.step(Some(batch), at, wait)? {
+                if self.step(Some(batch), at, wait)? || self.ended {
                     break;
                 }
                 continue;
             };
-            // Data-parallel: every rank says where its batch lies and whether it stops;
-            // the step trains the earliest position (a rank whose shard already began
-            // the next epoch keeps its batch for later and adds no gradient).
+            // Data-parallel: every rank says where its batch lies and whether it stops
+            // (1: a signal, 2: its stream ended); the step trains the earliest position
+            // (a rank whose shard already began the next epoch keeps its batch for later
+            // and adds no gradient).
             let mine = batch.as_ref().map(position_of);
-            let stop = self.stop.load(Ordering::SeqCst) != 0 || batch.is_none();
+            let stop = if self.stop.load(Ordering::SeqCst) != 0 {
+                1
+            } else {
+                u64::from(batch.is_none()) * 2
+            };
             let what = format!("agreement before step {}", self.trainer.step_count() + 1);
             let ranks = ddp.all_gather(
                 &[
                     mine.map_or(u64::MAX, |p| p.epoch),
                     mine.map_or(u64::MAX, |p| p.batch),
-                    u64::from(stop),
+                    stop,
                 ],
                 &what,
             );
@@ -146,7 +165,13 @@ impl Session<'_> {
                 .collect();
             let Some(at) = stream::agree(&states) else {
                 self.held = batch;
-                tracing::warn!("a rank is stopping: every rank stops after the same step");
+                let codes: Vec<u64> = ranks.chunks(3).map(|r| r[2]).collect();
+                if codes.contains(&2) && !codes.contains(&1) {
+                    self.ended = true;
+                    tracing::info!("a rank's stream ended: every rank ends after the same step");
+                } else {
+                    tracing::warn!("a rank is stopping: every rank stops after the same step");
+                }
                 break;
             };
             let batch = match batch {
@@ -176,7 +201,10 @@ impl Session<'_> {
             };
             let position = position_of(&batch);
             match self.stream.classify(batch.origin(), position) {
-                Action::Train => return Ok(Some(batch)),
+                Action::Train => {
+                    self.learn_schedule(batch.origin())?;
+                    return Ok(Some(batch));
+                }
                 Action::Skip { skipped } => {
                     tracing::warn!(
                         epoch = position.epoch,
@@ -191,6 +219,34 @@ impl Session<'_> {
                 }
             }
         }
+    }
+
+    /// Asks the pipeline `origin` how this stream is scheduled, once per pipeline process.
+    fn learn_schedule(&mut self, origin: u128) -> anyhow::Result<()> {
+        if self.schedule.is_some_and(|s| s.publisher() == origin)
+            || self.unscheduled.contains(&origin)
+        {
+            return Ok(());
+        }
+        match self.subscription.schedule(SCHEDULE_WAIT)? {
+            Some(reply) if reply.known == 1 => {
+                tracing::debug!(
+                    steps_per_epoch = reply.steps,
+                    epochs = reply.epochs,
+                    "the pipeline's schedule of this stream"
+                );
+                self.schedule = Some(reply);
+            }
+            _ => {
+                tracing::warn!(
+                    run = %self.options.run,
+                    "the pipeline did not say how its epochs are scheduled: this trainer ends at --steps, a signal or --timeout-secs"
+                );
+                self.unscheduled.push(origin);
+                self.schedule = None;
+            }
+        }
+        Ok(())
     }
 
     /// The stream is not at this trainer's next batch `at` (a new pipeline, the old one
@@ -248,6 +304,9 @@ impl Session<'_> {
         self.computing += outcome.seconds;
         if meta.is_some() {
             self.stream.trained(at);
+            self.ended |= self
+                .schedule
+                .is_some_and(|s| s.ends_stream(at.epoch, at.batch));
         }
         let mut record = step_record(number, at, meta.as_ref(), &outcome, wait);
         record.params_hash = self.trainer.params_hash();
@@ -341,14 +400,23 @@ impl Session<'_> {
             }
         }
         // Stopped early: by this process's signal, or (data-parallel) another rank's.
-        let stopped_early =
-            signal != 0 || (self.ddp.is_some() && self.trainer.step_count() < self.steps);
+        let stopped_early = signal != 0
+            || (self.ddp.is_some() && self.trainer.step_count() < self.steps && !self.ended);
         if stopped_early {
             return Ok(Some(128 + if signal != 0 { signal } else { 15 }));
         }
         if self.options.plot {
             metrics::plot_svg(&metrics::read(&self.paths.metrics)?, &self.paths.plot)?;
             tracing::info!(plot = %self.paths.plot.display(), "loss curves written");
+        }
+        if self.ended && self.trainer.step_count() < self.steps {
+            tracing::info!(
+                trained = self.trainer.step_count(),
+                asked = self.steps,
+                "the stream ended (the pipeline served its last epoch): trained {} of the {} steps asked",
+                self.trainer.step_count(),
+                self.steps
+            );
         }
         let total = self.started.elapsed().as_secs_f64();
         tracing::info!(
