@@ -14,6 +14,7 @@ use std::path::{Path, PathBuf};
 /// `<name>.labels.mcap` with per-point labels ([`LABELS_SIDECAR_TAG`]).
 pub fn drive_groups(inputs: &[PathBuf]) -> Result<Vec<Vec<PathBuf>>, IngestError> {
     let mut groups: Vec<Vec<PathBuf>> = Vec::new();
+    let mut listings = Listings::default();
     for input in inputs {
         let files = mcap_files(std::slice::from_ref(input))?;
         if input.is_dir() && input.join("metadata.yaml").is_file() {
@@ -24,7 +25,7 @@ pub fn drive_groups(inputs: &[PathBuf]) -> Result<Vec<Vec<PathBuf>>, IngestError
                     continue; // joins its base drive below
                 }
                 let mut group = vec![file.clone()];
-                group.extend(sidecars_of(&file));
+                group.extend(listings.sidecars_of(&file));
                 groups.push(group);
             }
         }
@@ -58,33 +59,44 @@ fn sidecar_base(file: &Path) -> Option<PathBuf> {
     (!name.is_empty() && !tag.is_empty()).then(|| file.with_file_name(format!("{name}.mcap")))
 }
 
-/// Sidecars next to `file` (`<stem>.<tag>.mcap`), in name order.
-fn sidecars_of(file: &Path) -> Vec<PathBuf> {
-    let (Some(dir), Some(stem)) = (file.parent(), file.file_stem().and_then(|s| s.to_str())) else {
-        return Vec::new();
-    };
-    let dir = if dir.as_os_str().is_empty() {
-        Path::new(".")
-    } else {
-        dir
-    };
-    let prefix = format!("{stem}.");
-    let mut found: Vec<PathBuf> = std::fs::read_dir(dir)
-        .map(|entries| {
-            entries
-                .filter_map(|e| e.ok().map(|e| e.path()))
-                .filter(|p| {
-                    p.extension().is_some_and(|e| e == "mcap")
-                        && p.file_name()
-                            .and_then(|n| n.to_str())
-                            .is_some_and(|n| n.starts_with(&prefix) && n.len() > prefix.len() + 5)
+/// The `.mcap` file names of each directory, sorted, listed once: a directory of
+/// thousands of drives is not listed again for each drive's sidecars.
+#[derive(Default)]
+struct Listings(std::collections::HashMap<PathBuf, Vec<String>>);
+
+impl Listings {
+    /// Sidecars next to `file` (`<stem>.<tag>.mcap`), in name order.
+    fn sidecars_of(&mut self, file: &Path) -> Vec<PathBuf> {
+        let (Some(dir), Some(stem)) = (file.parent(), file.file_stem().and_then(|s| s.to_str()))
+        else {
+            return Vec::new();
+        };
+        let dir = if dir.as_os_str().is_empty() {
+            Path::new(".")
+        } else {
+            dir
+        };
+        let names = self.0.entry(dir.to_path_buf()).or_insert_with(|| {
+            let mut names: Vec<String> = std::fs::read_dir(dir)
+                .map(|entries| {
+                    entries
+                        .filter_map(|e| e.ok()?.file_name().into_string().ok())
+                        .filter(|n| n.ends_with(".mcap"))
+                        .collect()
                 })
-                .map(|p| file.with_file_name(p.file_name().unwrap_or_default()))
-                .collect()
-        })
-        .unwrap_or_default();
-    found.sort();
-    found
+                .unwrap_or_default();
+            names.sort();
+            names
+        });
+        let prefix = format!("{stem}.");
+        let first = names.partition_point(|n| n.as_str() < prefix.as_str());
+        names[first..]
+            .iter()
+            .take_while(|n| n.starts_with(&prefix))
+            .filter(|n| n.len() > prefix.len() + 5)
+            .map(|n| file.with_file_name(n))
+            .collect()
+    }
 }
 
 /// All `.mcap` files named or inside the named directories, sorted per directory.
