@@ -904,6 +904,22 @@ fn systemd_units_verify_and_share_shared_memory() {
     );
 }
 
+/// The first srun step indexes every drive once, as one task in the foreground, into
+/// the shared index cache the pipelines then read (`SUPERFLOW_INDEX_CACHE`).
+fn assert_index_step_first(steps: &[&str]) {
+    let index = steps[0];
+    assert!(
+        index.contains("superflow-pipeline\" index --mcap"),
+        "the first step indexes the drives: {index}"
+    );
+    assert!(index.contains("--ntasks=1"), "one task: {index}");
+    assert!(!index.ends_with('&'), "the index step ends first: {index}");
+    assert!(
+        steps[1..].iter().all(|s| !s.contains(" index ")),
+        "indexed once per job: {steps:?}"
+    );
+}
+
 #[test]
 fn slurm_script_wires_the_ranks_and_resumes() {
     let batch = read(&deploy("slurm/superflow.sbatch"));
@@ -915,6 +931,14 @@ fn slurm_script_wires_the_ranks_and_resumes() {
     assert!(batch.contains("#SBATCH --requeue"));
     assert!(batch.contains("srun --ntasks-per-node=1"));
     assert!(batch.contains("deploy/slurm/superflow-node.sh"));
+    let joined = batch.replace("\\\n", " ");
+    let steps: Vec<&str> = joined
+        .lines()
+        .map(str::trim)
+        .filter(|l| l.starts_with("srun "))
+        .collect();
+    assert_eq!(steps.len(), 2, "index, then the nodes: {steps:?}");
+    assert_index_step_first(&steps);
     assert!(batch.contains(r#"SUPERFLOW_IOX_PREFIX="sf${SLURM_JOB_ID}""#));
     assert!(node.contains(r#"SUPERFLOW_HOST_RANK="${SLURM_PROCID:"#));
     assert!(node.contains(r#"SUPERFLOW_HOST_COUNT="${SLURM_NNODES:"#));
@@ -1425,7 +1449,12 @@ fn slurm_ddp_script_runs_one_mpi_job_over_one_pipeline_per_node() {
         .map(str::trim)
         .filter(|l| l.starts_with("srun "))
         .collect();
-    assert_eq!(steps.len(), 2, "two steps: pipelines, trainers: {steps:?}");
+    assert_eq!(
+        steps.len(),
+        3,
+        "three steps: index, pipelines, trainers: {steps:?}"
+    );
+    assert_index_step_first(&steps);
     let pipelines = steps
         .iter()
         .find(|s| s.contains("deploy/slurm/superflow-pipeline.sh"))
