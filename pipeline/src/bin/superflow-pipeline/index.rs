@@ -30,7 +30,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let cache = config.ingest.index_cache();
     println!("drives          {}", dataset.drives.len());
     println!(
-        "files           {files} ({:.1} GB)",
+        "files           {files} ({:.2} GB)",
         dataset
             .drives
             .iter()
@@ -56,7 +56,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         cache.map_or_else(|| "off".to_string(), |c| c.dir().display().to_string())
     );
     println!(
-        "seconds         {seconds:.2} ({:.2} GB scanned)",
+        "seconds         {seconds:.3} ({:.2} GB scanned)",
         stats.bytes_scanned as f64 * 1e-9
     );
     Ok(())
