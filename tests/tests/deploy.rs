@@ -658,6 +658,14 @@ fn kubernetes_pod_shares_shared_memory_and_wires_the_ranks() {
     let shm = volume_at(pipeline, "/dev/shm").expect("pipeline mounts /dev/shm");
     let root = volume_at(pipeline, "/tmp/iceoryx2").expect("pipeline mounts /tmp/iceoryx2");
     assert_ne!(shm, root);
+    // The index cache lives on the shared, persistent runs volume.
+    let cache = &env_of(pipeline)["SUPERFLOW_INDEX_CACHE"];
+    assert_eq!(cache["value"], "/runs/index-cache");
+    let runs = volume_at(pipeline, "/runs").expect("pipeline mounts /runs");
+    assert_eq!(
+        volumes_of(pod)[runs]["persistentVolumeClaim"]["claimName"],
+        "superflow-runs"
+    );
     for c in &all {
         assert_eq!(
             volume_at(c, "/dev/shm"),
