@@ -912,10 +912,21 @@ fn systemd_units_verify_and_share_shared_memory() {
     );
 }
 
+/// The `srun` steps of a batch script, continuation lines joined.
+fn srun_steps(batch: &str) -> Vec<String> {
+    batch
+        .replace("\\\n", " ")
+        .lines()
+        .map(str::trim)
+        .filter(|l| l.starts_with("srun "))
+        .map(str::to_owned)
+        .collect()
+}
+
 /// The first srun step indexes every drive once, as one task in the foreground, into
 /// the shared index cache the pipelines then read (`SUPERFLOW_INDEX_CACHE`).
-fn assert_index_step_first(steps: &[&str]) {
-    let index = steps[0];
+fn assert_index_step_first(steps: &[String]) {
+    let index = &steps[0];
     assert!(
         index.contains("superflow-pipeline\" index --mcap"),
         "the first step indexes the drives: {index}"
@@ -939,12 +950,7 @@ fn slurm_script_wires_the_ranks_and_resumes() {
     assert!(batch.contains("#SBATCH --requeue"));
     assert!(batch.contains("srun --ntasks-per-node=1"));
     assert!(batch.contains("deploy/slurm/superflow-node.sh"));
-    let joined = batch.replace("\\\n", " ");
-    let steps: Vec<&str> = joined
-        .lines()
-        .map(str::trim)
-        .filter(|l| l.starts_with("srun "))
-        .collect();
+    let steps = srun_steps(&batch);
     assert_eq!(steps.len(), 2, "index, then the nodes: {steps:?}");
     assert_index_step_first(&steps);
     assert!(batch.contains(r#"SUPERFLOW_IOX_PREFIX="sf${SLURM_JOB_ID}""#));
@@ -1450,13 +1456,7 @@ fn slurm_ddp_script_runs_one_mpi_job_over_one_pipeline_per_node() {
     );
     assert!(batch.contains(r#"SUPERFLOW_IOX_PREFIX="sf${SLURM_JOB_ID}"#));
 
-    // The srun steps (continuation lines joined).
-    let joined = batch.replace("\\\n", " ");
-    let steps: Vec<&str> = joined
-        .lines()
-        .map(str::trim)
-        .filter(|l| l.starts_with("srun "))
-        .collect();
+    let steps = srun_steps(&batch);
     assert_eq!(
         steps.len(),
         3,
