@@ -500,8 +500,38 @@ impl SparseUNet {
 }
 
 /// Divided by the L2 norm over dimension 1 (rows of `[N, C]`, pixels of `[I, C, H, W]`);
-/// norms below 1e-12 are clamped, as in PyTorch's `F.normalize`.
+/// norms below 1e-12 are clamped, as in PyTorch's `F.normalize`. The clamp comes before
+/// the square root: a row of zeros (a voxel whose features all died in ReLUs) then has a
+/// finite gradient, as in PyTorch, where √ at 0 would make it NaN and the next step's
+/// parameters with it.
 pub fn l2_normalize<const D: usize>(x: Tensor<D>) -> Tensor<D> {
-    let norm = x.clone().square().sum_dim(1).sqrt().clamp_min(1e-12);
+    let norm = x.clone().square().sum_dim(1).clamp_min(1e-24).sqrt();
     x / norm
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A row of zeros (a voxel whose features all died in ReLUs) normalizes to zeros with
+    /// a finite gradient, as `F.normalize` does; other rows are unit vectors.
+    #[test]
+    fn a_zero_row_normalizes_with_a_finite_gradient() {
+        let device = Device::flex().autodiff();
+        let x = Tensor::<2>::from_data(
+            TensorData::new(vec![0.0f32, 0.0, 3.0, 4.0], [2, 2]),
+            &device,
+        )
+        .require_grad();
+        let y = l2_normalize(x.clone());
+        let values: Vec<f32> = y.clone().into_data().try_into_vec().unwrap_or_default();
+        assert_eq!(values, [0.0, 0.0, 0.6, 0.8]);
+        let grads = (y * Tensor::<2>::ones([2, 2], &device)).sum().backward();
+        let gradient: Vec<f32> = x
+            .grad(&grads)
+            .map(|g| g.into_data().try_into_vec().unwrap_or_default())
+            .unwrap_or_default();
+        assert_eq!(gradient.len(), 4);
+        assert!(gradient.iter().all(|g| g.is_finite()), "{gradient:?}");
+    }
 }
