@@ -78,7 +78,8 @@ pub struct BatchPlan {
 }
 
 impl BatchPlan {
-    /// Plans the sections for `samples` (all built with the same recipe).
+    /// Plans the sections for `samples` (all built with the same recipe, from drives of
+    /// any rig).
     pub fn new(samples: &[Sample], shape: BatchShape) -> Result<Self, BatchError> {
         let dims = dims(samples, shape)?;
         let mut layout = BatchLayout::new();
@@ -117,16 +118,24 @@ impl BatchPlan {
 }
 
 /// The sizes behind the table's symbols for `samples`, after checking that they share
-/// one recipe.
+/// one recipe (the same temporal frames; the cameras may differ, one rig from another).
 fn dims(samples: &[Sample], shape: BatchShape) -> Result<Dims, BatchError> {
     let first = samples
         .first()
         .ok_or_else(|| err("samples", "empty batch"))?;
     let f = first.frames.len();
-    let k = first.cameras.len();
     for s in samples {
-        if s.frames.len() != f || s.cameras.len() != k {
-            return Err(err("samples", "samples of different recipes in one batch"));
+        if s.frames.len() != f {
+            return Err(err(
+                "samples",
+                "samples of different temporal frames in one batch",
+            ));
+        }
+        if s.frames.iter().any(|fr| fr.images.len() != s.cameras.len()) {
+            return Err(err(
+                &Section::Images.name(),
+                "a frame's images differ from its sample's cameras",
+            ));
         }
         if s.frames.iter().any(|fr| fr.num_superpixels > 65_536) {
             return Err(err(
@@ -153,7 +162,7 @@ fn dims(samples: &[Sample], shape: BatchShape) -> Result<Dims, BatchError> {
     Ok(Dims {
         samples: samples.len(),
         frames: f,
-        cameras: k,
+        camera_slots: samples.iter().map(|s| s.cameras.len()).sum(),
         height: shape.height,
         width: shape.width,
         points: all_clouds().map(|c| c.xyz.len()).sum(),
@@ -163,7 +172,14 @@ fn dims(samples: &[Sample], shape: BatchShape) -> Result<Dims, BatchError> {
     })
 }
 
-/// `sample_ids`, `frame_stamps`, `frame_offsets`, `camera_ids`.
+/// The first camera slot of each sample, and the total: `sample_cameras`. The images of
+/// sample `b` are numbered from `F · slots[b]`, frame by frame, its cameras in slot
+/// order within a frame.
+fn camera_slots(samples: &[Sample]) -> Vec<usize> {
+    offsets(samples.iter().map(|s| s.cameras.len()))
+}
+
+/// `sample_ids`, `frame_stamps`, `frame_offsets`, `camera_ids`, `sample_cameras`.
 fn write_sample_sections(samples: &[Sample], w: &mut BatchWriter<'_>) -> Result<(), BatchError> {
     fill(
         w.take_section::<u64>(Section::SampleIds)?,
@@ -192,6 +208,10 @@ fn write_sample_sections(samples: &[Sample], w: &mut BatchWriter<'_>) -> Result<
         samples
             .iter()
             .flat_map(|s| s.camera_indices.iter().copied()),
+    );
+    fill(
+        w.take_section::<u32>(Section::SampleCameras)?,
+        camera_slots(samples).into_iter().map(|o| o as u32),
     );
     Ok(())
 }
@@ -330,16 +350,18 @@ fn write_pairings(
     w: &mut BatchWriter<'_>,
 ) -> Result<(), BatchError> {
     let f = samples[0].frames.len();
-    let k = samples[0].cameras.len();
+    let slots = camera_slots(samples);
     let all_clouds = || samples.iter().flat_map(clouds);
     // The image number of a cloud's pairing is its frame's (the keyframe's for the
-    // dense cloud).
+    // dense cloud): sample b's images start at F · slots[b], K_b per frame.
     let pairings = || {
+        let slots = &slots;
         samples.iter().enumerate().flat_map(move |(b, s)| {
             let c_count = s.frames.len() + 1;
+            let k = s.cameras.len();
             clouds(s).enumerate().map(move |(c, cloud)| {
                 let frame = if c + 1 == c_count { s.key_frame } else { c };
-                (b * c_count + c, (b * f + frame) * k, cloud)
+                (b * c_count + c, f * slots[b] + frame * k, cloud)
             })
         })
     };

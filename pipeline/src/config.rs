@@ -8,14 +8,18 @@
 //!   prefetch, epochs, subscriber waits;
 //! * `[labels]` ([`LabelConfig`]): per-point semantic labels — field, mask, raw id →
 //!   training class mapping, ignore index, class names (read only by `inspect` and by
-//!   whoever asks for labels, e.g. a linear probe; samples never read them).
+//!   whoever asks for labels, e.g. a linear probe; samples never read them);
+//! * `[[dataset]]` ([`DatasetGroup`]), any number: named groups of drives, each with
+//!   its `repeat` per epoch (`--dataset` on the command line replaces them; `--mcap`
+//!   adds a group of its own).
 //!
 //! `pipeline/pipeline.toml` lists every setting with its default and a comment.
 //!
 //! The command line's settings ([`Overrides`]) are laid over the file's in one place,
 //! [`PipelineConfig::apply`], and the result is validated after.
 
-use crate::drive::{IngestConfig, LabelConfig};
+use crate::drive::groups::validate_groups;
+use crate::drive::{DatasetGroup, IngestConfig, LabelConfig};
 use crate::publish::{Mode, ServiceConfig};
 use crate::sample::SampleConfig;
 use serde::{Deserialize, Serialize};
@@ -35,6 +39,9 @@ pub struct PipelineConfig {
     pub service: ServiceConfig,
     /// Per-point labels (`[labels]`, `[labels.mapping]`).
     pub labels: LabelConfig,
+    /// Named groups of drives with their repeats (`[[dataset]]`); none by default.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub dataset: Vec<DatasetGroup>,
 }
 
 /// `[service]` settings given on the command line: each one present replaces the file's
@@ -94,7 +101,7 @@ impl PipelineConfig {
             path: name.clone(),
             source,
         })?;
-        let config: PipelineConfig =
+        let mut config: PipelineConfig =
             toml::from_str(&text).map_err(|source| ConfigError::Parse {
                 path: name.clone(),
                 source,
@@ -102,6 +109,11 @@ impl PipelineConfig {
         config
             .validate()
             .map_err(|source| ConfigError::Invalid { path: name, source })?;
+        let dir = path.parent().unwrap_or(Path::new(""));
+        config.dataset = std::mem::take(&mut config.dataset)
+            .into_iter()
+            .map(|group| group.relative_to(dir))
+            .collect();
         Ok(config)
     }
 
@@ -156,13 +168,15 @@ impl PipelineConfig {
         }
         self.sample.validate()?;
         self.service.validate()?;
-        self.labels.validate()
+        self.labels.validate()?;
+        validate_groups(&self.dataset)
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use std::path::PathBuf;
 
     #[test]
     fn parses_overrides_and_rejects_unknown_fields() {
@@ -302,6 +316,38 @@ mod tests {
             config.service.validate().unwrap_err().setting,
             "service.world_size"
         );
+    }
+
+    #[test]
+    fn dataset_groups_read_with_paths_relative_to_the_file() {
+        let dir = std::env::temp_dir().join(format!("superflow-groups-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("pipeline.toml");
+        std::fs::write(
+            &path,
+            "[[dataset]]\nname = \"fleet\"\nmcap = [\"drives/fleet\", \"/abs/x.mcap\"]\n\n\
+             [[dataset]]\nname = \"kitti\"\nmcap = [\"kitti\"]\nrepeat = 2.0\n",
+        )
+        .unwrap();
+        let config = PipelineConfig::load(&path).unwrap();
+        let groups: Vec<(&str, f64)> = config
+            .dataset
+            .iter()
+            .map(|g| (g.name.as_str(), g.repeat))
+            .collect();
+        assert_eq!(groups, [("fleet", 1.0), ("kitti", 2.0)]);
+        assert_eq!(
+            config.dataset[0].mcap,
+            [dir.join("drives/fleet"), PathBuf::from("/abs/x.mcap")]
+        );
+        std::fs::write(
+            &path,
+            "[[dataset]]\nname = \"a\"\nmcap = [\"x\"]\nrepeat = 0.0\n",
+        )
+        .unwrap();
+        let e = PipelineConfig::load(&path).unwrap_err().to_string();
+        assert!(e.contains("dataset[0].repeat"), "{e}");
+        std::fs::remove_dir_all(dir).unwrap();
     }
 
     /// The dotted paths of every key of `table`.

@@ -6,6 +6,7 @@
 use crate::drive::ChannelSummary;
 use crate::drive::SkipReport;
 use crate::drive::{Dataset, Drive, DriveLabels, LabelConfig, LabelForm, Role};
+use crate::fleet::{FleetReport, read_lidar_facts};
 use crate::sample::SampleConfig;
 use crate::sample::plan::drive_keyframes;
 use crate::source::ChunkCache;
@@ -82,6 +83,10 @@ pub struct InspectReport {
     pub format: String,
     /// Every drive of the dataset.
     pub drives: Vec<DriveReport>,
+    /// The dataset's groups and rigs (with their LiDARs' facts), when asked for
+    /// ([`InspectReport::with_fleet`]).
+    #[serde(default)]
+    pub fleet: Option<FleetReport>,
 }
 
 impl InspectReport {
@@ -91,7 +96,20 @@ impl InspectReport {
         InspectReport {
             format: INSPECT_FORMAT.to_string(),
             drives: dataset.drives.iter().map(DriveReport::new).collect(),
+            fleet: None,
         }
+    }
+
+    /// This report with the dataset's groups and rigs ([`FleetReport`]), one sweep of
+    /// every drive read for its LiDAR's facts; keyframes at the default recipe.
+    pub fn with_fleet(mut self, dataset: &Dataset) -> Self {
+        let keyframes: Vec<usize> = self.drives.iter().map(|d| d.usable_keyframes).collect();
+        self.fleet = Some(FleetReport::new(
+            dataset,
+            &keyframes,
+            &read_lidar_facts(dataset),
+        ));
+        self
     }
 
     /// [`InspectReport::new`] with each drive's labels read under `config` (every sweep
@@ -104,21 +122,28 @@ impl InspectReport {
         report
     }
 
-    /// The report for people.
+    /// The report for people: the dataset's groups and rigs, then every drive.
     pub fn to_text(&self) -> String {
-        self.drives
-            .iter()
-            .enumerate()
-            .map(|(i, d)| {
-                format!(
-                    "== drive {} of {}\n{}",
-                    i + 1,
-                    self.drives.len(),
-                    d.to_text()
-                )
-            })
-            .collect::<Vec<_>>()
-            .join("\n")
+        let mut parts = Vec::new();
+        if let Some(fleet) = &self.fleet {
+            parts.push(format!(
+                "== dataset: {} drive(s), {} group(s), {} rig(s), {} samples an epoch\n{}\n",
+                self.drives.len(),
+                fleet.groups.len(),
+                fleet.rigs.len(),
+                fleet.samples_per_epoch,
+                fleet.lines().join("\n")
+            ));
+        }
+        parts.extend(self.drives.iter().enumerate().map(|(i, d)| {
+            format!(
+                "== drive {} of {}\n{}",
+                i + 1,
+                self.drives.len(),
+                d.to_text()
+            )
+        }));
+        parts.join("\n")
     }
 }
 

@@ -29,9 +29,10 @@
 //!    [`publish::Metrics`].
 //!
 //! Beside them: [`config::PipelineConfig`] (`pipeline.toml`: `[ingest]`, `[sample]`,
-//! `[service]`, `[labels]`; a setting out of range is a `superflow_common::InvalidSetting`,
-//! the trainer's too) and [`inspect`] (what `superflow-pipeline inspect` reports about a
-//! drive).
+//! `[service]`, `[labels]`, `[[dataset]]`; a setting out of range is a
+//! `superflow_common::InvalidSetting`, the trainer's too), [`inspect`] (what
+//! `superflow-pipeline inspect` reports about a drive) and [`fleet`] (a dataset's groups
+//! and rigs, as `index`, `inspect` and the service report them).
 //!
 //! For example, the transform tree interpolates between recorded poses:
 //!
@@ -59,6 +60,7 @@ pub mod batch;
 pub mod config;
 pub mod decode;
 pub mod drive;
+pub mod fleet;
 pub mod inspect;
 pub mod publish;
 pub mod sample;

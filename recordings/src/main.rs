@@ -3,7 +3,9 @@
 //! `superflow-recordings --preset nuscenes --image-size 1600x900`: a nuScenes-sized drive
 //! for benchmarks, under its own file stem;
 //! `superflow-recordings --out DIR --keyframes 120`: a longer labelled street drive (60 s)
-//! for evaluating a probe, named `street_<dialect>_60s`.
+//! for evaluating a probe, named `street_<dialect>_60s`;
+//! `superflow-recordings --out DIR --cameras 2 --image-size 640x360 --beams 32`: a drive
+//! of another rig (a fleet's 2-camera car), named `street_<dialect>_2cam_640x360_32beams`.
 
 use anyhow::Context as _;
 use clap::{Parser, ValueEnum};
@@ -75,7 +77,8 @@ struct Args {
     /// `nuscenes_<dialect>_<W>x<H>`, never overwriting the sample drives.
     #[arg(long, value_enum, default_value = "sample")]
     preset: Preset,
-    /// Camera image size `WxH` of the nuScenes preset: 800x450 (default) or 1600x900.
+    /// Camera image size `WxH`: for the nuScenes preset 800x450 (default) or 1600x900;
+    /// for the sample preset any size (the sample drives: 480x270).
     #[arg(long, value_name = "WxH")]
     image_size: Option<String>,
     /// Length of the drive in seconds (the sample drives: 3). A sample-preset drive of
@@ -127,11 +130,11 @@ fn parse_size(text: &str) -> anyhow::Result<(u32, u32)> {
 fn options(args: &Args) -> anyhow::Result<DriveOptions> {
     let mut options = match args.preset {
         Preset::Sample => {
-            anyhow::ensure!(
-                args.image_size.is_none(),
-                "--image-size only applies to --preset nuscenes"
-            );
-            DriveOptions::default()
+            let mut options = DriveOptions::default();
+            if let Some(size) = &args.image_size {
+                options.image_size = parse_size(size)?;
+            }
+            options
         }
         Preset::Nuscenes => {
             let (w, h) = parse_size(args.image_size.as_deref().unwrap_or("800x450"))?;
@@ -148,11 +151,6 @@ fn options(args: &Args) -> anyhow::Result<DriveOptions> {
             "--duration-secs must be 0.05..=3600 (one LiDAR sweep at least), --keyframes 1..=7200"
         );
         options.duration_nanos = (secs * 1e9).round() as i64;
-        if args.preset == Preset::Sample
-            && options.duration_nanos != DriveOptions::default().duration_nanos
-        {
-            options.name = format!("street_{{dialect}}_{secs}s");
-        }
     }
     if let Some(labels) = args.labels {
         options.labels = match labels {
@@ -181,6 +179,11 @@ fn options(args: &Args) -> anyhow::Result<DriveOptions> {
             ClassMaps::InDrive => ClassMapStorage::InDrive,
             ClassMaps::PngSidecar => ClassMapStorage::PngSidecar,
         };
+    }
+    if args.preset == Preset::Sample {
+        // Never over the sample drives: a drive of another length or rig is named after
+        // what differs.
+        options.name = options.sample_name();
     }
     Ok(options)
 }

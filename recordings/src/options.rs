@@ -248,6 +248,43 @@ impl DriveOptions {
         }
     }
 
+    /// A sample-preset drive of another rig: `cameras` cameras (the first of the rig, in
+    /// nuScenes order: front, front right, ...) at `image_size`, a LiDAR of `beams` beams.
+    /// Named after what differs from the sample drives,
+    /// `street_{dialect}[_<N>cam][_<W>x<H>][_<B>beams]`, never over them. A fleet
+    /// mixes such drives with the 6-camera ones.
+    pub fn rig(cameras: usize, image_size: (u32, u32), beams: usize) -> Self {
+        let mut options = Self {
+            cameras,
+            image_size,
+            beams,
+            ..Self::default()
+        };
+        options.name = options.sample_name();
+        options
+    }
+
+    /// The name of a sample-preset drive with these options: `street_{dialect}` and a
+    /// suffix for each way it differs from the sample drives (length, cameras, image
+    /// size, beams).
+    pub fn sample_name(&self) -> String {
+        let sample = Self::default();
+        let mut name = String::from("street_{dialect}");
+        if self.duration_nanos != sample.duration_nanos {
+            name += &format!("_{}s", self.duration_secs());
+        }
+        if self.cameras != sample.cameras {
+            name += &format!("_{}cam", self.cameras);
+        }
+        if self.image_size != sample.image_size {
+            name += &format!("_{}x{}", self.image_size.0, self.image_size.1);
+        }
+        if self.beams != sample.beams {
+            name += &format!("_{}beams", self.beams);
+        }
+        name
+    }
+
     /// The drive length in seconds, as the writers' descriptions spell it.
     pub fn duration_secs(&self) -> f64 {
         self.duration_nanos as f64 * 1e-9
@@ -291,6 +328,17 @@ mod tests {
         assert_eq!(
             default.labels_sidecar_name(Dialect::Ros2).as_deref(),
             Some("street_ros2.labels.mcap")
+        );
+        let two = DriveOptions::rig(2, (640, 360), 32);
+        assert_eq!(
+            two.drive_name(Dialect::Ros2),
+            "street_ros2_2cam_640x360_32beams"
+        );
+        let one = DriveOptions::rig(1, crate::IMAGE_SIZE, 16);
+        assert_eq!(one.drive_name(Dialect::Foxglove), "street_foxglove_1cam");
+        assert_eq!(
+            DriveOptions::default().sample_name(),
+            DriveOptions::default().name
         );
         let nuscenes = DriveOptions::nuscenes(800, 450);
         assert_eq!(

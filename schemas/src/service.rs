@@ -11,8 +11,11 @@
 use crate::batch::BatchError;
 use iceoryx2::prelude::ZeroCopySend;
 
-/// Asks the pipeline to continue stream `rank` (0 in broadcast mode) at `(epoch, step)`:
-/// the next batch published on that service is that one. Sent on the control service.
+/// Asks the pipeline to continue stream `rank` (0 in broadcast mode) at a position of
+/// epoch `epoch`: by `sample` when known — the samples of the epoch the whole job (every
+/// rank of every host) had consumed, which holds whatever the job's size — else by
+/// `step` of this stream. The next batch published on that service is the one at that
+/// position. Sent on the control service.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, ZeroCopySend)]
 #[type_name("superflow::ResumeRequest")]
 #[repr(C)]
@@ -23,8 +26,31 @@ pub struct ResumeRequest {
     pub broadcast: u32,
     /// Epoch to resume at.
     pub epoch: u64,
-    /// Step within that epoch.
+    /// Step within that epoch (used when `sample` is [`UNKNOWN`]).
     pub step: u64,
+    /// Samples of `epoch` the whole job had consumed ([`UNKNOWN`]: resume by `step`).
+    pub sample: u64,
+    /// Samples per step of the whole job that saved the position (batch size × streams
+    /// of all hosts; [`UNKNOWN`] when not known). A `step` saved by a job of another
+    /// size names another position: such a request is refused (reason 3).
+    pub global_batch: u64,
+}
+
+/// A field a request does not know.
+pub const UNKNOWN: u64 = u64::MAX;
+
+impl ResumeRequest {
+    /// A request by step, the position's job size unknown.
+    pub fn at_step(rank: u32, broadcast: bool, epoch: u64, step: u64) -> Self {
+        Self {
+            rank,
+            broadcast: u32::from(broadcast),
+            epoch,
+            step,
+            sample: UNKNOWN,
+            global_batch: UNKNOWN,
+        }
+    }
 }
 
 /// The pipeline's answer to a [`ResumeRequest`].
@@ -35,7 +61,8 @@ pub struct ResumeReply {
     /// 1: the stream continues at the requested position; 0: refused (see `reason`).
     pub accepted: u32,
     /// 0 accepted; 1 no such stream (rank out of range or wrong mode); 2 position past
-    /// the end of the configured epochs.
+    /// the end of the configured epochs; 3 a step saved by a job of another size (resume
+    /// by sample).
     pub reason: u32,
     /// Sequence number of the first batch at the new position (publisher-wide).
     pub next_sequence: u64,
@@ -44,6 +71,10 @@ pub struct ResumeReply {
     pub publisher_lo: u64,
     /// High 64 bits of that id.
     pub publisher_hi: u64,
+    /// Epoch of the first batch at the new position.
+    pub epoch: u64,
+    /// Its step in this stream (a request by sample names the step it became).
+    pub step: u64,
 }
 
 impl ResumeReply {
@@ -67,9 +98,12 @@ pub struct ScheduleRequest {
 }
 
 /// The pipeline's answer to a [`ScheduleRequest`]. With it a subscriber knows which batch
-/// ends an epoch of its stream (step `steps - 1`) and which ends the stream (that step of
-/// epoch `epochs - 1`): only `--epochs` reached ends a stream, a pipeline stopped by a
-/// signal and restarted does not.
+/// ends an epoch of its stream (step `steps - 1`, or `start_steps - 1` in epoch
+/// `start_epoch`) and which ends the stream (that step of epoch `epochs - 1`): only
+/// `--epochs` reached ends a stream, a pipeline stopped by a signal and restarted does
+/// not. It also tells how many samples of an epoch the whole job has consumed at a
+/// position ([`ScheduleReply::consumed`]): what a checkpoint keeps so that a job resumes
+/// on any number of ranks and hosts.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, ZeroCopySend)]
 #[type_name("superflow::ScheduleReply")]
 #[repr(C)]
@@ -90,6 +124,21 @@ pub struct ScheduleReply {
     pub publisher_lo: u64,
     /// High 64 bits of that id.
     pub publisher_hi: u64,
+    /// Samples per epoch, all ranks and hosts together (every dataset group's keyframes
+    /// times its repeat).
+    pub samples: u64,
+    /// Samples per step of the whole job: batch size × streams of all hosts.
+    pub global_batch: u64,
+    /// The epoch that starts part-way, at sample `start_sample` (a job resumed on
+    /// another size: `--start-sample`, or a resume request by sample); every other epoch
+    /// starts at sample 0.
+    pub start_epoch: u64,
+    /// See `start_epoch`.
+    pub start_sample: u64,
+    /// Batches of this stream in epoch `start_epoch`.
+    pub start_steps: u64,
+    /// The fewest batches of any stream in epoch `start_epoch`.
+    pub start_min_steps: u64,
 }
 
 impl ScheduleReply {
@@ -98,14 +147,73 @@ impl ScheduleReply {
         (u128::from(self.publisher_hi) << 64) | u128::from(self.publisher_lo)
     }
 
+    /// Whether `epoch` starts part-way (at `start_sample > 0`).
+    fn part_way(&self, epoch: u64) -> bool {
+        epoch == self.start_epoch && self.start_sample > 0
+    }
+
+    /// Batches of this stream in `epoch`.
+    pub fn steps_in(&self, epoch: u64) -> u64 {
+        if self.part_way(epoch) {
+            self.start_steps
+        } else {
+            self.steps
+        }
+    }
+
+    /// The fewest batches of any stream in `epoch`.
+    pub fn min_steps_in(&self, epoch: u64) -> u64 {
+        if self.part_way(epoch) {
+            self.start_min_steps
+        } else {
+            self.min_steps
+        }
+    }
+
     /// Whether the batch at `(epoch, step)` is the last of its epoch in this stream.
-    pub fn ends_epoch(&self, step: u64) -> bool {
-        self.known == 1 && step + 1 >= self.steps
+    pub fn ends_epoch(&self, epoch: u64, step: u64) -> bool {
+        self.known == 1 && step + 1 >= self.steps_in(epoch)
     }
 
     /// Whether the batch at `(epoch, step)` is the last of the stream.
     pub fn ends_stream(&self, epoch: u64, step: u64) -> bool {
-        self.ends_epoch(step) && self.epochs > 0 && epoch + 1 >= self.epochs
+        self.ends_epoch(epoch, step) && self.epochs > 0 && epoch + 1 >= self.epochs
+    }
+
+    /// The samples of `epoch` the whole job has consumed once every stream has taken its
+    /// first `steps` batches of it (data-parallel ranks step together): the epoch's
+    /// first sample plus `steps` global batches, at most the epoch. Keyframes are dealt
+    /// round-robin, so those samples are exactly the epoch's first ones in its order.
+    pub fn consumed(&self, epoch: u64, steps: u64) -> u64 {
+        let first = if self.part_way(epoch) {
+            self.start_sample.min(self.samples)
+        } else {
+            0
+        };
+        first
+            + steps
+                .saturating_mul(self.global_batch)
+                .min(self.samples - first)
+    }
+
+    /// The step of this stream at which a resume by `sample` of `epoch` continues: the
+    /// step boundary at that sample, or 0 when it falls inside a step (the pipeline then
+    /// starts the epoch there, see `ResumeRequest`).
+    pub fn step_at(&self, epoch: u64, sample: u64) -> u64 {
+        let first = if self.part_way(epoch) {
+            self.start_sample
+        } else {
+            0
+        };
+        match sample.checked_sub(first) {
+            Some(taken) if self.global_batch > 0 && taken.is_multiple_of(self.global_batch) => {
+                taken / self.global_batch
+            }
+            Some(taken) if self.global_batch > 0 && sample == self.samples => {
+                taken.div_ceil(self.global_batch)
+            }
+            _ => 0,
+        }
     }
 }
 
@@ -399,12 +507,46 @@ mod tests {
             epochs: 2,
             ..ScheduleReply::default()
         };
-        assert!(!reply.ends_epoch(1) && reply.ends_epoch(2));
+        assert!(!reply.ends_epoch(0, 1) && reply.ends_epoch(0, 2));
         assert!(!reply.ends_stream(0, 2) && !reply.ends_stream(1, 1));
         assert!(reply.ends_stream(1, 2));
         let endless = ScheduleReply { epochs: 0, ..reply };
-        assert!(endless.ends_epoch(2) && !endless.ends_stream(7, 2));
-        assert!(!ScheduleReply::default().ends_epoch(0));
+        assert!(endless.ends_epoch(7, 2) && !endless.ends_stream(7, 2));
+        assert!(!ScheduleReply::default().ends_epoch(0, 0));
+    }
+
+    #[test]
+    fn a_schedule_counts_what_the_job_consumed_and_the_part_way_epoch() {
+        // 22 samples an epoch, 2 ranks of batches of 3: 6 a step. Epoch 4 resumed at 10.
+        let reply = ScheduleReply {
+            known: 1,
+            steps: 4,
+            min_steps: 3,
+            samples: 22,
+            global_batch: 6,
+            start_epoch: 4,
+            start_sample: 10,
+            start_steps: 2,
+            start_min_steps: 2,
+            ..ScheduleReply::default()
+        };
+        assert_eq!(reply.consumed(3, 0), 0);
+        assert_eq!(reply.consumed(3, 2), 12);
+        assert_eq!(reply.consumed(3, 4), 22, "at most the epoch");
+        assert_eq!(reply.consumed(4, 0), 10);
+        assert_eq!(reply.consumed(4, 1), 16);
+        assert_eq!(reply.consumed(4, 2), 22);
+        assert_eq!((reply.steps_in(4), reply.steps_in(5)), (2, 4));
+        assert_eq!((reply.min_steps_in(4), reply.min_steps_in(0)), (2, 3));
+        assert!(reply.ends_epoch(4, 1) && !reply.ends_epoch(5, 1));
+        assert_eq!(reply.step_at(3, 12), 2);
+        assert_eq!(reply.step_at(3, 22), 4);
+        assert_eq!(
+            reply.step_at(3, 13),
+            0,
+            "inside a step: the epoch starts there"
+        );
+        assert_eq!(reply.step_at(4, 16), 1);
     }
 
     #[test]

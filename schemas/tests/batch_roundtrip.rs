@@ -170,10 +170,17 @@ fn malformed_batches_are_rejected_with_clear_errors() {
         );
     };
     check(&|h| h.magic = 0x1234, payload, "not a superflow batch");
+    // A batch of the layout before mixed rigs, and one of a later version: refused by
+    // version, never misread.
+    check(
+        &|h| h.version = 1,
+        payload,
+        "batch format version 1, this build reads version 2",
+    );
     check(
         &|h| h.version = BATCH_FORMAT_VERSION + 1,
         payload,
-        "format version 2",
+        "batch format version 3",
     );
     check(&|h| h.header_size = 100, payload, "header is 100 bytes");
     check(&|h| h.section_count = 129, payload, "129 sections");

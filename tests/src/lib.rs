@@ -9,8 +9,8 @@ use anyhow::{Context as _, bail};
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 use superflow_pipeline::drive::{Drive, IngestConfig, TransformTree};
-use superflow_recordings::Dialect;
 use superflow_recordings::truth::GroundTruth;
+use superflow_recordings::{Dialect, DriveOptions};
 use superflow_schemas::sensor::CameraCalibration;
 
 /// The repository root.
@@ -99,6 +99,64 @@ pub fn sample_dataset(drive: &SampleDrive) -> anyhow::Result<superflow_pipeline:
         std::slice::from_ref(&drive.path),
         &IngestConfig::default(),
     )?)
+}
+
+/// A drive of another rig in `dialect` ([`DriveOptions::rig`]), generated on first use
+/// into the system's temporary directory, one directory per drive and generator version
+/// (made whole under a temporary name, then renamed, so test processes running at once
+/// share it); returns the drive's path. The generator writes it in a second or two.
+pub fn rig_drive(dialect: Dialect, options: &DriveOptions) -> anyhow::Result<PathBuf> {
+    let name = options.drive_name(dialect);
+    let root = std::env::temp_dir().join(format!(
+        "superflow-rigs-v{}",
+        superflow_recordings::GENERATOR_VERSION
+    ));
+    let dir = root.join(&name);
+    let path = dir.join(format!("{name}.mcap"));
+    if path.is_file() {
+        return Ok(path);
+    }
+    let drive = superflow_recordings::generate_with(dialect, options)?;
+    let tmp = root.join(format!(".{name}.{}.tmp", std::process::id()));
+    let _ = std::fs::remove_dir_all(&tmp);
+    std::fs::create_dir_all(&tmp).with_context(|| format!("creating {}", tmp.display()))?;
+    std::fs::write(tmp.join(format!("{name}.mcap")), &drive.mcap)?;
+    if let (Some(bytes), Some(sidecar)) = (&drive.sidecar, options.sidecar_name(dialect)) {
+        std::fs::write(tmp.join(sidecar), bytes)?;
+    }
+    if let (Some(bytes), Some(sidecar)) =
+        (&drive.labels_sidecar, options.labels_sidecar_name(dialect))
+    {
+        std::fs::write(tmp.join(sidecar), bytes)?;
+    }
+    std::fs::write(tmp.join(format!("{name}.truth.json")), drive.truth_json()?)?;
+    // Another process may have renamed its copy into place first: then keep that one.
+    if std::fs::rename(&tmp, &dir).is_err() {
+        let _ = std::fs::remove_dir_all(&tmp);
+    }
+    anyhow::ensure!(path.is_file(), "{} was not written", path.display());
+    Ok(path)
+}
+
+/// The 2-camera rig of the fleet tests: a ROS 2 car with the front and front-right
+/// cameras at 640×360 and a 32-beam LiDAR.
+pub fn two_camera_rig() -> DriveOptions {
+    DriveOptions::rig(2, (640, 360), 32)
+}
+
+/// The 1-camera rig of the fleet tests: a Foxglove car with a front camera only.
+pub fn one_camera_rig() -> DriveOptions {
+    DriveOptions::rig(1, superflow_recordings::IMAGE_SIZE, 16)
+}
+
+/// A fleet of three rigs: the committed 6-camera Foxglove drive, then the 2-camera
+/// ROS 2 and the 1-camera Foxglove drives ([`rig_drive`]).
+pub fn fleet_drives() -> anyhow::Result<Vec<PathBuf>> {
+    Ok(vec![
+        sample_drive(Dialect::Foxglove)?.path,
+        rig_drive(Dialect::Ros2, &two_camera_rig())?,
+        rig_drive(Dialect::Foxglove, &one_camera_rig())?,
+    ])
 }
 
 /// The `superflow-pipeline` binary next to this package's binaries (built by

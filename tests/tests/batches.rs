@@ -1,15 +1,18 @@
 //! Samples assembled into one batch (the wire format of `schemas/BATCH_FORMAT.md`) read
 //! back through the batch reader: every section holds what the samples hold, with
 //! global rows that point at the right points, pixels and voxels, and every section is
-//! the one the section table (`superflow_schemas::batch::sections`) declares.
+//! the one the section table (`superflow_schemas::batch::sections`) declares; a batch of
+//! three rigs (6, 2 and 1 cameras, two image sizes and LiDARs) carries each sample's own
+//! cameras and nothing else.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
 
 use superflow_pipeline::batch::{BatchPlan, BatchShape};
-use superflow_pipeline::sample::{SampleBuilder, SampleConfig};
+use superflow_pipeline::drive::{Dataset, IngestConfig};
+use superflow_pipeline::sample::{Sample, SampleBuilder, SampleConfig};
 use superflow_recordings::Dialect;
 use superflow_schemas::batch::{BatchMeta, BatchView, Section};
-use superflow_tests::{sample_dataset, sample_drive};
+use superflow_tests::{fleet_drives, sample_dataset, sample_drive};
 
 #[test]
 fn a_batch_holds_its_samples_with_global_rows() {
@@ -17,24 +20,52 @@ fn a_batch_holds_its_samples_with_global_rows() {
     let config = SampleConfig::default();
     let builder = SampleBuilder::new(&ds, config.clone()).unwrap();
     let samples: Vec<_> = (0..3).map(|i| builder.build(0, i).unwrap()).collect();
+    check_batch(&samples);
+}
+
+/// A 6-camera drive, a 2-camera one and a 1-camera one in one batch: every sample has
+/// `min(3, its rig's cameras)` camera slots, and its images are its own.
+#[test]
+fn a_batch_of_three_rigs_holds_each_samples_own_cameras() {
+    let ds = Dataset::open(&fleet_drives().unwrap(), &IngestConfig::default()).unwrap();
+    let rigs: Vec<usize> = ds.drives.iter().map(|d| d.cameras.len()).collect();
+    assert_eq!(rigs, [6, 2, 1]);
+    let builder = SampleBuilder::new(&ds, SampleConfig::default()).unwrap();
+    // Two keyframes of each drive, in drive order.
+    let keyframes = &builder.plan().keyframes;
+    let samples: Vec<Sample> = (0..3u32)
+        .flat_map(|d| {
+            let first = keyframes.iter().position(|k| k.drive == d).unwrap();
+            [first, first + 1]
+        })
+        .enumerate()
+        .map(|(i, k)| builder.build_keyframe(k, 0, i as u64).unwrap())
+        .collect();
+    let cameras: Vec<usize> = samples.iter().map(|s| s.cameras.len()).collect();
+    assert_eq!(cameras, [3, 3, 2, 2, 1, 1]);
+    check_batch(&samples);
+}
+
+/// Writes `samples` as one batch and checks every section against them.
+fn check_batch(samples: &[Sample]) {
     let shape = BatchShape {
         height: 224,
         width: 448,
         levels: 5,
     };
-    let plan = BatchPlan::new(&samples, shape).unwrap();
+    let plan = BatchPlan::new(samples, shape).unwrap();
     let layout = plan.layout();
     let mut storage = vec![0u64; layout.payload_len().div_ceil(8)];
     let payload: &mut [u8] = bytemuck::cast_slice_mut(&mut storage);
-    plan.write(&samples, payload).unwrap();
+    plan.write(samples, payload).unwrap();
     // Bit-identical when written again.
     let first = payload.to_vec();
-    plan.write(&samples, payload).unwrap();
+    plan.write(samples, payload).unwrap();
     assert!(first == payload);
     // Into a freshly zeroed loan (the service's path): the same bytes.
     let mut zeroed = vec![0u64; layout.payload_len().div_ceil(8)];
     let zeroed_bytes: &mut [u8] = bytemuck::cast_slice_mut(&mut zeroed);
-    plan.write_zeroed(&samples, zeroed_bytes).unwrap();
+    plan.write_zeroed(samples, zeroed_bytes).unwrap();
     assert!(first[..] == zeroed_bytes[..first.len()]);
     let meta = BatchMeta {
         run: "batch-test".into(),
@@ -43,31 +74,50 @@ fn a_batch_holds_its_samples_with_global_rows() {
         seed: 0,
         sequence: 0,
         created_unix_nanos: 0,
-        sample_count: 3,
+        sample_count: samples.len() as u32,
         flags: 0,
     };
     let header = layout.header(&meta).unwrap();
     let view = BatchView::new(&header, payload).unwrap();
-    let (b, f, k, c) = (3usize, 3usize, 3usize, 4usize);
+    let (b, f, c) = (samples.len(), 3usize, 4usize);
+    // Each sample's camera slots, and the first image row of each.
+    let first_slot: Vec<usize> = std::iter::once(0)
+        .chain(samples.iter().scan(0, |sum, s| {
+            *sum += s.cameras.len();
+            Some(*sum)
+        }))
+        .collect();
+    let slots = first_slot[b];
 
     let ids = view.get::<u64>("sample_ids").unwrap();
     for (i, s) in samples.iter().enumerate() {
         assert_eq!(
             &ids.data[i * 5..i * 5 + 5],
             &[
-                0,
-                i as u64,
+                s.id.epoch,
+                s.id.index,
                 u64::from(s.id.keyframe),
-                0,
+                u64::from(s.id.drive),
                 u64::from(s.id.sweep)
             ]
         );
     }
+    let sample_cameras = view.get::<u32>("sample_cameras").unwrap();
+    let as_u32: Vec<u32> = first_slot.iter().map(|&v| v as u32).collect();
+    assert_eq!(sample_cameras.data, &as_u32[..]);
+    let camera_ids = view.get::<u32>("camera_ids").unwrap();
+    let expected_ids: Vec<u32> = samples
+        .iter()
+        .flat_map(|s| s.camera_indices.iter().copied())
+        .collect();
+    assert_eq!(camera_ids.data, &expected_ids[..]);
+    let image_stamps = view.get::<i64>("image_stamps").unwrap();
+    assert_eq!(image_stamps.data.len(), f * slots);
     let points = view.get::<f32>("points").unwrap();
     let point_clouds = view.get::<u32>("point_clouds").unwrap();
     assert_eq!(point_clouds.data.len(), b * c + 1);
     let images = view.get::<u8>("images").unwrap();
-    assert_eq!(images.shape(), &[b * f * k, 224, 448, 3]);
+    assert_eq!(images.shape(), &[f * slots, 224, 448, 3]);
     let superpixels = view.get::<u16>("superpixels").unwrap();
     let pairing_point = view.get::<u32>("pairing_point").unwrap();
     let pairing_image = view.get::<u32>("pairing_image").unwrap();
@@ -77,6 +127,18 @@ fn a_batch_holds_its_samples_with_global_rows() {
     let p2v = view.get::<u32>("point_to_voxel").unwrap();
     let l0 = view.get::<i32>("l0_coords").unwrap();
     for (bi, s) in samples.iter().enumerate() {
+        let k = s.cameras.len();
+        // Every image row of the sample is one of its own camera images, in frame then
+        // slot order.
+        for (fi, frame) in s.frames.iter().enumerate() {
+            assert_eq!(frame.images.len(), k);
+            for (slot, img) in frame.images.iter().enumerate() {
+                let row = f * first_slot[bi] + fi * k + slot;
+                assert_eq!(image_stamps.data[row], img.stamp.nanos());
+                let px = 224 * 448 * 3;
+                assert!(images.data[row * px..(row + 1) * px] == img.rgb[..]);
+            }
+        }
         let clouds: Vec<_> = s
             .frames
             .iter()
@@ -107,7 +169,10 @@ fn a_batch_holds_its_samples_with_global_rows() {
                 let row = q0 + j;
                 assert_eq!(pairing_point.data[row] as usize, p0 + p.point as usize);
                 let image = pairing_image.data[row] as usize;
-                assert_eq!(image, (bi * f + frame) * k + usize::from(p.camera));
+                assert_eq!(
+                    image,
+                    f * first_slot[bi] + frame * k + usize::from(p.camera)
+                );
                 let [r, col] = [pairing_pixel.data[row * 2], pairing_pixel.data[row * 2 + 1]];
                 assert_eq!((r, col), (p.row, p.col));
                 // The superpixel of the pairing is the id map's value at its pixel.

@@ -570,3 +570,84 @@ fn a_killed_rank_ends_the_job_and_the_restarted_job_resumes_every_rank() {
     assert_eq!(ranks[0][&5].epoch, 1, "step 5 is mid-epoch 1");
     let _ = std::fs::remove_dir_all(&out);
 }
+
+/// A preempted job back on another number of GPUs: 2 `--ddp` ranks stopped by SIGTERM
+/// mid-epoch (their checkpoint counts the samples the job consumed), then the pipeline
+/// restarted with 3 shards and the job resumed with `mpirun -np 3 --resume`: each rank
+/// asks to continue after those samples, the pipeline deals the rest of the epoch to the
+/// 3 ranks, and over both jobs every keyframe is trained on exactly once per epoch.
+#[test]
+fn a_job_of_two_ranks_resumed_on_three_trains_every_keyframe_once() {
+    const STEPS: u64 = 20; // more than the stream holds: both jobs end with it
+    let p = prefix("elastic");
+    let out = temp_dir("elastic");
+    let extra = ["--ddp", "--checkpoint-every", "1"];
+    let pipe = shard_pipeline(&p, "elastic", 2);
+    let mut job = trainer(Some(mpirun(2)), &p, "elastic", STEPS, &out, &extra);
+    let rank0 = out.join("rank-0/metrics.jsonl");
+    let started = Instant::now();
+    while std::fs::read_to_string(&rank0).map_or(0, |t| t.lines().count()) < 2 {
+        assert!(started.elapsed() < LIMIT, "the job did not reach step 2");
+        assert!(job.try_wait().unwrap().is_none(), "the job ended early");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    send_signal(&job, "-TERM");
+    let (ok, _, stderr) = finish(job, LIMIT);
+    assert!(!ok, "a stopped job exits with 128 + SIGTERM:\n{stderr}");
+    send_signal(&pipe, "-TERM");
+    let _ = finish(pipe, LIMIT);
+    let first = [rank_records(&out, 0), rank_records(&out, 1)];
+    let stopped_at = first[0].keys().max().copied().unwrap_or(0);
+    assert!(stopped_at >= 2, "{first:?}");
+
+    let args = [
+        "--mode",
+        "shard",
+        "--world-size",
+        "3",
+        "--batch-size",
+        "1",
+        "--epochs",
+        "2",
+    ];
+    let pipe = pipeline(
+        env!("CARGO_BIN_EXE_superflow-subscriber"),
+        DRIVE,
+        &p,
+        "elastic",
+        &args,
+    );
+    let resumed = [&extra[..], &["--resume"]].concat();
+    let (ok, stdout, stderr) = finish(
+        trainer(Some(mpirun(3)), &p, "elastic", STEPS, &out, &resumed),
+        LIMIT,
+    );
+    assert!(ok, "{stdout}\n{stderr}");
+    assert!(stderr.contains("ranks_before=2"), "{stderr}");
+    let (ok, _, err) = finish(pipe, LIMIT);
+    assert!(ok, "{err}");
+    no_shared_memory_left(&p);
+    // Both jobs' steps: ranks 0 and 1 kept the first job's records up to its checkpoint
+    // (a resumed run drops the metrics of the steps it redoes); rank 2 is the second's.
+    let mut seen = BTreeMap::<(u64, u64), usize>::new();
+    for rank in 0..3 {
+        for record in rank_records(&out, rank).values() {
+            for &[epoch, position] in &record.sample_ids {
+                *seen.entry((epoch, position)).or_default() += 1;
+            }
+        }
+    }
+    let expected: Vec<(u64, u64)> = (0..2)
+        .flat_map(|e| (0..KEYFRAMES).map(move |k| (e, k)))
+        .collect();
+    assert_eq!(
+        seen.keys().copied().collect::<Vec<_>>(),
+        expected,
+        "{seen:?}"
+    );
+    assert!(
+        seen.values().all(|n| *n == 1),
+        "a sample trained twice: {seen:?}"
+    );
+    let _ = std::fs::remove_dir_all(&out);
+}

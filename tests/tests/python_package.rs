@@ -23,8 +23,9 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::sync::OnceLock;
 use std::time::Duration;
+use superflow_recordings::Dialect;
 use superflow_tests::process::{self, Proc, finish, no_shared_memory_left, prefix, send_signal};
-use superflow_tests::workspace_root;
+use superflow_tests::{one_camera_rig, rig_drive, two_camera_rig, workspace_root};
 
 const DRIVE: &str = "recordings/drives/street_ros2.mcap";
 /// Keyframes of the sample drive (its plan; `samples.rs` checks it).
@@ -412,6 +413,106 @@ fn python_uneven_shards_stay_in_step_with_drop_uneven() {
     no_shared_memory_left(&p);
 }
 
+/// The drives of other rigs beside the sample drive: a 2-camera ROS 2 car and a 1-camera
+/// Foxglove one.
+fn other_rigs() -> [String; 2] {
+    [
+        rig_drive(Dialect::Ros2, &two_camera_rig()).unwrap(),
+        rig_drive(Dialect::Foxglove, &one_camera_rig()).unwrap(),
+    ]
+    .map(|p| p.display().to_string())
+}
+
+/// An epoch of three rigs (6, 2 and 1 cameras) from Python: every sample carries its own
+/// cameras as numpy and torch views, spconv takes the batch, nothing is an empty image.
+#[test]
+fn python_reads_an_epoch_of_mixed_rigs() {
+    let p = prefix("pyfleet");
+    let [two, one] = other_rigs();
+    let reader = scenario(&p, &["fleet", "--run", "pyfleet"], &[]);
+    let pipe = pipeline(
+        &p,
+        "pyfleet",
+        &["--mcap", &two, &one, "--batch-size", "4", "--epochs", "1"],
+    );
+    let out = succeeded(reader);
+    let got = &out[0];
+    assert_eq!(got["ok"], true, "{got}");
+    assert_eq!(got["frames"], 3);
+    let samples = got["samples"].as_array().unwrap();
+    assert_eq!(samples.len() as u64, 3 * KEYFRAMES, "{got}");
+    for s in samples {
+        let expected = [3, 2, 1][s["drive"].as_u64().unwrap() as usize];
+        assert_eq!(s["cameras"], expected, "{s}");
+    }
+    let (ok, _, err) = finish(pipe, LIMIT);
+    assert!(ok, "{err}");
+    no_shared_memory_left(&p);
+}
+
+/// torchrun's habit after a preemption: the job comes back with another number of GPUs.
+/// Two ranks read 2 batches each and save `stream.state_dict()`; three ranks of a new job
+/// (a pipeline of 3 shards, started afresh) `load_state_dict` it and read the rest of
+/// the epoch: every keyframe once, none skipped, none repeated.
+#[test]
+fn python_state_dict_resumes_a_job_on_another_number_of_ranks() {
+    let [two, _] = other_rigs();
+    let mcap = ["--mcap", two.as_str()];
+    let shards =
+        |world: &'static str| ["--world-size", world, "--batch-size", "1", "--epochs", "1"];
+    let ranks = |p: &str, world: usize, args: &[&str]| -> Vec<Proc> {
+        (0..world)
+            .map(|r| {
+                let (rank, size) = (r.to_string(), world.to_string());
+                let env = [("RANK", rank.as_str()), ("WORLD_SIZE", size.as_str())];
+                let mut all = vec!["elastic", "--run", "pyelastic"];
+                all.extend(args);
+                scenario(p, &all, &env)
+            })
+            .collect()
+    };
+    let p = prefix("pyelastic1");
+    let first = ranks(&p, 2, &["--count", "2"]);
+    let pipe = pipeline(&p, "pyelastic", &[&mcap[..], &shards("2")].concat());
+    let mut seen: Vec<Value> = Vec::new();
+    let mut states = Vec::new();
+    for reader in first {
+        let out = succeeded(reader);
+        seen.extend(out[0]["samples"].as_array().unwrap().iter().cloned());
+        states.push(out[0]["state"].clone());
+    }
+    stop(pipe);
+    no_shared_memory_left(&p);
+    // Ranks step together: they agree on where the job stands.
+    assert_eq!(states[0], states[1]);
+    assert_eq!(states[0]["samples"], 4, "{}", states[0]);
+    let state = states[0].to_string();
+    let p = prefix("pyelastic2");
+    let second = ranks(&p, 3, &["--count", "0", "--state", &state]);
+    let pipe = pipeline(&p, "pyelastic", &[&mcap[..], &shards("3")].concat());
+    for reader in second {
+        let out = succeeded(reader);
+        seen.extend(out[0]["samples"].as_array().unwrap().iter().cloned());
+    }
+    let (ok, _, err) = finish(pipe, LIMIT);
+    assert!(ok, "{err}");
+    no_shared_memory_left(&p);
+    let mut positions: Vec<u64> = seen.iter().map(|s| s[0].as_u64().unwrap()).collect();
+    positions.sort_unstable();
+    assert_eq!(
+        positions,
+        (0..2 * KEYFRAMES).collect::<Vec<_>>(),
+        "{seen:?}"
+    );
+    let mut keyframes: Vec<(u64, u64)> = seen
+        .iter()
+        .map(|s| (s[1].as_u64().unwrap(), s[2].as_u64().unwrap()))
+        .collect();
+    keyframes.sort_unstable();
+    keyframes.dedup();
+    assert_eq!(keyframes.len() as u64, 2 * KEYFRAMES, "{seen:?}");
+}
+
 /// SIGKILL the pipeline after 2 batches: the Python iterator waits, and when a new
 /// pipeline comes up it asks for the position after the last batch it got, so the steps
 /// go on without a gap or a repeat and every keyframe comes once. A view of the second
@@ -481,7 +582,7 @@ fn python_without_a_pipeline_times_out_naming_run_and_service() {
 fn python_malformed_batches_raise_typed_errors_and_the_stream_goes_on() {
     let p = prefix("pybad");
     let out = succeeded(scenario(&p, &["malformed", "--run", "pybad"], &[]));
-    assert_eq!(out[0]["version 2"], "FormatVersionMismatch", "{out:?}");
+    assert_eq!(out[0]["version 1"], "FormatVersionMismatch", "{out:?}");
     assert_eq!(out[0]["overlapping sections"], "MalformedBatch", "{out:?}");
     assert_eq!(
         out[0]["dtype against the table"], "MalformedBatch",

@@ -237,7 +237,11 @@ fn training_lowers_the_loss_and_a_resumed_run_matches_an_uninterrupted_one() {
     no_shared_memory_left(&p);
 
     let resumed = by_step(metrics::read(&cut.join("metrics.jsonl")).unwrap());
-    assert_eq!(resumed.len() as u64, STEPS, "steps 1..{STEPS} all recorded");
+    assert_eq!(
+        resumed.len() as u64,
+        STEPS,
+        "steps 1..{STEPS} all recorded; the resumed trainer said:\n{err}"
+    );
     let mut worst = 0.0_f64;
     for (step, r) in &resumed {
         let u = &uninterrupted[step];

@@ -10,6 +10,11 @@ Usage (needs PyTorch, numpy and safetensors; CI does not run it)::
     # checks the losses and the ViT against the fixtures of the other two scripts
     /tmp/torchenv/bin/python trainer/reference/bench_torch.py --self-test
 
+    # a batch of several rigs: the frozen ViT on its images (batch format 2, cameras per
+    # sample) against the slots a layout of `cameras` slots per sample would hold
+    /tmp/torchenv/bin/python trainer/reference/bench_torch.py --batch FILE --empty-slots \
+        [--vit-preset minkunet18] --threads T
+
     # no batch file at hand: a synthetic batch with the same sections and shapes
     /tmp/torchenv/bin/python trainer/reference/bench_torch.py --synthetic \\
         [--synthetic-points 8000] [--write-synthetic FILE] --preset tiny --steps 3 --warmup 1
@@ -395,7 +400,12 @@ def prepare_losses(arr: dict, pixel_stride: int = 1) -> dict:
     (from ``pixel_stride // 2``), image by image, row by row (``LossPlan::new``)."""
     b, f = arr["num_superpixels"].shape
     n_img, h, w = arr["superpixels"].shape
-    k_cams = n_img // (b * f)
+    # Sample bb's images are F * first[bb] + ff * K_bb + k (its own cameras, K_bb of them).
+    first = np.asarray(arr["sample_cameras"], dtype=np.int64)
+    k_of = np.diff(first)
+    if len(first) != b + 1 or f * int(first[-1]) != n_img:
+        raise ValueError(f"sample_cameras {first.tolist()} do not number {n_img} images of "
+                         f"{b} samples x {f} frames")
     c_per = f + 1
     offsets = arr["frame_offsets"].astype(np.int64)
     key = int(np.flatnonzero(offsets == 0)[0])
@@ -408,7 +418,7 @@ def prepare_losses(arr: dict, pixel_stride: int = 1) -> dict:
     sp = arr["superpixels"].astype(np.int64)[:, rows][:, :, cols].reshape(n_img, -1)
     grid = np.stack(np.meshgrid(np.arange(n_img), rows, cols, indexing="ij"), -1)
     pixels = grid.reshape(-1, 3)  # (image, row, col), image-major then row-major
-    frame_of_image = np.arange(n_img) // k_cams
+    frame_of_image = np.repeat(np.arange(b * f), np.repeat(k_of, f))
     px_slot = (frame_of_image[:, None] * smax + sp).reshape(-1)
     cpx = np.bincount(px_slot, minlength=b * f * smax)
     pc = arr["pairing_clouds"].astype(np.int64)
@@ -454,7 +464,7 @@ def prepare_losses(arr: dict, pixel_stride: int = 1) -> dict:
         "cpt": torch.from_numpy(np.maximum(cpt, 1).astype(np.float32))[:, None],
         "pairing_point": long(arr["pairing_point"]),
         "sc": sc, "tc": tc, "d2s": (dense, keyrows),
-        "summary": (f"B={b} F={f} K={k_cams} images {h}x{w}, pixel stride {stride} "
+        "summary": (f"B={b} F={f} K={k_of.tolist()} images {h}x{w}, pixel stride {stride} "
                     f"({pixels.shape[0]} sampled pixels), pairings "
                     f"{arr['pairing_point'].shape[0]}, slots sc {[len(a) for a, _ in sc]} "
                     f"tc {[len(a) for a, _ in tc]} d2s {len(dense)}"),
@@ -589,7 +599,8 @@ def synthetic_batch(seed: int, points: int, height: int, width: int, b: int = 2,
         ("sample_ids", np.zeros((b, 5), np.uint64)),
         ("frame_stamps", np.zeros((b, f), np.int64)),
         ("frame_offsets", np.arange(f, dtype=np.int32) - key),
-        ("camera_ids", np.tile(np.arange(k, dtype=np.uint32), (b, 1))),
+        ("camera_ids", np.tile(np.arange(k, dtype=np.uint32), b)),
+        ("sample_cameras", np.arange(b + 1, dtype=np.uint32) * k),
         ("image_stamps", np.zeros(n_img, np.int64)),
         ("image_flipped", np.zeros(n_img, np.uint8)),
         ("images", images),
@@ -666,32 +677,38 @@ def self_test(seed: int) -> None:
     """Checks the losses and the ViT against the fixtures, the 2D head's pixel sampling
     against full-resolution upsampling, and a tiny step on a synthetic batch."""
     fixtures = os.path.join(HERE, "..", "tests", "fixtures")
-    with open(os.path.join(fixtures, "losses.json")) as fh:
-        fx = json.load(fh)
-    cfg = fx["config"]
-    b, f, k, h, w, d = (cfg[x] for x in ("batch", "frames", "cameras", "height", "width", "dim"))
-    arr = {"num_superpixels": np.array(fx["num_superpixels"], np.uint32),
-           "superpixels": np.array(fx["superpixels"], np.uint16).reshape(b * f * k, h, w),
-           "frame_offsets": np.arange(f, dtype=np.int32) - cfg["key_frame"]}
-    for name in ("pairing_point", "pairing_superpixel", "pairing_clouds"):
-        arr[name] = np.array(fx[name], np.uint32)
-    ix = prepare_losses(arr)
-    pf = torch.tensor(np.array(fx["point_features"], np.float32).reshape(-1, d),
-                      dtype=torch.float64, requires_grad=True)
-    xf = torch.tensor(np.array(fx["pixel_features"], np.float32).reshape(b * f * k, d, h, w),
-                      dtype=torch.float64, requires_grad=True)
-    wt = cfg["weights"]
-    # Stride 1: every pixel, image-major then row-major = the full map's order.
-    out = superflow_losses(pf[ix["pairing_point"]], xf.permute(0, 2, 3, 1).reshape(-1, d), ix,
-                           (wt["sc"], wt["tc"], wt["d2s"]))
-    out["total"].backward()
-    ex = fx["expected"]
-    for got, want in ((out["l_sc"], ex["l_sc"]), (out["l_tc"], ex["l_tc"]),
-                      (out["l_d2s"], ex["l_d2s_infonce"]), (out["total"], ex["total_infonce"])):
-        assert abs(got.item() - want) < 1e-10, (got.item(), want)
-    assert np.abs(pf.grad.numpy().reshape(-1) - ex["grad_point_features_infonce"]).max() < 1e-10
-    assert np.abs(xf.grad.numpy().reshape(-1) - ex["grad_pixel_features_infonce"]).max() < 1e-10
-    print("losses match losses.json (to 1e-10, gradients included)")
+    for name in ("losses_mixed.json", "losses.json"):  # the last one stays for the checks below
+        with open(os.path.join(fixtures, name)) as fh:
+            fx = json.load(fh)
+        cfg = fx["config"]
+        b, f, h, w, d = (cfg[x] for x in ("batch", "frames", "height", "width", "dim"))
+        cams = cfg["cameras"] if isinstance(cfg["cameras"], list) else [cfg["cameras"]] * b
+        n_img = f * sum(cams)
+        arr = {"num_superpixels": np.array(fx["num_superpixels"], np.uint32),
+               "superpixels": np.array(fx["superpixels"], np.uint16).reshape(n_img, h, w),
+               "frame_offsets": np.arange(f, dtype=np.int32) - cfg["key_frame"],
+               "sample_cameras": np.concatenate([[0], np.cumsum(cams)]).astype(np.uint32)}
+        for section in ("pairing_point", "pairing_superpixel", "pairing_clouds"):
+            arr[section] = np.array(fx[section], np.uint32)
+        ix = prepare_losses(arr)
+        pf = torch.tensor(np.array(fx["point_features"], np.float32).reshape(-1, d),
+                          dtype=torch.float64, requires_grad=True)
+        xf = torch.tensor(np.array(fx["pixel_features"], np.float32).reshape(n_img, d, h, w),
+                          dtype=torch.float64, requires_grad=True)
+        wt = cfg["weights"]
+        # Stride 1: every pixel, image-major then row-major = the full map's order.
+        out = superflow_losses(pf[ix["pairing_point"]], xf.permute(0, 2, 3, 1).reshape(-1, d),
+                               ix, (wt["sc"], wt["tc"], wt["d2s"]))
+        out["total"].backward()
+        ex = fx["expected"]
+        for got, want in ((out["l_sc"], ex["l_sc"]), (out["l_tc"], ex["l_tc"]),
+                          (out["l_d2s"], ex["l_d2s_infonce"]),
+                          (out["total"], ex["total_infonce"])):
+            assert abs(got.item() - want) < 1e-10, (got.item(), want)
+        assert np.abs(pf.grad.numpy().reshape(-1) - ex["grad_point_features_infonce"]).max() < 1e-10
+        assert np.abs(xf.grad.numpy().reshape(-1) - ex["grad_pixel_features_infonce"]).max() < 1e-10
+        print(f"losses match {name} (to 1e-10, gradients included)")
+    k = cams[0]
 
     # Strided pooling = the full-map pooling restricted to the sampled pixels.
     for stride in (2, 3, 4):
@@ -749,6 +766,40 @@ def self_test(seed: int) -> None:
     print(f"tiny preset trains on it at pixel stride 4 (total {first[0]:.4f} -> {first[1]:.4f})")
 
 
+def empty_slots(arrays: dict, preset: str, seed: int, log) -> None:
+    """The frozen ViT of `preset` on the batch's images (one row per real camera image:
+    batch format 2), and on the rows a layout with the largest camera count in every
+    sample would hold (the others empty): what a masked layout costs, per step, when the
+    ViT runs on every slot. Also the bytes those slots add to the payload."""
+    frames = len(arrays["frame_offsets"])
+    cameras = np.diff(np.asarray(arrays["sample_cameras"], dtype=np.int64))
+    images = torch.from_numpy(np.array(arrays["images"])).permute(0, 3, 1, 2).float() / 255.0
+    empty = frames * int(cameras.max()) * len(cameras) - images.shape[0]
+    padded = torch.cat([images, torch.zeros(empty, *images.shape[1:])])
+    vit = build(preset, seed)[0]
+    mean = torch.tensor(MEAN).view(1, 3, 1, 1)
+    std = torch.tensor(STD).view(1, 3, 1, 1)
+
+    def seconds(x: torch.Tensor) -> float:
+        with torch.no_grad():
+            started = time.perf_counter()
+            vit((x - mean) / std)
+            return time.perf_counter() - started
+
+    seconds(images[:2])  # warm-up
+    runs = [(seconds(images), seconds(padded)) for _ in range(3)]
+    ragged = statistics.median(r for r, _ in runs)
+    masked = statistics.median(m for _, m in runs)
+    h, w = images.shape[2:]
+    slot_bytes = h * w * 3 + h * w * 2 + 8 + 1  # images, superpixels, stamp, flipped
+    payload = sum(np.asarray(a).nbytes for a in arrays.values())
+    log(f"cameras per sample {cameras.tolist()}, {frames} frames: {images.shape[0]} images; "
+        f"{empty} empty slots in a layout of {int(cameras.max())} per sample")
+    log(f"ViT ({preset}) on the images: {ragged:.2f} s; on every slot: {masked:.2f} s "
+        f"(x{masked / ragged:.3f}); the empty slots add {empty * slot_bytes / 1e6:.2f} MB to "
+        f"{payload / 1e6:.2f} MB of sections (+{100 * empty * slot_bytes / payload:.1f} %)")
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--batch", help="batch file (header + payload)")
@@ -766,6 +817,9 @@ def main(argv=None) -> int:
     p.add_argument("--write-synthetic", help="also save the synthetic batch to this file")
     p.add_argument("--self-test", action="store_true",
                    help="check the losses, the 2D head and the ViT against references, then exit")
+    p.add_argument("--empty-slots", action="store_true",
+                   help="time the ViT on the batch's images and on as many slots as a layout "
+                        "of the largest camera count per sample would hold, then exit")
     args = p.parse_args(argv)
     log = (lambda *a: print(*a, file=sys.stderr)) if args.json else print
     if args.self_test:
@@ -777,6 +831,11 @@ def main(argv=None) -> int:
         p.error("--pixel-stride must be at least 1")
 
     torch.set_num_threads(args.threads)
+    if args.empty_slots:
+        header, payload = rb.load_batch_file(args.batch)
+        _, arrays = rb.read_batch(header, payload)
+        empty_slots(arrays, args.preset, args.seed, log)
+        return 0
     if args.synthetic:
         hh, ww = (int(v) for v in args.synthetic_size.split("x"))
         data = synthetic_batch(args.seed, args.synthetic_points, hh, ww)

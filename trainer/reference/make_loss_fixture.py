@@ -7,25 +7,32 @@ and gradients, computed by an independent, deliberately plain PyTorch implementa
 
 Run (needs PyTorch and numpy; CI does not, it only reads the committed JSON)::
 
-    /tmp/torchenv/bin/python trainer/reference/make_loss_fixture.py
+    /tmp/torchenv/bin/python trainer/reference/make_loss_fixture.py          # losses.json
+    /tmp/torchenv/bin/python trainer/reference/make_loss_fixture.py --mixed  # losses_mixed.json
+
+``--mixed`` writes the same kind of fixture for a batch of two rigs: sample 0 with three
+cameras, sample 1 with one (``config.cameras`` is then the list of per-sample counts).
 
 The script is deterministic (fixed seed) and rewrites the same file byte for byte.
 
 Batch conventions (those of the Rust side):
 
-* ``B`` samples, ``F`` frames (offsets -1, 0, +1; key frame index 1), ``K`` cameras,
-  ``C = F + 1`` clouds per sample: frames ``0..F-1`` then the dense cloud at ``c = F``.
+* ``B`` samples, ``F`` frames (offsets -1, 0, +1; key frame index 1), ``K_b`` cameras in
+  sample ``b`` (``K`` each, or per sample with ``--mixed``), ``C = F + 1`` clouds per
+  sample: frames ``0..F-1`` then the dense cloud at ``c = F``.
   Cloud number ``b*C + c``; ``point_clouds`` (``B*C + 1`` entries) holds the first
   global point row of each cloud, ``pairing_clouds`` the first pairing of each cloud.
-* Images are numbered ``(b*F + f)*K + k``; ``superpixels`` is ``[I, H, W]`` flattened,
-  ids of frame ``(b, f)`` are ``0..num_superpixels[b][f]`` shared by its ``K`` images.
+* Images are numbered ``F*first[b] + f*K_b + k`` (``first[b]`` = cameras of the samples
+  before ``b``; ``(b*F + f)*K + k`` when every sample has ``K``); ``superpixels`` is
+  ``[I, H, W]`` flattened, ids of frame ``(b, f)`` are ``0..num_superpixels[b][f]``
+  shared by its ``K_b`` images.
   Some ids are absent from the images, some have no pairings (on purpose).
 * Pairings of frame cloud ``(b, f)`` use images of frame ``(b, f)``; pairings of the
   dense cloud of ``b`` use the images of its key frame ``(b, 1)``.
 
 Losses (``tau`` = 0.07, weights ``sc`` 1.0, ``tc`` 0.5, ``d2s`` 0.25):
 
-* ``q[b,f,s]`` = mean of the pixel features of all pixels (of the K images of frame
+* ``q[b,f,s]`` = mean of the pixel features of all pixels (of the K_b images of frame
   ``(b,f)``) with id ``s``; ``k[cloud,s]`` = mean over the pairings of the cloud with
   superpixel ``s`` of the paired point's feature (each pairing counts once). No
   re-normalisation after pooling.
@@ -53,12 +60,17 @@ from __future__ import annotations
 
 import json
 import os
+import sys
 
 import numpy as np
 import torch
 
 SEED = 20240611
-B, F, K = 2, 3, 2
+MIXED = "--mixed" in sys.argv[1:]
+B, F = 2, 3
+# Cameras of each sample: one rig of two cameras, or two rigs (three cameras, one).
+CAMERAS = [3, 1] if MIXED else [2, 2]
+FIRST = [sum(CAMERAS[:b]) for b in range(B + 1)]
 C = F + 1
 H, W = 6, 8
 D = 8
@@ -66,7 +78,12 @@ TAU = 0.07
 KEY = 1
 WEIGHTS = {"sc": 1.0, "tc": 0.5, "d2s": 0.25}
 OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests", "fixtures",
-                   "losses.json")
+                   "losses_mixed.json" if MIXED else "losses.json")
+
+
+def image(b: int, f: int, k: int) -> int:
+    """The number of image ``k`` of frame ``f`` of sample ``b``."""
+    return F * FIRST[b] + f * CAMERAS[b] + k
 
 
 # ---------------------------------------------------------------------------------------
@@ -75,7 +92,7 @@ OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests", "f
 
 def make_inputs() -> dict:
     rng = np.random.default_rng(SEED)
-    I = B * F * K
+    I = F * FIRST[B]
     # Ids per frame; the key frame has fewer ids than the others in sample 0 and more in
     # sample 1, so that s < min(n[b][1], n[b][f]) bounds L_tc from either side.
     num_sp = [[7, 5, 6], [6, 7, 5]]
@@ -90,8 +107,8 @@ def make_inputs() -> dict:
                 gone.add(n - 1)
             absent[(b, f)] = gone
             present = [s for s in range(n) if s not in gone]
-            for k in range(K):
-                img = (b * F + f) * K + k
+            for k in range(CAMERAS[b]):
+                img = image(b, f, k)
                 # Blocky maps: superpixels look like patches, plus a few random pixels.
                 blocks = rng.choice(present, size=(3, 4))
                 sp = np.kron(blocks, np.ones((2, 2), dtype=np.int64))
@@ -100,13 +117,14 @@ def make_inputs() -> dict:
                 superpixels[img] = sp
             # Every id not declared absent appears at least once in the frame.
             for s in present:
-                if not any((superpixels[(b * F + f) * K + k] == s).any() for k in range(K)):
-                    img = (b * F + f) * K + int(rng.integers(0, K))
+                if not any((superpixels[image(b, f, k)] == s).any()
+                           for k in range(CAMERAS[b])):
+                    img = image(b, f, int(rng.integers(0, CAMERAS[b])))
                     superpixels[img, int(rng.integers(0, H)), int(rng.integers(0, W))] = s
     # The ids really absent (the fix-up above may have overwritten a last pixel of an id).
     for b in range(B):
         for f in range(F):
-            imgs = superpixels[(b * F + f) * K:(b * F + f + 1) * K]
+            imgs = superpixels[image(b, f, 0):image(b, f, 0) + CAMERAS[b]]
             absent[(b, f)] = {s for s in range(num_sp[b][f]) if not (imgs == s).any()}
 
     counts = rng.integers(20, 31, size=B * C)
@@ -127,11 +145,11 @@ def make_inputs() -> dict:
             skip = {int(rng.choice(present))}
             if c == F:
                 skip = {present[-1]}
-            first = (b * F + f) * K
+            first = image(b, f, 0)
             want = int(rng.integers(30, 46))
             lo, hi = int(point_clouds[cloud]), int(point_clouds[cloud + 1])
             while len(pairing_point) - pairing_clouds[-1] < want:
-                k = int(rng.integers(0, K))
+                k = int(rng.integers(0, CAMERAS[b]))
                 r, col = int(rng.integers(0, H)), int(rng.integers(0, W))
                 s = int(superpixels[first + k, r, col])
                 if s in skip:
@@ -189,8 +207,8 @@ def losses_loop(inp: dict, pf: torch.Tensor, xf: torch.Tensor) -> dict:
 
     def q(b, f, s):
         acc, cnt = torch.zeros(D, dtype=torch.float64), 0
-        for k in range(K):
-            img = (b * F + f) * K + k
+        for k in range(CAMERAS[b]):
+            img = image(b, f, k)
             for r in range(H):
                 for c in range(W):
                     if sp[img, r, c] == s:
@@ -268,11 +286,12 @@ def info_nce_mat(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 def losses_mat(inp: dict, pf: torch.Tensor, xf: torch.Tensor) -> dict:
     n = inp["num_superpixels"]
-    I = B * F * K
+    I = F * FIRST[B]
     smax = max(max(r) for r in n)
     # Superpixel slot of frame (b, f), id s: (b*F + f)*smax + s. Pixel j = (img, r, c).
     sp = torch.as_tensor(inp["superpixels"]).reshape(I, H * W)
-    img_frame = torch.arange(I) // K  # b*F + f
+    img_frame = torch.tensor([b * F + f for b in range(B) for f in range(F)
+                              for _ in range(CAMERAS[b])])
     slot_px = (img_frame[:, None] * smax + sp).reshape(-1)
     onehot_px = torch.zeros(B * F * smax, I * H * W, dtype=torch.float64)
     onehot_px[slot_px, torch.arange(I * H * W)] = 1.0
@@ -384,7 +403,8 @@ def main() -> None:
     grads_px = ref["grad_pixel_features_infonce"]
     assert (grads_px == 0).any() and (grads_px != 0).any()
 
-    config = {"batch": B, "frames": F, "cameras": K, "clouds_per_sample": C, "height": H,
+    cameras = CAMERAS if MIXED else CAMERAS[0]
+    config = {"batch": B, "frames": F, "cameras": cameras, "clouds_per_sample": C, "height": H,
               "width": W, "dim": D, "temperature": TAU, "key_frame": KEY,
               "weights": dict(WEIGHTS)}
     expected = {

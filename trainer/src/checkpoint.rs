@@ -9,12 +9,26 @@
 
 use crate::error::TrainerError;
 use crate::stream::StreamPosition;
+use crate::subscribe::ResumeAt;
 use burn::store::ModuleRecord;
 use burn::tensor::Bytes;
 use serde::{Deserialize, Serialize};
 use std::fs::{self, File};
 use std::io::Write as _;
 use std::path::{Path, PathBuf};
+
+/// Where the whole job (every rank of every host) stands in the pipeline's stream:
+/// what a job of any size resumes from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct JobPosition {
+    /// The epoch of the job's next batch (of its slowest rank).
+    pub epoch: u64,
+    /// Samples of that epoch the whole job has consumed: the epoch's first ones in its
+    /// order (the pipeline's `--start-sample`).
+    pub samples: u64,
+    /// Samples per step of the job (batch size × ranks of every host) when it saved.
+    pub global_batch: u64,
+}
 
 /// Everything besides the tensors.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -31,6 +45,11 @@ pub struct CheckpointState {
     /// stream, by rank (they differ when shards end an epoch at different steps).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub ranks: Vec<[u64; 2]>,
+    /// Where the whole job stands, in samples (absent when the pipeline did not say how
+    /// its stream is scheduled, and in checkpoints of earlier versions): a job resumes
+    /// from it on any number of ranks and hosts.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub job: Option<JobPosition>,
     /// Run name of the stream.
     pub run: String,
     /// The configuration the run was started with (as TOML).
@@ -45,6 +64,23 @@ impl CheckpointState {
     /// The stream position of the next batch to train on.
     pub fn next(&self) -> StreamPosition {
         StreamPosition::new(self.next_epoch, self.next_batch)
+    }
+
+    /// Where this rank's stream continues: after the job's samples when the checkpoint
+    /// counted them (any job size), else at this rank's saved position `at` (a job of
+    /// the same size only: the pipeline refuses it from a job of another size).
+    pub fn resume_at(&self, at: StreamPosition) -> ResumeAt {
+        match self.job {
+            Some(job) => ResumeAt::Sample {
+                epoch: job.epoch,
+                sample: job.samples,
+                global_batch: job.global_batch,
+            },
+            None => ResumeAt::Step {
+                epoch: at.epoch,
+                step: at.batch,
+            },
+        }
     }
 }
 
@@ -232,6 +268,7 @@ mod tests {
             next_epoch: 0,
             next_batch: step,
             ranks: Vec::new(),
+            job: None,
             run: "t".into(),
             config: String::new(),
             lr: 0.01,

@@ -164,22 +164,22 @@ impl At {
     }
 }
 
-/// How the images of a batch are numbered: `B` samples × `F` frames × `K` cameras of
-/// `H × W` pixels, and which frame is the keyframe.
+/// How the images of a batch are numbered: `B` samples × `F` frames × their own `K_b`
+/// cameras (`sample_cameras`) of `H × W` pixels, and which frame is the keyframe.
 #[derive(Debug, Clone, Copy)]
-struct Geometry {
+struct Geometry<'a> {
     n_images: usize,
     h: usize,
     w: usize,
     batch: usize,
     frames: usize,
-    cameras: usize,
+    sample_cameras: &'a [u32],
     key_frame: usize,
 }
 
-impl Geometry {
+impl<'a> Geometry<'a> {
     /// The geometry of `view`'s images, checked against each other, and the images.
-    fn read<'a>(view: &BatchView<'a>, at: At) -> Result<(Self, &'a [u8]), InputError> {
+    fn read(view: &BatchView<'a>, at: At) -> Result<(Self, &'a [u8]), InputError> {
         let images = view.section::<u8>(Section::Images)?;
         let [n_images, h, w, _] = <[usize; 4]>::try_from(images.shape())
             .map_err(|_| at.invalid(format!("`{}` is not I×H×W×3", Section::Images.name())))?;
@@ -188,9 +188,19 @@ impl Geometry {
                 "images are {h}×{w}, not multiples of the ViT patch {PATCH}"
             )));
         }
-        let camera_ids = view.section::<u32>(Section::CameraIds)?;
-        let [batch, cameras] = <[usize; 2]>::try_from(camera_ids.shape())
-            .map_err(|_| at.invalid(format!("`{}` is not B×K", Section::CameraIds.name())))?;
+        let batch = view.section::<u64>(Section::SampleIds)?.shape()[0];
+        let sample_cameras = view.section::<u32>(Section::SampleCameras)?.data;
+        let slots = view.section::<u32>(Section::CameraIds)?.data.len();
+        if sample_cameras.len() != batch + 1
+            || sample_cameras[0] != 0
+            || sample_cameras.windows(2).any(|w| w[0] > w[1])
+            || sample_cameras[batch] as usize != slots
+        {
+            return Err(at.invalid(format!(
+                "`{}` does not cut the {slots} camera slots into {batch} samples",
+                Section::SampleCameras.name()
+            )));
+        }
         let offsets = view.section::<i32>(Section::FrameOffsets)?;
         let frames = offsets.data.len();
         let key_frame = offsets
@@ -198,9 +208,9 @@ impl Geometry {
             .iter()
             .position(|&o| o == 0)
             .ok_or_else(|| at.invalid("no frame at offset 0".into()))?;
-        if batch * frames * cameras != n_images {
+        if frames * slots != n_images {
             return Err(at.invalid(format!(
-                "{n_images} images for {batch} samples × {frames} frames × {cameras} cameras"
+                "{n_images} images for {frames} frames × {slots} camera slots"
             )));
         }
         let geometry = Self {
@@ -209,7 +219,7 @@ impl Geometry {
             w,
             batch,
             frames,
-            cameras,
+            sample_cameras,
             key_frame,
         };
         Ok((geometry, images.data))
@@ -219,7 +229,7 @@ impl Geometry {
 /// The losses' plan from the superpixel and pairing sections, and `pairing_point`.
 fn loss_plan<'a>(
     view: &BatchView<'a>,
-    g: &Geometry,
+    g: &Geometry<'a>,
     pixel_stride: usize,
     device: &Device,
 ) -> Result<(LossPlan, &'a [u32]), InputError> {
@@ -232,7 +242,7 @@ fn loss_plan<'a>(
         &LossInputs {
             batch: g.batch,
             frames: g.frames,
-            cameras: g.cameras,
+            sample_cameras: g.sample_cameras,
             key_frame: g.key_frame,
             height: g.h,
             width: g.w,

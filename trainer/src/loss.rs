@@ -81,8 +81,10 @@ pub struct LossInputs<'a> {
     pub batch: usize,
     /// Frames per sample.
     pub frames: usize,
-    /// Cameras per frame.
-    pub cameras: usize,
+    /// `[B + 1]` first camera slot of each sample: sample `b` has
+    /// `K_b = sample_cameras[b+1] − sample_cameras[b]` cameras, and its images are
+    /// `F · sample_cameras[b] + f · K_b + k`.
+    pub sample_cameras: &'a [u32],
     /// Index of the key frame (offset 0).
     pub key_frame: usize,
     /// Image height and width.
@@ -91,7 +93,7 @@ pub struct LossInputs<'a> {
     pub width: usize,
     /// `[B, F]`.
     pub num_superpixels: &'a [u32],
-    /// `[B·F·K, H, W]`.
+    /// `[F·S, H, W]` (`S = sample_cameras[B]`).
     pub superpixels: &'a [u16],
     /// Global point row of each pairing.
     pub pairing_point: &'a [u32],
@@ -215,12 +217,20 @@ impl LossPlan {
 
 /// Checks that the sections have the lengths their shapes promise.
 fn check_lengths(x: &LossInputs<'_>) -> Result<(), PlanError> {
-    let (b_n, f_n, k_n) = (x.batch, x.frames, x.cameras);
+    let (b_n, f_n) = (x.batch, x.frames);
     if x.num_superpixels.len() != b_n * f_n {
         return Err(bad(Section::NumSuperpixels, "expected B×F entries"));
     }
-    if x.superpixels.len() != b_n * f_n * k_n * x.height * x.width {
-        return Err(bad(Section::Superpixels, "expected B·F·K×H×W entries"));
+    let slots = x.sample_cameras;
+    if slots.len() != b_n + 1 || slots[0] != 0 || slots.windows(2).any(|w| w[0] > w[1]) {
+        return Err(bad(
+            Section::SampleCameras,
+            "expected B+1 non-decreasing entries from 0",
+        ));
+    }
+    let images = f_n * slots[b_n] as usize;
+    if x.superpixels.len() != images * x.height * x.width {
+        return Err(bad(Section::Superpixels, "expected F·S×H×W entries"));
     }
     if x.pairing_clouds.len() != b_n * (f_n + 1) + 1 {
         return Err(bad(Section::PairingClouds, "expected B·C+1 entries"));
@@ -351,10 +361,13 @@ impl<'x, 'a> Slots<'x, 'a> {
             count: vec![0u32; self.pixel_slots],
         };
         for b in 0..x.batch {
+            // Sample b's own cameras: a rig with fewer has fewer images, none empty.
+            let first = x.sample_cameras[b] as usize;
+            let cameras = x.sample_cameras[b + 1] as usize - first;
             for f in 0..x.frames {
                 let limit = self.n(b, f);
-                for k in 0..x.cameras {
-                    let image = (b * x.frames + f) * x.cameras + k;
+                for k in 0..cameras {
+                    let image = x.frames * first + f * cameras + k;
                     let map = &x.superpixels[image * h * w..(image + 1) * h * w];
                     for r in (stride / 2..h).step_by(stride) {
                         for col in (stride / 2..w).step_by(stride) {

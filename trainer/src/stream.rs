@@ -139,6 +139,13 @@ impl StreamTracker {
         self.origin = Some(publisher);
     }
 
+    /// The next batch to train on is at `at`: where a pipeline asked to continue at a
+    /// sample count said that sample lies in this stream (a job resumed on another
+    /// size starts the epoch there, at step 0).
+    pub fn expect(&mut self, at: StreamPosition) {
+        self.expected = Some(at);
+    }
+
     /// The position of the next batch to train on (what a checkpoint records), once known.
     pub fn next(&self) -> Option<StreamPosition> {
         self.expected
@@ -150,17 +157,35 @@ impl StreamTracker {
     }
 }
 
-/// The step data-parallel ranks take together, from each rank's batch position (`None`:
-/// it has none, having caught a stop signal) and whether it is stopping: `None` when any
-/// rank stops (all stop after the same step), otherwise the earliest position. Ranks
-/// holding a later batch (their shard began the next epoch while others finish theirs,
-/// as shards differ by at most one keyframe) keep it for a later step and add no
-/// gradient to this one, so no keyframe is dropped or repeated.
-pub fn agree(ranks: &[(Option<StreamPosition>, bool)]) -> Option<StreamPosition> {
-    if ranks.iter().any(|(at, stop)| *stop || at.is_none()) {
+/// Where a data-parallel rank stands before a step.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum RankState {
+    /// It holds the batch at this position.
+    At(StreamPosition),
+    /// Its stream ended (the pipeline's last epoch is through for its shard).
+    Ended,
+    /// It caught a stop signal.
+    Stopping,
+}
+
+/// The step data-parallel ranks take together: `None` when a rank stops (all stop after
+/// the same step) or every rank's stream ended, otherwise the earliest position held.
+/// Ranks holding a later batch (their shard began the next epoch while others finish
+/// theirs: shards differ by at most one batch, more often after a job resumed on another
+/// number of ranks) keep it for a later step, and ranks whose stream ended wait for the
+/// others' last batches; neither adds a gradient to this step, so no sample is dropped or
+/// repeated.
+pub fn agree(ranks: &[RankState]) -> Option<StreamPosition> {
+    if ranks.contains(&RankState::Stopping) {
         return None;
     }
-    ranks.iter().filter_map(|(at, _)| *at).min()
+    ranks
+        .iter()
+        .filter_map(|r| match r {
+            RankState::At(at) => Some(*at),
+            _ => None,
+        })
+        .min()
 }
 
 #[cfg(test)]
@@ -284,13 +309,17 @@ mod tests {
 
     #[test]
     fn ranks_agree_on_the_earliest_batch_or_on_stopping() {
-        let (a, b) = (Some(at(0, 2)), Some(at(1, 0)));
-        assert_eq!(agree(&[(a, false), (a, false)]), a);
+        use RankState::{At, Ended, Stopping};
+        let (a, b) = (at(0, 2), at(1, 0));
+        assert_eq!(agree(&[At(a), At(a)]), Some(a));
         // Rank 1's shard ended epoch 0 a batch earlier: rank 0 trains alone.
-        assert_eq!(agree(&[(a, false), (b, false)]), a);
-        assert_eq!(agree(&[(b, false), (a, false)]), a);
-        assert_eq!(agree(&[(a, false), (b, true)]), None);
-        assert_eq!(agree(&[(None, false), (a, false)]), None);
+        assert_eq!(agree(&[At(a), At(b)]), Some(a));
+        assert_eq!(agree(&[At(b), At(a)]), Some(a));
+        assert_eq!(agree(&[At(a), Stopping]), None);
+        // Rank 0's stream ended a batch before rank 1's last: rank 1 trains it alone.
+        assert_eq!(agree(&[Ended, At(b)]), Some(b));
+        assert_eq!(agree(&[Ended, Ended]), None);
+        assert_eq!(agree(&[Ended, Stopping, At(a)]), None);
         assert_eq!(agree(&[]), None);
     }
 }

@@ -14,8 +14,56 @@ use std::time::{Duration, Instant};
 use superflow_schemas::batch::{BatchError, BatchHeader, BatchView};
 use superflow_schemas::service::{
     self as names, IpcError, ResumeReply, ResumeRequest, ScheduleReply, ScheduleRequest,
-    ServiceSetupError,
+    ServiceSetupError, UNKNOWN,
 };
+
+/// Where a resume asks the stream to continue.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ResumeAt {
+    /// At `step` of `epoch` of this stream: a position of a job of this size.
+    Step {
+        /// The epoch.
+        epoch: u64,
+        /// The step of this stream.
+        step: u64,
+    },
+    /// After `sample` samples of `epoch`, consumed by the whole job (every rank and
+    /// host) that saved the position with `global_batch` samples per step: holds across
+    /// a change of the job's size.
+    Sample {
+        /// The epoch.
+        epoch: u64,
+        /// Samples of it the job had consumed.
+        sample: u64,
+        /// Samples per step of the job that saved it.
+        global_batch: u64,
+    },
+}
+
+impl ResumeAt {
+    /// The request of stream `rank` (`broadcast`: the broadcast stream).
+    fn request(self, rank: u32, broadcast: bool) -> ResumeRequest {
+        match self {
+            ResumeAt::Step { epoch, step } => ResumeRequest::at_step(rank, broadcast, epoch, step),
+            ResumeAt::Sample {
+                epoch,
+                sample,
+                global_batch,
+            } => ResumeRequest {
+                sample,
+                global_batch,
+                ..ResumeRequest::at_step(rank, broadcast, epoch, UNKNOWN)
+            },
+        }
+    }
+
+    /// The epoch.
+    pub fn epoch(self) -> u64 {
+        match self {
+            ResumeAt::Step { epoch, .. } | ResumeAt::Sample { epoch, .. } => epoch,
+        }
+    }
+}
 
 /// Which stream to read.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -99,6 +147,9 @@ pub struct Subscription {
     subscriber: Subscriber<ipc::Service, [u8], BatchHeader>,
     listener: Listener<ipc::Service>,
     stash: std::cell::RefCell<Option<Received>>,
+    /// After a resume: batches of that publisher numbered below this belong to the old
+    /// position (one may still be on its way when the answer comes) and are dropped.
+    floor: std::cell::Cell<Option<(u128, u64)>>,
     service: names::BatchService,
     _ready: names::ReadyService,
 }
@@ -145,6 +196,7 @@ impl Subscription {
             subscriber,
             listener,
             stash: std::cell::RefCell::new(None),
+            floor: std::cell::Cell::new(None),
             service,
             _ready: ready,
         })
@@ -166,7 +218,13 @@ impl Subscription {
         let deadline = Instant::now() + timeout;
         loop {
             match self.subscriber.receive() {
-                Ok(Some(sample)) => return Ok(Some(Received { sample })),
+                Ok(Some(sample)) => {
+                    let received = Received { sample };
+                    if !self.before_floor(&received) {
+                        return Ok(Some(received));
+                    }
+                    continue;
+                }
                 Ok(None) => {}
                 Err(e) => return Err(SubscribeError::ipc("receive")(e)),
             }
@@ -182,31 +240,33 @@ impl Subscription {
         }
     }
 
-    /// Asks the pipeline to continue this stream at `(epoch, step)`. When accepted, the
-    /// next [`Subscription::receive`] returns batch `(epoch, step)`: batches of the old
-    /// position still queued are dropped (they are told apart by the reply's sequence
-    /// number). While waiting for the answer the queue keeps being drained, so a
+    /// Asks the pipeline to continue this stream at `at`. When accepted, the next
+    /// [`Subscription::receive`] returns the batch at the reply's `(epoch, step)`: batches
+    /// of the old position still queued are dropped (they are told apart by the reply's
+    /// sequence number). While waiting for the answer the queue keeps being drained, so a
     /// pipeline blocked on this subscriber's full queue can get to the request.
-    pub fn resume(
-        &self,
-        epoch: u64,
-        step: u64,
-        timeout: Duration,
-    ) -> Result<ResumeReply, SubscribeError> {
+    pub fn resume(&self, at: ResumeAt, timeout: Duration) -> Result<ResumeReply, SubscribeError> {
         let control = names::open_control_service(&self.node, &self.run)?;
         let client = control
             .client_builder()
             .create()
             .map_err(SubscribeError::ipc("control client"))?;
-        let request = ResumeRequest {
-            rank: match self.target {
-                Target::Broadcast => 0,
-                Target::Rank(r) => r,
-            },
-            broadcast: u32::from(self.target == Target::Broadcast),
-            epoch,
-            step,
+        let rank = match self.target {
+            Target::Broadcast => 0,
+            Target::Rank(r) => r,
         };
+        let request = at.request(rank, self.target == Target::Broadcast);
+        // The step the answer will name, to keep its first batch should it arrive before
+        // the answer: a resume by sample is a step boundary of the pipeline's schedule,
+        // or step 0 of an epoch made to start there.
+        let step = match at {
+            ResumeAt::Step { step, .. } => step,
+            ResumeAt::Sample { epoch, sample, .. } => self
+                .schedule(Duration::from_secs(2))?
+                .filter(|s| s.known == 1)
+                .map_or(0, |s| s.step_at(epoch, sample)),
+        };
+        let epoch = at.epoch();
         let wanted = |r: &Received| {
             let h = r.header();
             (h.epoch, h.step) == (epoch, step)
@@ -229,6 +289,8 @@ impl Subscription {
                 let mut stash = self.stash.borrow_mut();
                 if let Some(reply) = reply {
                     if reply.accepted == 1 {
+                        self.floor
+                            .set(Some((reply.publisher(), reply.next_sequence)));
                         // Everything published before the reply is older than it.
                         let new = |r: &Received| {
                             r.origin() == reply.publisher()
@@ -271,6 +333,14 @@ impl Subscription {
         Err(SubscribeError::NoAnswer {
             run: self.run.clone(),
             waited: timeout,
+        })
+    }
+
+    /// Whether `received` is a batch of the position a resume left (its publisher's, numbered
+    /// below the resume's first batch).
+    fn before_floor(&self, received: &Received) -> bool {
+        self.floor.get().is_some_and(|(publisher, first)| {
+            received.origin() == publisher && received.header().sequence < first
         })
     }
 

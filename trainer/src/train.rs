@@ -406,6 +406,7 @@ impl Trainer {
             next_epoch: next.epoch,
             next_batch: next.batch,
             ranks: Vec::new(),
+            job: None,
             run: run.to_string(),
             config: self.config_toml(),
             lr: self.schedule.lr(self.step.saturating_sub(1)),

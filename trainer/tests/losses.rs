@@ -1,5 +1,6 @@
 //! The SuperFlow losses against an independent PyTorch implementation of the same
-//! formulas (`trainer/reference/make_loss_fixture.py` → `tests/fixtures/losses.json`):
+//! formulas (`trainer/reference/make_loss_fixture.py` → `tests/fixtures/losses.json`, and
+//! `--mixed` → `losses_mixed.json`, a batch of two rigs with three cameras and one):
 //! values and gradients with respect to the 3D and 2D features, both `L_d2s` forms.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
@@ -8,9 +9,29 @@ use burn::tensor::{Device, Int, Tensor, TensorData};
 use serde_json::Value;
 use superflow_trainer::loss::{D2sForm, LossConfig, LossInputs, LossPlan, SuperFlowLoss};
 
-fn fixture() -> Value {
-    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/fixtures/losses.json");
+fn fixture(name: &str) -> Value {
+    let path = format!("{}/tests/fixtures/{name}", env!("CARGO_MANIFEST_DIR"));
     serde_json::from_str(&std::fs::read_to_string(path).unwrap()).unwrap()
+}
+
+/// `sample_cameras` of a fixture: `config.cameras` is one count for every sample, or the
+/// count of each.
+fn sample_cameras(config: &Value) -> Vec<u32> {
+    let batch = config["batch"].as_u64().unwrap() as usize;
+    let counts: Vec<u32> = match &config["cameras"] {
+        Value::Array(per_sample) => per_sample
+            .iter()
+            .map(|k| k.as_u64().unwrap() as u32)
+            .collect(),
+        k => vec![k.as_u64().unwrap() as u32; batch],
+    };
+    assert_eq!(counts.len(), batch);
+    std::iter::once(0)
+        .chain(counts.iter().scan(0, |sum, k| {
+            *sum += k;
+            Some(*sum)
+        }))
+        .collect()
 }
 
 fn floats(v: &Value) -> Vec<f32> {
@@ -67,18 +88,28 @@ fn scalar(t: &Tensor<1>) -> f64 {
 
 #[test]
 fn losses_and_gradients_match_the_pytorch_reference() {
-    let fx = fixture();
+    matches_the_reference("losses.json");
+}
+
+/// Two rigs in one batch: each sample pools over its own cameras only.
+#[test]
+fn losses_of_a_mixed_rig_batch_match_the_pytorch_reference() {
+    matches_the_reference("losses_mixed.json");
+}
+
+fn matches_the_reference(name: &str) {
+    let fx = fixture(name);
     let c = &fx["config"];
     let get = |k: &str| c[k].as_u64().unwrap() as usize;
-    let (b, f, k, h, w, d) = (
+    let (b, f, h, w, d) = (
         get("batch"),
         get("frames"),
-        get("cameras"),
         get("height"),
         get("width"),
         get("dim"),
     );
-    let images = b * f * k;
+    let sample_cameras = sample_cameras(c);
+    let images = f * sample_cameras[b] as usize;
     let num_superpixels: Vec<u32> = ints(&fx["num_superpixels"]);
     let superpixels: Vec<u16> = ints(&fx["superpixels"]);
     let pairing_point: Vec<u32> = ints(&fx["pairing_point"]);
@@ -92,7 +123,7 @@ fn losses_and_gradients_match_the_pytorch_reference() {
         &LossInputs {
             batch: b,
             frames: f,
-            cameras: k,
+            sample_cameras: &sample_cameras,
             key_frame: get("key_frame"),
             height: h,
             width: w,
@@ -224,7 +255,7 @@ fn losses_and_gradients_match_the_pytorch_reference() {
 /// panic or an out-of-bounds scatter.
 #[test]
 fn a_superpixel_id_beyond_the_count_is_an_error() {
-    let fx = fixture();
+    let fx = fixture("losses.json");
     let num_superpixels: Vec<u32> = ints(&fx["num_superpixels"]);
     let superpixels: Vec<u16> = ints(&fx["superpixels"]);
     let pairing_point: Vec<u32> = ints(&fx["pairing_point"]);
@@ -235,7 +266,7 @@ fn a_superpixel_id_beyond_the_count_is_an_error() {
         &LossInputs {
             batch: 2,
             frames: 3,
-            cameras: 2,
+            sample_cameras: &[0, 2, 4],
             key_frame: 1,
             height: 6,
             width: 8,

@@ -1,12 +1,15 @@
 //! A dataset: many drives, each one or more MCAP files (a recording split in parts),
-//! grouped by [`super::files`]. Every file is indexed on its own ([`index_file`]: from the
-//! index cache, or scanned), all files in parallel (one per rayon thread at a time); then
-//! each drive joins its files' indexes ([`Drive::join`]). Drives come in input order and
-//! the first error in input order is returned, as if one file after the other.
+//! grouped by [`super::files`], in named groups ([`super::groups`]: `[[dataset]]` of
+//! `pipeline.toml`). Every file is indexed on its own ([`index_file`]: from the index
+//! cache, or scanned), all files of all groups in parallel (one per rayon thread at a
+//! time); then each drive joins its files' indexes ([`Drive::join`]). Drives come in
+//! input order, group after group, and the first error in input order is returned, as
+//! if one file after the other.
 
 use super::discover::IngestConfig;
 use super::error::IngestError;
 use super::files::drive_groups;
+use super::groups::{DatasetGroup, DriveGroup};
 use super::index::{Drive, IndexedBy, index_file};
 use rayon::prelude::*;
 use std::path::PathBuf;
@@ -17,6 +20,11 @@ use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 pub struct Dataset {
     /// The drives, in input order.
     pub drives: Vec<Drive>,
+    /// The named groups the drives were listed in, in order; together they hold every
+    /// drive once. A dataset opened from plain inputs is one group, [`DEFAULT_GROUP`].
+    ///
+    /// [`DEFAULT_GROUP`]: super::groups::DEFAULT_GROUP
+    pub groups: Vec<DriveGroup>,
     /// How the files' indexes were had.
     pub indexed: IndexStats,
 }
@@ -69,8 +77,35 @@ impl Dataset {
         config: &IngestConfig,
         progress: impl Fn(IndexProgress) + Sync,
     ) -> Result<Dataset, IngestError> {
-        let groups = drive_groups(inputs)?;
-        if groups.iter().any(Vec::is_empty) {
+        let all = [DatasetGroup::default_of(inputs.to_vec())];
+        Self::open_groups(&all, config, progress)
+    }
+
+    /// Indexes the drives of every group (see [`Dataset::open_with_progress`]); a group
+    /// whose inputs hold no drive is an error naming it.
+    pub fn open_groups(
+        listed: &[DatasetGroup],
+        config: &IngestConfig,
+        progress: impl Fn(IndexProgress) + Sync,
+    ) -> Result<Dataset, IngestError> {
+        let mut groups = Vec::new();
+        let mut drive_groups_of = Vec::with_capacity(listed.len());
+        for group in listed {
+            let drives = drive_groups(&group.mcap).map_err(|e| match e {
+                IngestError::NoFiles if listed.len() > 1 => IngestError::EmptyGroup {
+                    group: group.name.clone(),
+                },
+                other => other,
+            })?;
+            let first = groups.len();
+            groups.extend(drives);
+            drive_groups_of.push(DriveGroup {
+                name: group.name.clone(),
+                repeat: group.repeat,
+                drives: first..groups.len(),
+            });
+        }
+        if groups.is_empty() || groups.iter().any(Vec::is_empty) {
             return Err(IngestError::NoFiles);
         }
         crate::source::HandlePool::global().set_limit(config.max_open_files());
@@ -152,7 +187,16 @@ impl Dataset {
             .with_max_len(1)
             .map(|files| Drive::join(files, config))
             .collect();
-        Ok(Dataset { drives, indexed })
+        Ok(Dataset {
+            drives,
+            groups: drive_groups_of,
+            indexed,
+        })
+    }
+
+    /// The group of drive `drive`.
+    pub fn group_of(&self, drive: usize) -> Option<&DriveGroup> {
+        self.groups.iter().find(|g| g.drives.contains(&drive))
     }
 
     /// Checks every drive ([`Drive::check_sensors`]).

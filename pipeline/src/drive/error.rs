@@ -9,6 +9,12 @@ pub enum IngestError {
     /// No input files.
     #[error("no MCAP files given")]
     NoFiles,
+    /// A dataset group whose inputs hold no MCAP file.
+    #[error("dataset group `{group}`: no MCAP files in its inputs")]
+    EmptyGroup {
+        /// The group's name.
+        group: String,
+    },
     /// A file could not be opened or is not MCAP.
     #[error(transparent)]
     Source(#[from] SourceError),

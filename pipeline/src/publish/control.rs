@@ -1,8 +1,15 @@
 //! The control server (request-response on `superflow/<run>/control`): a subscriber
-//! asks to resume its stream at `(epoch, step)`; an accepted request moves the stream's
-//! cursor and bumps its generation, so batches built for the old position are dropped.
-//! The reply names the sequence number and publisher of the first batch at the new
-//! position.
+//! asks to resume its stream at a position of an epoch — by the samples of the epoch the
+//! whole job had consumed (what checkpoints keep; it holds across a change of the job's
+//! size), or by its own step; an accepted request moves the stream's cursor and bumps
+//! its generation, so batches built for the old position are dropped. A sample that
+//! falls inside a step of this pipeline's schedule (the checkpoint was written by a job
+//! of another size) makes that epoch start there for every stream
+//! ([`Schedule::rebase`]): each rank of the resumed job asks for the same sample. The
+//! reply names the position, and the sequence number and publisher of the first batch
+//! there. It answers from a thread and node of its own: a publisher waiting on one
+//! rank's full queue (that rank waits for the others in a collective) never keeps
+//! another rank's resume request from its answer.
 //!
 //! The schedule server (request-response on `superflow/<run>/schedule`, its own thread
 //! and node: it answers while the publisher waits on a full queue) tells a subscriber
@@ -15,16 +22,8 @@ use iceoryx2::prelude::*;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 use superflow_schemas::service::{
-    self as names, ResumeReply, ResumeRequest, ScheduleReply, ScheduleRequest,
+    self as names, ResumeReply, ResumeRequest, ScheduleReply, ScheduleRequest, UNKNOWN,
 };
-
-/// The server of a run's control service.
-pub(super) struct ControlServer {
-    server: Server<ipc::Service, ResumeRequest, (), ResumeReply, ()>,
-    /// Publisher id of each stream, sent back in the reply.
-    publishers: Vec<u128>,
-    _service: names::ControlService,
-}
 
 /// What a resume request is checked against and acts on.
 pub(super) struct ResumeContext<'a> {
@@ -34,31 +33,49 @@ pub(super) struct ResumeContext<'a> {
     pub metrics: &'a Metrics,
 }
 
-impl ControlServer {
-    /// Opens the control service of `run` and its server; `publishers` are the ids of
-    /// the streams' publishers.
-    pub fn open(
-        node: &Node<ipc::Service>,
-        run: &str,
-        publishers: Vec<u128>,
-    ) -> Result<Self, ServiceError> {
-        let service = names::open_control_service(node, run)?;
+/// The control server's thread: answers resume requests until the service stops.
+pub(super) struct ControlAnswers<'a> {
+    pub iox: &'a iceoryx2::config::Config,
+    pub run: &'a str,
+    /// Publisher id of each stream, sent back in the reply.
+    pub publishers: Vec<u128>,
+    pub streams: ResumeContext<'a>,
+}
+
+impl ControlAnswers<'_> {
+    /// Answers resume requests until `stop`; a service that cannot be set up is logged
+    /// (trainers then cannot resume and say so).
+    pub fn serve(&self, stop: &AtomicBool) {
+        if let Err(e) = self.serve_until(stop) {
+            tracing::error!(
+                "control service of run {}: {e}; subscribers cannot ask to resume",
+                self.run
+            );
+        }
+    }
+
+    fn serve_until(&self, stop: &AtomicBool) -> Result<(), ServiceError> {
+        let node = NodeBuilder::new()
+            .config(self.iox)
+            .signal_handling_mode(SignalHandlingMode::Disabled)
+            .create::<ipc::Service>()
+            .map_err(ServiceError::ipc("creating the control server's node"))?;
+        let service = names::open_control_service(&node, self.run)?;
         let server = service
             .server_builder()
             .create()
             .map_err(ServiceError::ipc("control server"))?;
-        Ok(Self {
-            server,
-            publishers,
-            _service: service,
-        })
+        while !stop.load(Ordering::SeqCst) {
+            self.answer_pending(&server);
+            std::thread::sleep(Duration::from_millis(5));
+        }
+        Ok(())
     }
 
-    /// Answers every pending resume request; `sequence` is the sequence number of the
-    /// next batch published.
-    pub fn answer_pending(&self, streams: &ResumeContext<'_>, sequence: u64) {
+    /// Answers every pending resume request.
+    fn answer_pending(&self, server: &Server<ipc::Service, ResumeRequest, (), ResumeReply, ()>) {
         loop {
-            let request = match self.server.receive() {
+            let request = match server.receive() {
                 Ok(Some(r)) => r,
                 Ok(None) => return,
                 Err(e) => {
@@ -69,10 +86,9 @@ impl ControlServer {
             let ask = *request.payload();
             let publisher = self.publishers.get(ask.rank as usize).copied().unwrap_or(0);
             let reply = ResumeReply {
-                next_sequence: sequence,
                 publisher_lo: publisher as u64,
                 publisher_hi: (publisher >> 64) as u64,
-                ..decide(&ask, streams)
+                ..decide(&ask, &self.streams)
             };
             match request.loan_uninit() {
                 Ok(response) => {
@@ -86,10 +102,11 @@ impl ControlServer {
     }
 }
 
-/// Accepts (and carries out) or refuses one request: `accepted` and `reason` of the
-/// reply.
+/// Accepts (and carries out) or refuses one request: `accepted`, `reason`, `epoch`,
+/// `step` and `next_sequence` of the reply.
 fn decide(ask: &ResumeRequest, streams: &ResumeContext<'_>) -> ResumeReply {
     let config = streams.config;
+    let schedule = streams.schedule;
     let wants_broadcast = ask.broadcast == 1;
     let refused = |reason| ResumeReply {
         accepted: 0,
@@ -99,64 +116,109 @@ fn decide(ask: &ResumeRequest, streams: &ResumeContext<'_>) -> ResumeReply {
     if wants_broadcast != (config.mode == Mode::Broadcast) || ask.rank >= config.streams() {
         return refused(1);
     }
-    if (config.epochs > 0 && ask.epoch >= config.epochs)
-        || ask.step > streams.schedule.steps(ask.rank as usize)
-    {
+    if config.epochs > 0 && ask.epoch >= config.epochs {
         return refused(2);
     }
-    streams
-        .cursors
-        .resume(ask.rank as usize, (ask.epoch, ask.step));
+    let step = if ask.sample == UNKNOWN {
+        if ask.global_batch != UNKNOWN && ask.global_batch != schedule.global_batch() as u64 {
+            return refused(3);
+        }
+        if ask.step > schedule.steps(ask.epoch, ask.rank as usize) {
+            return refused(2);
+        }
+        ask.step
+    } else {
+        let Ok(sample) = usize::try_from(ask.sample) else {
+            return refused(2);
+        };
+        if sample > schedule.samples() {
+            return refused(2);
+        }
+        match schedule.step_at(ask.epoch, sample) {
+            Some(step) => step,
+            None => {
+                let (epoch, first) = schedule.start();
+                if first > 0 && (epoch, first) != (ask.epoch, sample) {
+                    tracing::warn!(
+                        epoch,
+                        sample = first,
+                        "the epoch that started part-way moves: streams that did not ask to resume continue on the new schedule"
+                    );
+                }
+                schedule.rebase(ask.epoch, sample);
+                tracing::info!(
+                    epoch = ask.epoch,
+                    sample,
+                    samples_per_step = schedule.global_batch(),
+                    "a job of another size resumes: the epoch continues at this sample, dealt to this job's ranks"
+                );
+                0
+            }
+        }
+    };
+    let next_sequence = streams.cursors.resume(ask.rank as usize, (ask.epoch, step));
     streams.metrics.resumes.fetch_add(1, Ordering::Relaxed);
     tracing::info!(
         rank = ask.rank,
         epoch = ask.epoch,
-        step = ask.step,
+        step,
+        sample = schedule.consumed(ask.epoch, step),
         "resume requested"
     );
     ResumeReply {
         accepted: 1,
         reason: 0,
+        next_sequence,
+        epoch: ask.epoch,
+        step,
         ..Default::default()
     }
 }
 
-/// What the schedule server answers: the reply of each stream.
+/// What the schedule server answers, from the run's schedule at the time of asking (a
+/// resume by sample may move the epoch that starts part-way).
 pub(super) struct ScheduleAnswers<'a> {
     pub iox: &'a iceoryx2::config::Config,
     pub run: &'a str,
-    pub broadcast: bool,
-    pub replies: Vec<ScheduleReply>,
+    pub config: &'a ServiceConfig,
+    pub schedule: &'a Schedule,
+    /// The publisher id of each stream.
+    pub publishers: Vec<u128>,
 }
 
 impl ScheduleAnswers<'_> {
-    /// The replies of `schedule`'s streams (`publishers`: their publisher ids).
-    pub fn replies(
-        config: &ServiceConfig,
-        schedule: &Schedule,
-        publishers: &[u128],
-    ) -> Vec<ScheduleReply> {
-        publishers
-            .iter()
-            .enumerate()
-            .map(|(rank, publisher)| ScheduleReply {
-                known: 1,
-                reserved: 0,
-                steps: schedule.steps(rank),
-                min_steps: schedule.min_steps(),
-                epochs: config.epochs,
-                publisher_lo: *publisher as u64,
-                publisher_hi: (*publisher >> 64) as u64,
-            })
-            .collect()
+    /// The reply for stream `rank`.
+    fn reply(&self, rank: usize) -> ScheduleReply {
+        let Some(publisher) = self.publishers.get(rank) else {
+            return ScheduleReply::default();
+        };
+        let schedule = self.schedule;
+        let (start_epoch, start_sample) = schedule.start();
+        // An epoch without a part-way start: any other than `start_epoch`.
+        let whole = start_epoch.wrapping_add(1);
+        ScheduleReply {
+            known: 1,
+            reserved: 0,
+            steps: schedule.steps(whole, rank),
+            min_steps: schedule.min_steps(whole),
+            epochs: self.config.epochs,
+            publisher_lo: *publisher as u64,
+            publisher_hi: (*publisher >> 64) as u64,
+            samples: schedule.samples() as u64,
+            global_batch: schedule.global_batch() as u64,
+            start_epoch,
+            start_sample: start_sample as u64,
+            start_steps: schedule.steps(start_epoch, rank),
+            start_min_steps: schedule.min_steps(start_epoch),
+        }
     }
 
     /// The answer to `ask`.
     fn answer(&self, ask: &ScheduleRequest) -> ScheduleReply {
-        match self.replies.get(ask.rank as usize) {
-            Some(reply) if (ask.broadcast == 1) == self.broadcast => *reply,
-            _ => ScheduleReply::default(),
+        if (ask.broadcast == 1) != (self.config.mode == Mode::Broadcast) {
+            return ScheduleReply::default();
         }
+        self.reply(ask.rank as usize)
     }
 
     /// Answers schedule requests until `stop`; a service that cannot be set up is
@@ -211,14 +273,18 @@ impl ScheduleAnswers<'_> {
 mod tests {
     use super::*;
 
+    fn sharded(world_size: u32, epochs: u64) -> ServiceConfig {
+        ServiceConfig {
+            mode: Mode::Shard,
+            world_size,
+            epochs,
+            ..ServiceConfig::default()
+        }
+    }
+
     #[test]
     fn resumes_are_checked_then_move_the_cursor() {
-        let config = ServiceConfig {
-            mode: Mode::Shard,
-            world_size: 2,
-            epochs: 3,
-            ..ServiceConfig::default()
-        };
+        let config = sharded(2, 3);
         let schedule = Schedule::new(16, 4, 2, 0);
         let cursors = Cursors::new(2, (0, 0));
         let metrics = Metrics::default();
@@ -228,50 +294,100 @@ mod tests {
             cursors: &cursors,
             metrics: &metrics,
         };
-        let ask = |rank, broadcast, epoch, step| ResumeRequest {
-            rank,
-            broadcast,
-            epoch,
-            step,
+        let ask = |rank, broadcast, epoch, step| {
+            ResumeRequest::at_step(rank, broadcast == 1, epoch, step)
         };
         assert_eq!(decide(&ask(0, 1, 0, 0), &streams).reason, 1);
         assert_eq!(decide(&ask(2, 0, 0, 0), &streams).reason, 1);
         assert_eq!(decide(&ask(1, 0, 3, 0), &streams).reason, 2);
         assert_eq!(decide(&ask(1, 0, 0, 3), &streams).reason, 2);
+        // A step saved by a job of another size: resume by sample instead.
+        let other_size = ResumeRequest {
+            global_batch: 12,
+            ..ask(1, 0, 0, 1)
+        };
+        assert_eq!(decide(&other_size, &streams).reason, 3);
         assert_eq!(cursors.position(1), (0, 0, 0));
         let reply = decide(&ask(1, 0, 2, 1), &streams);
         assert_eq!((reply.accepted, reply.reason), (1, 0));
+        assert_eq!((reply.epoch, reply.step), (2, 1));
         assert_eq!(cursors.position(1), (2, 1, 1));
         assert!(!cursors.is_current(1, 0));
         assert_eq!(metrics.resumes.load(Ordering::Relaxed), 1);
     }
 
     #[test]
-    fn schedules_name_each_streams_epoch_length() {
-        let config = ServiceConfig {
-            mode: Mode::Shard,
-            world_size: 2,
-            epochs: 3,
-            ..ServiceConfig::default()
+    fn a_resume_by_sample_maps_to_a_step_or_starts_the_epoch_there() {
+        // 16 samples an epoch, batches of 2, 2 ranks: 4 a step.
+        let config = sharded(2, 3);
+        let schedule = Schedule::new(16, 2, 2, 0);
+        let cursors = Cursors::new(2, (0, 0));
+        let metrics = Metrics::default();
+        let streams = ResumeContext {
+            config: &config,
+            schedule: &schedule,
+            cursors: &cursors,
+            metrics: &metrics,
         };
-        // 7 keyframes, batches of 2, 2 ranks: 4 and 3 keyframes, 2 batches each.
+        let by_sample = |rank, epoch, sample| ResumeRequest {
+            sample,
+            global_batch: 6,
+            ..ResumeRequest::at_step(rank, false, epoch, 0)
+        };
+        // On a step boundary: that step.
+        let reply = decide(&by_sample(0, 1, 8), &streams);
+        assert_eq!((reply.accepted, reply.epoch, reply.step), (1, 1, 2));
+        assert_eq!(schedule.start(), (0, 0));
+        // Inside a step (a job of 3 ranks saved it): epoch 1 starts at sample 6 for
+        // every stream; each rank asking for it gets step 0.
+        for rank in 0..2 {
+            let reply = decide(&by_sample(rank, 1, 6), &streams);
+            assert_eq!((reply.accepted, reply.epoch, reply.step), (1, 1, 0));
+        }
+        assert_eq!(schedule.start(), (1, 6));
+        assert_eq!(schedule.steps(1, 0) + schedule.steps(1, 1), 6);
+        assert_eq!(decide(&by_sample(0, 1, 17), &streams).reason, 2);
+        // The whole epoch consumed: past its end, the next epoch follows.
+        let reply = decide(&by_sample(1, 1, 16), &streams);
+        assert_eq!((reply.accepted, reply.step), (1, 3));
+    }
+
+    #[test]
+    fn schedules_name_each_streams_epoch_length() {
+        let config = sharded(2, 3);
+        // 7 samples, batches of 2, 2 ranks: 4 and 3 samples, 2 batches each.
         let schedule = Schedule::new(7, 2, 2, 0);
         let iox = iceoryx2::config::Config::default();
         let answers = ScheduleAnswers {
             iox: &iox,
             run: "r",
-            broadcast: false,
-            replies: ScheduleAnswers::replies(&config, &schedule, &[5, 6]),
+            config: &config,
+            schedule: &schedule,
+            publishers: vec![5, 6],
         };
         let ask = |rank, broadcast| answers.answer(&ScheduleRequest { rank, broadcast });
         let reply = ask(1, 0);
         assert_eq!((reply.known, reply.steps, reply.min_steps), (1, 2, 2));
         assert_eq!((reply.epochs, reply.publisher()), (3, 6));
+        assert_eq!((reply.samples, reply.global_batch), (7, 4));
         assert_eq!(ask(2, 0).known, 0);
         assert_eq!(ask(0, 1).known, 0);
         let uneven = Schedule::new(7, 1, 2, 0);
-        let replies = ScheduleAnswers::replies(&config, &uneven, &[5, 6]);
+        let answers = ScheduleAnswers {
+            schedule: &uneven,
+            ..answers
+        };
+        let replies: Vec<ScheduleReply> = (0..2).map(|r| answers.reply(r)).collect();
         assert_eq!((replies[0].steps, replies[1].steps), (4, 3));
         assert_eq!(replies[0].min_steps, 3);
+        // Epoch 2 resumed at sample 4: 3 samples left, 2 and 1.
+        uneven.rebase(2, 4);
+        let reply = answers.reply(1);
+        assert_eq!((reply.start_epoch, reply.start_sample), (2, 4));
+        assert_eq!(
+            (reply.start_steps, reply.start_min_steps, reply.steps),
+            (1, 1, 3)
+        );
+        assert_eq!(reply.consumed(2, 1), 6);
     }
 }

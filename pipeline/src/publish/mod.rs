@@ -18,7 +18,9 @@
 //!   `dead_node_check_ms`, whether the subscriber's process has died; a dead one is
 //!   cleaned up (iceoryx2 dead-node detection) and skipped, the others keep receiving.
 //! * A subscriber resumes through the control service (`control.rs`): it names
-//!   `(epoch, step)` and the next batch of its stream is that one.
+//!   `(epoch, samples the whole job had consumed)` — or its own step — and the next
+//!   batch of its stream is the one there; a job resumed on another number of ranks or
+//!   hosts continues the epoch at that sample ([`Schedule`]).
 //! * [`Metrics`] (`metrics.rs`) counts what happens, for the log and Prometheus;
 //!   [`ServiceConfig`] (`config.rs`) is `[service]` of `pipeline.toml`.
 
@@ -34,6 +36,35 @@ pub use config::{Mode, ServiceConfig};
 pub use metrics::Metrics;
 pub use schedule::{Schedule, Slot};
 pub use serve::serve;
+
+/// How many steps a stream's batches may run ahead of the stream furthest behind (both
+/// built and published). Data-parallel ranks take their steps together: a rank's
+/// batches published far ahead fill its queue while it waits for the others, and the
+/// publisher, blocked on that full queue, would never get the others theirs. It happens
+/// when ranks resume one after another, each from where the job stopped. Two steps keep
+/// streams in lockstep with room for epoch ends, where shares differ by one batch.
+const MAX_LEAD_STEPS: u128 = 2;
+
+/// Where the service starts.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum StartAt {
+    /// At `step` of `epoch` of every stream (`--start-epoch`, `--start-step`): a position
+    /// of a job of this size.
+    Step {
+        /// The epoch.
+        epoch: u64,
+        /// The step of every stream.
+        step: u64,
+    },
+    /// At sample `sample` of `epoch`: the samples of the epoch a job of any size had
+    /// consumed (`--start-sample`); the rest of the epoch is dealt to this job's ranks.
+    Sample {
+        /// The epoch.
+        epoch: u64,
+        /// Samples of it already consumed.
+        sample: u64,
+    },
+}
 
 use std::sync::{Mutex, MutexGuard};
 use superflow_common::InvalidSetting;
@@ -75,6 +106,14 @@ pub enum ServiceError {
     /// The dataset has no keyframe.
     #[error("the drives have no usable keyframe")]
     NoKeyframes,
+    /// `--start-sample` beyond the epoch.
+    #[error("--start-sample {sample} is past the end of an epoch of {samples} samples")]
+    StartPastEpoch {
+        /// The sample asked for.
+        sample: u64,
+        /// Samples per epoch.
+        samples: usize,
+    },
 }
 
 impl ServiceError {
@@ -87,9 +126,11 @@ impl ServiceError {
     }
 }
 
-/// Where each stream is, and a generation counter bumped by every resume so batches
-/// prepared for the old position are dropped. The producer advances it, the control
-/// server moves it, the publisher checks it.
+/// Where each stream is, a generation counter bumped by every resume so batches
+/// prepared for the old position are dropped, and the publisher-wide sequence number of
+/// the next batch sent. The producer advances it, the control server moves it, the
+/// publisher checks it and takes sequence numbers from it — under one lock, so a resume
+/// answered while a batch is on its way names a sequence number above that batch's.
 #[derive(Debug)]
 struct Cursors(Mutex<Positions>);
 
@@ -99,6 +140,8 @@ struct Positions {
     at: Vec<(u64, u64)>,
     /// Resumes so far, per stream.
     generations: Vec<u64>,
+    /// Sequence number of the next batch sent.
+    next_sequence: u64,
 }
 
 impl Cursors {
@@ -107,7 +150,18 @@ impl Cursors {
         Self(Mutex::new(Positions {
             at: vec![start; streams],
             generations: vec![0; streams],
+            next_sequence: 0,
         }))
+    }
+
+    /// The sequence number of a batch planned at `generation` of `stream` that is about
+    /// to be sent, unless a resume replaced its position since (`None`: drop it).
+    fn claim(&self, stream: usize, generation: u64) -> Option<u64> {
+        let mut c = self.lock();
+        (c.generations[stream] == generation).then(|| {
+            c.next_sequence += 1;
+            c.next_sequence - 1
+        })
     }
 
     fn lock(&self) -> MutexGuard<'_, Positions> {
@@ -138,11 +192,18 @@ impl Cursors {
         current
     }
 
-    /// A resume request: `stream` continues at `to`, what was planned before is stale.
-    fn resume(&self, stream: usize, to: (u64, u64)) {
+    /// A resume request: `stream` continues at `to`, what was planned before is stale;
+    /// the sequence number every batch at the new position will have at least.
+    fn resume(&self, stream: usize, to: (u64, u64)) -> u64 {
         let mut c = self.lock();
         c.at[stream] = to;
         c.generations[stream] += 1;
+        c.next_sequence
+    }
+
+    /// `(epoch, step)` of the next batch to build, of every stream.
+    fn positions(&self) -> Vec<(u64, u64)> {
+        self.lock().at.clone()
     }
 
     /// Whether every stream is at or past epoch `epochs`.

@@ -2,7 +2,7 @@
 //! waiting in the channel), stream by stream in turn, each from its stream's cursor,
 //! the samples of a batch in parallel (rayon).
 
-use super::{Cursors, Metrics, Schedule, ServiceConfig};
+use super::{Cursors, MAX_LEAD_STEPS, Metrics, Schedule, ServiceConfig};
 use crate::sample::{Sample, SampleBuilder, SampleError};
 use rayon::prelude::*;
 use std::collections::HashMap;
@@ -60,13 +60,19 @@ impl Producer<'_> {
             }
             self.idle.store(false, Ordering::SeqCst);
             finished[stream] = false;
+            if self.too_far_ahead((epoch, step)) {
+                // The others' batches first (see `MAX_LEAD_STEPS`).
+                stream = (stream + 1) % streams;
+                std::thread::yield_now();
+                continue;
+            }
             if orders.len() > 4 {
                 orders.retain(|e, _| *e + 1 >= epoch);
             }
             let order = orders
                 .entry(epoch)
-                .or_insert_with(|| self.builder.plan().epoch_order(self.schedule.seed(), epoch));
-            let Some(slots) = self.schedule.batch(order, stream, step) else {
+                .or_insert_with(|| self.builder.epoch_order(epoch));
+            let Some(slots) = self.schedule.batch(order, epoch, stream, step) else {
                 // Past the epoch's end: next epoch.
                 self.cursors.advance(stream, generation, (epoch + 1, 0));
                 continue;
@@ -88,6 +94,24 @@ impl Producer<'_> {
             }
             stream = (stream + 1) % streams;
         }
+    }
+
+    /// Whether a stream at `at` is further ahead of the stream furthest behind than the
+    /// publisher lets batches go, plus what it holds built ahead (`prefetch`).
+    fn too_far_ahead(&self, at: (u64, u64)) -> bool {
+        let end = self.config.epochs;
+        let run_sample = |(e, s): (u64, u64)| self.schedule.run_sample(e, s);
+        let slowest = self
+            .cursors
+            .positions()
+            .into_iter()
+            .filter(|(e, _)| end == 0 || *e < end)
+            .map(run_sample)
+            .min();
+        let lead = MAX_LEAD_STEPS + u128::from(self.config.prefetch);
+        slowest.is_some_and(|slowest| {
+            run_sample(at) >= slowest + lead * self.schedule.global_batch() as u128
+        })
     }
 
     /// The samples of one batch; a sample that fails is counted, logged and left out.

@@ -2,14 +2,17 @@
 //! producer thread, and publishes what it builds until the epochs are done and the
 //! subscribers gone, or until `stop`.
 
-use super::control::{ControlServer, ResumeContext, ScheduleAnswers};
+use super::control::{ControlAnswers, ResumeContext, ScheduleAnswers};
 use super::metrics::log_counters;
 use super::ports::{Stamp, StreamPorts};
 use super::producer::{Prepared, Producer};
-use super::{Cursors, Metrics, Mode, Schedule, ServiceConfig, ServiceError};
+use super::{
+    Cursors, MAX_LEAD_STEPS, Metrics, Mode, Schedule, ServiceConfig, ServiceError, StartAt,
+};
 use crate::batch::BatchShape;
 use crate::sample::SampleBuilder;
 use iceoryx2::prelude::*;
+use std::collections::VecDeque;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, sync_channel};
@@ -23,11 +26,23 @@ pub fn serve(
     run: &str,
     config: &ServiceConfig,
     iox: &iceoryx2::config::Config,
-    start: (u64, u64),
+    start: StartAt,
     stop: &Arc<AtomicBool>,
     metrics: &Arc<Metrics>,
 ) -> Result<(), ServiceError> {
     let schedule = schedule_of(builder, config)?;
+    let start = match start {
+        StartAt::Step { epoch, step } => (epoch, step),
+        StartAt::Sample { epoch, sample } => {
+            let samples = schedule.samples();
+            let sample = usize::try_from(sample)
+                .ok()
+                .filter(|&s| s <= samples)
+                .ok_or(ServiceError::StartPastEpoch { sample, samples })?;
+            schedule.rebase(epoch, sample);
+            (epoch, 0)
+        }
+    };
     let node = open_node(iox)?;
     let mut streams = Vec::new();
     for name in service_names(run, config)? {
@@ -37,17 +52,19 @@ pub fn serve(
     let schedule_answers = ScheduleAnswers {
         iox,
         run,
-        broadcast: config.mode == Mode::Broadcast,
-        replies: ScheduleAnswers::replies(config, &schedule, &publisher_ids),
+        config,
+        schedule: &schedule,
+        publishers: publisher_ids.clone(),
     };
-    let control = ControlServer::open(&node, run, publisher_ids)?;
     tracing::info!(
         services = %streams.iter().map(|s| s.name.as_str()).collect::<Vec<_>>().join(", "),
-        keyframes = builder.plan().keyframes.len(),
+        samples_per_epoch = builder.epoch_len(),
         host = config.host_rank,
         hosts = config.host_count,
-        steps_per_epoch = schedule.steps(0),
+        steps_per_epoch = schedule.steps(start.0.wrapping_add(1), 0),
         batch_size = config.batch_size,
+        start_epoch = start.0,
+        start_sample = schedule.consumed(start.0, start.1),
         "publishing"
     );
     let cursors = Cursors::new(streams.len(), start);
@@ -66,7 +83,17 @@ pub fn serve(
         config,
         node,
         streams,
-        control,
+        control: ControlAnswers {
+            iox,
+            run,
+            publishers: publisher_ids,
+            streams: ResumeContext {
+                config,
+                schedule: &schedule,
+                cursors: &cursors,
+                metrics,
+            },
+        },
         schedule: schedule_answers,
         resume: ResumeContext {
             config,
@@ -88,7 +115,7 @@ fn schedule_of(
     config: &ServiceConfig,
 ) -> Result<Schedule, ServiceError> {
     config.validate()?;
-    let keyframes = builder.plan().keyframes.len();
+    let keyframes = builder.epoch_len();
     if keyframes == 0 {
         return Err(ServiceError::NoKeyframes);
     }
@@ -154,7 +181,7 @@ struct Publisher<'a> {
     config: &'a ServiceConfig,
     node: Node<ipc::Service>,
     streams: Vec<StreamPorts>,
-    control: ControlServer,
+    control: ControlAnswers<'a>,
     schedule: ScheduleAnswers<'a>,
     resume: ResumeContext<'a>,
     stop: &'a AtomicBool,
@@ -179,8 +206,9 @@ impl Publisher<'_> {
         let (tx, rx) = sync_channel::<Prepared>(self.config.prefetch as usize);
         let producer_done = AtomicBool::new(false);
         let result = std::thread::scope(|scope| {
-            let (schedule, stop) = (&self.schedule, self.stop);
+            let (schedule, control, stop) = (&self.schedule, &self.control, self.stop);
             scope.spawn(move || schedule.serve(stop));
+            scope.spawn(move || control.serve(stop));
             scope.spawn(|| {
                 producer.run(&tx);
                 producer_done.store(true, Ordering::SeqCst);
@@ -202,62 +230,116 @@ impl Publisher<'_> {
         result
     }
 
-    /// The publisher loop: answers resume requests, takes prepared batches and
-    /// publishes them; ends on `stop`, or once every epoch is published and the
-    /// subscribers have left.
+    /// The publisher loop: takes prepared batches and publishes them, each stream's in
+    /// order, the stream furthest behind first, none more than `MAX_LEAD_STEPS` ahead of
+    /// it; ends on `stop`, or once every epoch is published and the subscribers have
+    /// left.
     fn publish_all(&self, rx: &Receiver<Prepared>, idle: &AtomicBool) -> Result<(), ServiceError> {
-        let mut sequence = 0u64;
+        let mut pending: Vec<VecDeque<Prepared>> =
+            self.streams.iter().map(|_| VecDeque::new()).collect();
+        let mut sent = 0u64;
         let mut last_log = Instant::now();
         let mut finished_at: Option<Instant> = None;
+        let mut producer_gone = false;
         loop {
             if self.stop.load(Ordering::SeqCst) {
                 return Ok(());
             }
-            self.control.answer_pending(&self.resume, sequence);
+            if let Some(stream) = self.next_deliverable(&mut pending) {
+                let Some(prepared) = pending[stream].pop_front() else {
+                    continue;
+                };
+                match self.deliver(&prepared)? {
+                    Delivery::Sent => {
+                        sent += 1;
+                        self.show_progress(&prepared);
+                    }
+                    Delivery::Stale => {}
+                    Delivery::Stopped => return Ok(()),
+                }
+                if last_log.elapsed() > Duration::from_secs(10) {
+                    last_log = Instant::now();
+                    log_counters(self.metrics);
+                }
+                continue;
+            }
+            if producer_gone {
+                return Ok(());
+            }
             let waited = Instant::now();
             // Read before waiting: the producer turns idle only after its last send, so
             // idle-then-timeout means every prepared batch was taken.
             let idle_before = idle.load(Ordering::SeqCst);
-            let prepared = match rx.recv_timeout(Duration::from_millis(20)) {
-                Ok(p) => p,
+            match rx.recv_timeout(Duration::from_millis(20)) {
+                Ok(prepared) => {
+                    self.count_wait(waited);
+                    pending[prepared.stream as usize].push_back(prepared);
+                    while let Ok(more) = rx.try_recv() {
+                        pending[more.stream as usize].push_back(more);
+                    }
+                }
                 Err(RecvTimeoutError::Timeout) => {
                     let epochs = self.config.epochs;
-                    if epochs > 0 && idle_before && self.resume.cursors.all_past(epochs) {
+                    let none_pending = pending.iter().all(VecDeque::is_empty);
+                    if epochs > 0
+                        && idle_before
+                        && none_pending
+                        && self.resume.cursors.all_past(epochs)
+                    {
                         let since = *finished_at.get_or_insert_with(Instant::now);
-                        if self.lingered(since, sequence) {
+                        if self.lingered(since, sent) {
                             return Ok(());
                         }
                     } else {
                         finished_at = None;
                         self.count_wait(waited);
                     }
-                    continue;
                 }
-                Err(RecvTimeoutError::Disconnected) => return Ok(()),
-            };
-            self.count_wait(waited);
-            match self.deliver(&prepared, sequence)? {
-                Delivery::Sent => {
-                    sequence += 1;
-                    self.show_progress(&prepared);
-                }
-                Delivery::Stale => continue,
-                Delivery::Stopped => return Ok(()),
-            }
-            if last_log.elapsed() > Duration::from_secs(10) {
-                last_log = Instant::now();
-                log_counters(self.metrics);
+                Err(RecvTimeoutError::Disconnected) => producer_gone = true,
             }
         }
     }
 
+    /// The stream whose next prepared batch goes now: the earliest in the run of the
+    /// streams' next batches, unless it is `MAX_LEAD_STEPS` or more ahead of the stream
+    /// furthest behind (its next batch prepared or still to build). Drops stale batches.
+    fn next_deliverable(&self, pending: &mut [VecDeque<Prepared>]) -> Option<usize> {
+        let cursors = self.resume.cursors;
+        for queue in pending.iter_mut() {
+            queue.retain(|p| cursors.is_current(p.stream as usize, p.generation));
+        }
+        let schedule = self.resume.schedule;
+        let positions = cursors.positions();
+        let frontier = |s: usize| {
+            pending[s]
+                .front()
+                .map_or(positions[s], |p| (p.epoch, p.step))
+        };
+        let end = self.config.epochs;
+        let slowest = (0..pending.len())
+            .map(frontier)
+            .filter(|(e, _)| end == 0 || *e < end)
+            .map(|(e, s)| schedule.run_sample(e, s))
+            .min();
+        let (stream, at) = (0..pending.len())
+            .filter_map(|s| {
+                let p = pending[s].front()?;
+                Some((s, schedule.run_sample(p.epoch, p.step)))
+            })
+            .min_by_key(|(_, at)| *at)?;
+        let limit = slowest.map_or(u128::MAX, |slowest| {
+            slowest + MAX_LEAD_STEPS * schedule.global_batch() as u128
+        });
+        (at < limit).then_some(stream)
+    }
+
     /// All epochs are published (since `since`): serve resume requests while
     /// subscribers are attached; whether the service may end now.
-    fn lingered(&self, since: Instant, sequence: u64) -> bool {
+    fn lingered(&self, since: Instant, sent: u64) -> bool {
         let attached: usize = self.streams.iter().map(StreamPorts::subscribers).sum();
         if attached == 0 || since.elapsed() > Duration::from_secs(self.config.linger_secs) {
             tracing::info!(
-                batches = sequence,
+                batches = sent,
                 "all epochs published; every subscriber has left"
             );
             return true;
@@ -266,9 +348,9 @@ impl Publisher<'_> {
         false
     }
 
-    /// Publishes one prepared batch as number `sequence`, once its stream has
-    /// subscribers, unless a resume request made it stale meanwhile.
-    fn deliver(&self, prepared: &Prepared, sequence: u64) -> Result<Delivery, ServiceError> {
+    /// Publishes one prepared batch once its stream has subscribers, unless a resume
+    /// request made it stale meanwhile.
+    fn deliver(&self, prepared: &Prepared) -> Result<Delivery, ServiceError> {
         let current = || {
             self.resume
                 .cursors
@@ -278,16 +360,21 @@ impl Publisher<'_> {
             return Ok(Delivery::Stale);
         }
         let stream = &self.streams[prepared.stream as usize];
-        let span = tracing::info_span!("publish", service = %stream.name, epoch = prepared.epoch, step = prepared.step, sequence);
+        let span = tracing::info_span!("publish", service = %stream.name, epoch = prepared.epoch, step = prepared.step);
         let _entered = span.enter();
-        self.wait_for_subscribers(stream, sequence);
+        self.wait_for_subscribers(stream);
         if self.stop.load(Ordering::SeqCst) {
             return Ok(Delivery::Stopped);
         }
-        // The wait answered resume requests: check again.
-        if !current() {
+        // A resume may have come meanwhile: the sequence number is taken only while the
+        // batch is still wanted.
+        let Some(sequence) = self
+            .resume
+            .cursors
+            .claim(prepared.stream as usize, prepared.generation)
+        else {
             return Ok(Delivery::Stale);
-        }
+        };
         stream.published.set(true);
         let stamp = Stamp {
             run: self.run,
@@ -298,9 +385,9 @@ impl Publisher<'_> {
         Ok(Delivery::Sent)
     }
 
-    /// Never publish into the void: waits (answering resume requests) until `stream`
-    /// has its subscribers — `min_subscribers` before its first batch, then one.
-    fn wait_for_subscribers(&self, stream: &StreamPorts, sequence: u64) {
+    /// Never publish into the void: waits until `stream` has its subscribers —
+    /// `min_subscribers` before its first batch, then one.
+    fn wait_for_subscribers(&self, stream: &StreamPorts) {
         let required = if stream.published.get() {
             1
         } else {
@@ -312,7 +399,6 @@ impl Publisher<'_> {
                 tracing::info!(service = %stream.name, required, "waiting for subscribers");
                 announced = true;
             }
-            self.control.answer_pending(&self.resume, sequence);
             let _ = self.node.try_cleanup_dead_nodes();
             std::thread::sleep(Duration::from_millis(20));
         }

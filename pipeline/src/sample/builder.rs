@@ -7,6 +7,7 @@
 //! `(seed, epoch, index)`.
 
 use super::cloud::DenseCloud;
+use super::epochs::EpochMix;
 use super::error::SampleError;
 use super::load::{FrameInputs, SampleContext};
 use super::plan::{KeyframeRef, Plan};
@@ -22,6 +23,7 @@ pub struct SampleBuilder<'d> {
     dataset: &'d Dataset,
     config: SampleConfig,
     plan: Plan,
+    mix: EpochMix,
     class_superpixels: Vec<bool>,
     slic_sidecar: Vec<bool>,
 }
@@ -83,10 +85,12 @@ impl<'d> SampleBuilder<'d> {
             .map(|(drive, &classes)| !classes && slic_sidecar(drive, &config))
             .collect();
         let plan = Plan::new(dataset, &config);
+        let mix = EpochMix::new(&plan, &dataset.groups);
         Ok(Self {
             dataset,
             config,
             plan,
+            mix,
             class_superpixels,
             slic_sidecar,
         })
@@ -102,16 +106,31 @@ impl<'d> SampleBuilder<'d> {
         &self.config
     }
 
+    /// How the keyframes make up each epoch (the dataset groups' repeats).
+    pub fn mix(&self) -> &EpochMix {
+        &self.mix
+    }
+
+    /// Samples per epoch: every group's keyframes times its repeat.
+    pub fn epoch_len(&self) -> usize {
+        self.mix.len
+    }
+
+    /// The plan keyframe of each position of `epoch`, in the order they are served.
+    pub fn epoch_order(&self, epoch: u64) -> Vec<u32> {
+        self.mix.order(self.config.seed, epoch)
+    }
+
     /// Sample `index` of `epoch` (the epoch's shuffled keyframe order).
     pub fn build(&self, epoch: u64, index: u64) -> Result<Sample, SampleError> {
-        let len = self.plan.keyframes.len();
+        let len = self.epoch_len();
         if index as usize >= len {
             return Err(SampleError::OutOfRange {
                 index: index as usize,
                 len,
             });
         }
-        let order = self.plan.epoch_order(self.config.seed, epoch);
+        let order = self.epoch_order(epoch);
         self.build_keyframe(order[index as usize] as usize, epoch, index)
     }
 

@@ -6,6 +6,8 @@
 //!
 //! * [`recipe`]: the `[sample]` config with the paper's defaults;
 //! * [`plan`]: the keyframes and their context sweeps, the epoch's shuffled order;
+//! * [`epochs`]: [`EpochMix`], the keyframes of each epoch when dataset groups are
+//!   weighted (`repeat`);
 //! * [`timing`]: when the LiDAR scans each camera, which matches images to sweeps;
 //! * [`builder`]: [`SampleBuilder`], a sample from its loaded parts (`load.rs`: sweeps
 //!   and frames; `images.rs`: one camera image with its superpixels; `cloud.rs`: the
@@ -36,6 +38,7 @@ mod cellkey;
 mod cloud;
 mod cylinder;
 pub mod deskew;
+pub mod epochs;
 mod error;
 pub mod export;
 pub mod image_ops;
@@ -55,6 +58,7 @@ pub mod voxel;
 
 pub use augment::Augmentation;
 pub use builder::SampleBuilder;
+pub use epochs::EpochMix;
 pub use error::SampleError;
 pub use images::CLASS_MAP_TOLERANCE_NANOS;
 pub use plan::{KeyframeRef, Plan};

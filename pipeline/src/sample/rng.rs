@@ -22,6 +22,12 @@ pub enum Purpose {
         /// Cloud position in the sample.
         cloud: u32,
     },
+    /// Which keyframes of dataset group `group` get the fractional part of its repeat
+    /// in an epoch (drawn with index 0).
+    GroupShare {
+        /// The group's position in the dataset.
+        group: u32,
+    },
 }
 
 impl Purpose {
@@ -33,6 +39,7 @@ impl Purpose {
                 3 | (u64::from(frame) << 8) | (u64::from(slot) << 24)
             }
             Purpose::Augment { cloud } => 4 | (u64::from(cloud) << 8),
+            Purpose::GroupShare { group } => 5 | (u64::from(group) << 8),
         }
     }
 }

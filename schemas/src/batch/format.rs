@@ -7,7 +7,7 @@ use iceoryx2::prelude::ZeroCopySend;
 /// `b"SFLB"` read as a little-endian `u32`: the first four bytes of every header.
 pub const BATCH_MAGIC: u32 = u32::from_le_bytes(*b"SFLB");
 /// Version of the layout described in `BATCH_FORMAT.md`; bumped on any change.
-pub const BATCH_FORMAT_VERSION: u32 = 1;
+pub const BATCH_FORMAT_VERSION: u32 = 2;
 /// Capacity of the section table.
 pub const MAX_SECTIONS: usize = 128;
 /// Maximum number of dimensions of a section.
@@ -150,7 +150,7 @@ pub struct BatchMeta {
     pub created_unix_nanos: u64,
     /// Samples in the batch.
     pub sample_count: u32,
-    /// Reserved for flags; 0 in version 1.
+    /// Reserved for flags; 0 (no version defines one yet).
     pub flags: u32,
 }
 

@@ -29,7 +29,10 @@ pub struct SectionSpec {
 pub const SYMBOLS: &[(&str, &str)] = &[
     ("B", "samples in the batch"),
     ("F", "temporal frames per sample"),
-    ("K", "cameras per frame"),
+    (
+        "S",
+        "camera slots of the batch: the cameras of every sample, `K_b` for sample `b`",
+    ),
     (
         "C",
         "clouds per sample, `F + 1`: the frames in time order, then the dense cloud",
@@ -55,6 +58,8 @@ pub enum Section {
     FrameOffsets,
     /// `camera_ids`.
     CameraIds,
+    /// `sample_cameras`.
+    SampleCameras,
     /// `image_stamps`.
     ImageStamps,
     /// `image_flipped`.
@@ -122,7 +127,7 @@ const fn spec(
 use DType::{F32, I32, I64, U8, U16, U32, U64};
 
 /// The table, in payload order: the sections of every batch, then those of each level.
-const TABLE: [SectionSpec; 28] = [
+const TABLE: [SectionSpec; 29] = [
     spec(
         "sample_ids",
         U64,
@@ -144,21 +149,22 @@ const TABLE: [SectionSpec; 28] = [
     spec(
         "camera_ids",
         U32,
-        &["B", "K"],
-        "camera index in the drive per slot",
+        &["S"],
+        "camera index in its drive, per camera slot",
     ),
-    spec("image_stamps", I64, &["B·F·K"], "image stamps, ns"),
     spec(
-        "image_flipped",
-        U8,
-        &["B·F·K"],
-        "1 if the image was mirrored",
+        "sample_cameras",
+        U32,
+        &["B+1"],
+        "first camera slot of each sample: `K_b = sample_cameras[b+1] − sample_cameras[b]`",
     ),
-    spec("images", U8, &["B·F·K", "H", "W", "3"], "RGB, resized"),
+    spec("image_stamps", I64, &["F·S"], "image stamps, ns"),
+    spec("image_flipped", U8, &["F·S"], "1 if the image was mirrored"),
+    spec("images", U8, &["F·S", "H", "W", "3"], "RGB, resized"),
     spec(
         "superpixels",
         U16,
-        &["B·F·K", "H", "W"],
+        &["F·S", "H", "W"],
         "superpixel id per pixel (ids per frame)",
     ),
     spec(
@@ -260,11 +266,12 @@ const TABLE: [SectionSpec; 28] = [
 
 impl Section {
     /// The sections of every batch, in payload order (the per-level ones follow).
-    pub const BATCH: [Section; 22] = [
+    pub const BATCH: [Section; 23] = [
         Section::SampleIds,
         Section::FrameStamps,
         Section::FrameOffsets,
         Section::CameraIds,
+        Section::SampleCameras,
         Section::ImageStamps,
         Section::ImageFlipped,
         Section::Images,
@@ -314,30 +321,31 @@ impl Section {
             Section::FrameStamps => 1,
             Section::FrameOffsets => 2,
             Section::CameraIds => 3,
-            Section::ImageStamps => 4,
-            Section::ImageFlipped => 5,
-            Section::Images => 6,
-            Section::Superpixels => 7,
-            Section::NumSuperpixels => 8,
-            Section::Points => 9,
-            Section::PointClouds => 10,
-            Section::SourceSweep => 11,
-            Section::PointToVoxel => 12,
-            Section::Augmentation => 13,
-            Section::PairingPoint => 14,
-            Section::PairingImage => 15,
-            Section::PairingPixel => 16,
-            Section::PairingUv => 17,
-            Section::PairingDepth => 18,
-            Section::PairingSuperpixel => 19,
-            Section::PairingClouds => 20,
-            Section::VoxelFeatures => 21,
-            Section::LevelCoords(_) => 22,
-            Section::LevelClouds(_) => 23,
-            Section::LevelNbr(_) => 24,
-            Section::LevelNbrStarts(_) => 25,
-            Section::LevelDown(_) => 26,
-            Section::LevelDownStarts(_) => 27,
+            Section::SampleCameras => 4,
+            Section::ImageStamps => 5,
+            Section::ImageFlipped => 6,
+            Section::Images => 7,
+            Section::Superpixels => 8,
+            Section::NumSuperpixels => 9,
+            Section::Points => 10,
+            Section::PointClouds => 11,
+            Section::SourceSweep => 12,
+            Section::PointToVoxel => 13,
+            Section::Augmentation => 14,
+            Section::PairingPoint => 15,
+            Section::PairingImage => 16,
+            Section::PairingPixel => 17,
+            Section::PairingUv => 18,
+            Section::PairingDepth => 19,
+            Section::PairingSuperpixel => 20,
+            Section::PairingClouds => 21,
+            Section::VoxelFeatures => 22,
+            Section::LevelCoords(_) => 23,
+            Section::LevelClouds(_) => 24,
+            Section::LevelNbr(_) => 25,
+            Section::LevelNbrStarts(_) => 26,
+            Section::LevelDown(_) => 27,
+            Section::LevelDownStarts(_) => 28,
         };
         &TABLE[index]
     }
@@ -427,8 +435,8 @@ pub struct Dims {
     pub samples: usize,
     /// `F`.
     pub frames: usize,
-    /// `K`.
-    pub cameras: usize,
+    /// `S`: camera slots of all samples.
+    pub camera_slots: usize,
     /// `H`.
     pub height: usize,
     /// `W`.
@@ -465,7 +473,7 @@ impl Dims {
             Ok(match symbol {
                 "B" => self.samples,
                 "F" => self.frames,
-                "K" => self.cameras,
+                "S" => self.camera_slots,
                 "C" => self.frames + 1,
                 "H" => self.height,
                 "W" => self.width,
@@ -515,7 +523,7 @@ mod tests {
     #[test]
     fn every_section_has_its_row_and_parses_back() {
         let all: Vec<Section> = Section::in_order(3).collect();
-        assert_eq!(all.len(), 22 + 6 + 6 + 4);
+        assert_eq!(all.len(), 23 + 6 + 6 + 4);
         let rows: Vec<&str> = Section::BATCH
             .into_iter()
             .chain(Section::of_level(0))
@@ -538,7 +546,7 @@ mod tests {
         let dims = Dims {
             samples: 2,
             frames: 3,
-            cameras: 5,
+            camera_slots: 5,
             height: 7,
             width: 11,
             points: 13,
@@ -561,7 +569,8 @@ mod tests {
                 }
             }
         }
-        assert_eq!(dims.shape(Section::Images).unwrap(), [30, 7, 11, 3]);
+        assert_eq!(dims.shape(Section::Images).unwrap(), [15, 7, 11, 3]);
+        assert_eq!(dims.shape(Section::SampleCameras).unwrap(), [3]);
         assert_eq!(dims.shape(Section::PointClouds).unwrap(), [9]);
         assert_eq!(dims.shape(Section::Augmentation).unwrap(), [8, 4]);
         assert_eq!(dims.shape(Section::LevelNbr(0)).unwrap(), [29, 2]);

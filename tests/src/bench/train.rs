@@ -315,8 +315,17 @@ pub fn stream(
     let subscription = Subscription::open(&run, Target::Broadcast, &iox, 2)?;
     let service_started = Instant::now();
     let (measured, served, service_s) = std::thread::scope(|scope| {
-        let server =
-            scope.spawn(|| publish::serve(builder, &run, &service, &iox, (0, 0), &stop, &metrics));
+        let server = scope.spawn(|| {
+            publish::serve(
+                builder,
+                &run,
+                &service,
+                &iox,
+                publish::StartAt::Step { epoch: 0, step: 0 },
+                &stop,
+                &metrics,
+            )
+        });
         let receive = || -> anyhow::Result<(Batch, f64)> {
             let t = Instant::now();
             loop {

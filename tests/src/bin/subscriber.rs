@@ -1,12 +1,15 @@
 //! `superflow-subscriber`: a test subscriber. Reads batches of a run and prints one JSON line
-//! per batch (sequence, epoch, step, sample ids, a hash of the payload) so end-to-end
-//! tests can account for every sample; can stall (stop reading) or resume at a position.
+//! per batch (sequence, epoch, step, sample ids, each sample's camera count, a hash of the
+//! payload) so end-to-end
+//! tests can account for every sample; can stall (stop reading) or resume at a position
+//! (a step of its stream, or a sample count of the whole job).
 
 use clap::Parser;
 use std::io::Write as _;
 use std::time::Duration;
 use superflow_schemas::batch::Section;
-use superflow_trainer::subscribe::{Subscription, Target};
+use superflow_schemas::service::UNKNOWN;
+use superflow_trainer::subscribe::{ResumeAt, Subscription, Target};
 
 #[derive(Debug, Parser)]
 struct Args {
@@ -32,8 +35,12 @@ struct Args {
     #[arg(long, default_value_t = 0)]
     stall_secs: u64,
     /// Before reading, ask the pipeline to resume this stream at EPOCH STEP.
-    #[arg(long, num_args = 2)]
+    #[arg(long, num_args = 2, conflicts_with = "resume_sample")]
     resume: Option<Vec<u64>>,
+    /// Before reading, ask the pipeline to resume this stream after SAMPLE samples of
+    /// EPOCH consumed by the whole job (EPOCH SAMPLE).
+    #[arg(long, num_args = 2)]
+    resume_sample: Option<Vec<u64>>,
     /// After this many batches, ask to resume at `resume_to` (EPOCH STEP).
     #[arg(long)]
     resume_after: Option<usize>,
@@ -73,22 +80,38 @@ fn main() -> anyhow::Result<()> {
     let target = args.rank.map_or(Target::Broadcast, Target::Rank);
     let subscription = Subscription::open(&args.run, target, &iox, args.buffer)?;
     let out = std::io::stdout();
-    let resume = |position: &[u64]| -> anyhow::Result<()> {
-        let reply = subscription.resume(position[0], position[1], Duration::from_secs(30))?;
+    let resume = |at: ResumeAt| -> anyhow::Result<()> {
+        let reply = subscription.resume(at, Duration::from_secs(30))?;
+        let (kind, value) = match at {
+            ResumeAt::Step { step, .. } => ("resume", step),
+            ResumeAt::Sample { sample, .. } => ("resume_sample", sample),
+        };
         writeln!(
             out.lock(),
-            "{{\"resume\":[{},{}],\"accepted\":{},\"reason\":{},\"next_sequence\":{},\"publisher\":\"{:x}\"}}",
-            position[0],
-            position[1],
+            "{{\"{kind}\":[{},{value}],\"accepted\":{},\"reason\":{},\"at\":[{},{}],\"next_sequence\":{},\"publisher\":\"{:x}\"}}",
+            at.epoch(),
             reply.accepted,
             reply.reason,
+            reply.epoch,
+            reply.step,
             reply.next_sequence,
             reply.publisher()
         )?;
         Ok(())
     };
+    let step = |position: &[u64]| ResumeAt::Step {
+        epoch: position[0],
+        step: position[1],
+    };
     if let Some(position) = &args.resume {
-        resume(position)?;
+        resume(step(position))?;
+    }
+    if let Some(position) = &args.resume_sample {
+        resume(ResumeAt::Sample {
+            epoch: position[0],
+            sample: position[1],
+            global_batch: UNKNOWN,
+        })?;
     }
     for n in 0..args.count {
         if args.stall_after == Some(n) {
@@ -102,7 +125,7 @@ fn main() -> anyhow::Result<()> {
         if args.resume_after == Some(n)
             && let Some(position) = &args.resume_to
         {
-            resume(position)?;
+            resume(step(position))?;
         }
         let Some(batch) = subscription.receive(Duration::from_secs(args.timeout_secs))? else {
             eprintln!(
@@ -118,6 +141,12 @@ fn main() -> anyhow::Result<()> {
             .data
             .chunks_exact(5)
             .map(|s| format!("[{},{},{},{},{}]", s[0], s[1], s[2], s[3], s[4]))
+            .collect();
+        let slots = view.section::<u32>(Section::SampleCameras)?;
+        let cameras: Vec<String> = slots
+            .data
+            .windows(2)
+            .map(|w| (w[1] - w[0]).to_string())
             .collect();
         let covered = &batch.payload()[..batch.header().payload_len as usize];
         let sections = if args.sections {
@@ -139,11 +168,12 @@ fn main() -> anyhow::Result<()> {
         };
         writeln!(
             out.lock(),
-            "{{\"sequence\":{},\"epoch\":{},\"step\":{},\"samples\":[{}],\"hash\":{},\"origin\":\"{:x}\"{sections}}}",
+            "{{\"sequence\":{},\"epoch\":{},\"step\":{},\"samples\":[{}],\"cameras\":[{}],\"hash\":{},\"origin\":\"{:x}\"{sections}}}",
             meta.sequence,
             meta.epoch,
             meta.step,
             samples.join(","),
+            cameras.join(","),
             fnv(covered),
             batch.origin()
         )?;

@@ -1,4 +1,4 @@
-"""The superflow batch format (version 1, schemas/BATCH_FORMAT.md in the repository), read
+"""The superflow batch format (version 2, schemas/BATCH_FORMAT.md in the repository), read
 with numpy: ``read_batch(header_bytes, payload)`` validates a batch against every rule of
 the format (header constants, section table, dtypes, shapes and sizes, bounds, overlaps,
 alignment in memory, zeroed padding) and returns ``(header record, {name: array})``,
@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 MAGIC = 0x424C4653  # the bytes "SFLB", little-endian
-VERSION = 1
+VERSION = 2
 HEADER_SIZE = 11_400
 MAX_SECTIONS = 128
 MAX_DIMS = 4
@@ -105,9 +105,9 @@ def read_batch(header_bytes: Any, payload: Any) -> tuple[np.void, dict[str, np.n
     if payload_len > body.size:
         _fail("rule 1", f"payload_len {payload_len} exceeds the {body.size}-byte payload received")
 
-    # Header fields with fixed values in version 1.
+    # Header fields with fixed values: no version defines a flag yet.
     if int(h["flags"]) != 0:
-        _fail("header", f"flags {int(h['flags']):#x}, must be 0 in version 1")
+        _fail("header", f"flags {int(h['flags']):#x}, must be 0 in version {VERSION}")
     run = _nul_padded(bytes(raw_header[72:72 + RUN_NAME_LEN]), "header", "run name")
     if not run or not set(run) <= RUN_CHARS:
         _fail("header", f"run name {run!r} must be 1 to 63 characters of A-Z a-z 0-9 - _ .")

@@ -18,6 +18,7 @@ BATCH_SECTIONS: dict[str, str] = {
     "frame_stamps": "<i8",
     "frame_offsets": "<i4",
     "camera_ids": "<u4",
+    "sample_cameras": "<u4",
     "image_stamps": "<i8",
     "image_flipped": "<u1",
     "images": "<u1",

@@ -92,11 +92,16 @@ class _BatchHeader(ctypes.Structure):
         return "superflow::BatchHeader"
 
 
+# A field of a resume request that is not known (schemas/src/service.rs `UNKNOWN`).
+_UNKNOWN = (1 << 64) - 1
+
+
 class _ResumeRequest(ctypes.Structure):
     """`superflow::ResumeRequest` (schemas/src/service.rs)."""
 
     _fields_ = [("rank", ctypes.c_uint32), ("broadcast", ctypes.c_uint32),
-                ("epoch", ctypes.c_uint64), ("step", ctypes.c_uint64)]
+                ("epoch", ctypes.c_uint64), ("step", ctypes.c_uint64),
+                ("sample", ctypes.c_uint64), ("global_batch", ctypes.c_uint64)]
 
     @staticmethod
     def type_name() -> str:
@@ -108,7 +113,8 @@ class _ResumeReply(ctypes.Structure):
 
     _fields_ = [("accepted", ctypes.c_uint32), ("reason", ctypes.c_uint32),
                 ("next_sequence", ctypes.c_uint64), ("publisher_lo", ctypes.c_uint64),
-                ("publisher_hi", ctypes.c_uint64)]
+                ("publisher_hi", ctypes.c_uint64), ("epoch", ctypes.c_uint64),
+                ("step", ctypes.c_uint64)]
 
     @staticmethod
     def type_name() -> str:
@@ -131,7 +137,10 @@ class _ScheduleReply(ctypes.Structure):
     _fields_ = [("known", ctypes.c_uint32), ("reserved", ctypes.c_uint32),
                 ("steps", ctypes.c_uint64), ("min_steps", ctypes.c_uint64),
                 ("epochs", ctypes.c_uint64), ("publisher_lo", ctypes.c_uint64),
-                ("publisher_hi", ctypes.c_uint64)]
+                ("publisher_hi", ctypes.c_uint64), ("samples", ctypes.c_uint64),
+                ("global_batch", ctypes.c_uint64), ("start_epoch", ctypes.c_uint64),
+                ("start_sample", ctypes.c_uint64), ("start_steps", ctypes.c_uint64),
+                ("start_min_steps", ctypes.c_uint64)]
 
     @staticmethod
     def type_name() -> str:
@@ -140,13 +149,40 @@ class _ScheduleReply(ctypes.Structure):
 
 class Schedule(NamedTuple):
     """How the pipeline schedules this stream: ``steps`` batches per epoch (this rank's),
-    ``min_steps`` the fewest of any rank, ``epochs`` served (0: endless), and the
-    ``publisher`` (pipeline process) that said so."""
+    ``min_steps`` the fewest of any rank, ``epochs`` served (0: endless), the
+    ``publisher`` (pipeline process) that said so; ``samples`` per epoch and
+    ``global_batch`` samples per step of the whole job (every rank and host); epoch
+    ``start_epoch`` starts at sample ``start_sample`` (a job resumed on another size),
+    with ``start_steps`` / ``start_min_steps`` batches."""
 
     steps: int
     min_steps: int
     epochs: int
     publisher: int
+    samples: int = 0
+    global_batch: int = 0
+    start_epoch: int = 0
+    start_sample: int = 0
+    start_steps: int = 0
+    start_min_steps: int = 0
+
+    def _part_way(self, epoch: int) -> bool:
+        return epoch == self.start_epoch and self.start_sample > 0
+
+    def steps_in(self, epoch: int) -> int:
+        """This rank's batches in ``epoch``."""
+        return self.start_steps if self._part_way(epoch) else self.steps
+
+    def min_steps_in(self, epoch: int) -> int:
+        """The fewest batches of any rank in ``epoch``."""
+        return self.start_min_steps if self._part_way(epoch) else self.min_steps
+
+    def consumed(self, epoch: int, steps: int) -> int:
+        """Samples of ``epoch`` the whole job has consumed once every rank took its first
+        ``steps`` batches of it (data-parallel ranks step together): what a checkpoint
+        keeps to resume on any number of ranks."""
+        first = min(self.start_sample, self.samples) if self._part_way(epoch) else 0
+        return first + min(steps * self.global_batch, self.samples - first)
 
 
 # How long a stream waits for the schedule of a pipeline that just sent it a batch (it
@@ -155,7 +191,9 @@ class Schedule(NamedTuple):
 _SCHEDULE_WAIT_S = 5.0
 
 _REFUSALS = {1: "no such stream (rank out of range, or the pipeline runs in the other mode)",
-             2: "the position is past the end of the configured epochs"}
+             2: "the position is past the end of the configured epochs",
+             3: "the step was saved by a job of another size: resume by sample "
+                "(stream.resume(epoch, sample=...), or load_state_dict of a state_dict)"}
 
 
 class SectionArray(np.ndarray):
@@ -225,6 +263,20 @@ def _position(sample: Any) -> tuple[int, int]:
     return int(h["epoch"]), int(h["step"])
 
 
+def _step_at(schedule: Schedule, epoch: int, sample: int) -> int:
+    """The step at which a resume after ``sample`` samples of ``epoch`` continues: a step
+    boundary of ``schedule``, or 0 when the pipeline will start the epoch there."""
+    first = schedule.start_sample if schedule._part_way(epoch) else 0
+    taken = sample - first
+    if schedule.global_batch <= 0 or taken < 0:
+        return 0
+    if taken % schedule.global_batch == 0:
+        return taken // schedule.global_batch
+    if sample == schedule.samples:
+        return -(-taken // schedule.global_batch)
+    return 0
+
+
 def _read(sample: Any, payload: np.ndarray, run: str,
           service: str) -> tuple[np.void, dict[str, np.ndarray]]:
     """The header and sections of a received sample (``payload``: its payload bytes),
@@ -255,8 +307,11 @@ class Batch:
     ``epoch``, ``step``, ``sequence`` (publisher-wide counter), ``seed``, ``run``;
     ``sample_ids``: each sample's index in its epoch; ``keyframes``: each sample's
     keyframe index in the drive (the full rows are ``batch["sample_ids"]``: epoch,
-    index in epoch, keyframe, drive, sweep). ``batch[name]`` is a section (see
-    ``names()``); ``batch.torch()`` the same as ``torch.Tensor``s sharing the memory.
+    index in epoch, keyframe, drive, sweep); ``cameras``: each sample's camera count
+    (samples of different rigs have different counts, and only their own images).
+    ``batch[name]`` is a section (see ``names()``); ``batch.torch()`` the same as
+    ``torch.Tensor``s sharing the memory; ``batch.sample_images(b)`` sample ``b``'s
+    images as ``F×K_b×H×W×3``.
     """
 
     def __init__(self, sample: Any, run: str, service: str, held: set[_Memory] | None = None,
@@ -293,6 +348,10 @@ class Batch:
         self.sample_ids: list[int] = [int(i) for i in ids[:, 1]]
         self.keyframes: list[int] = [int(k) for k in ids[:, 2]]
         del ids
+        slots = self._arrays.get("sample_cameras", np.zeros(1, np.uint32))
+        self.cameras: list[int] = [int(k) for k in np.diff(slots.astype(np.int64))]
+        self._first_slot: list[int] = [int(s) for s in slots]
+        del slots
 
     @property
     def _sample(self) -> Any:
@@ -330,6 +389,26 @@ class Batch:
             return self._arrays[name]
         except KeyError:
             raise KeyError(f"no section `{name}` in this batch (sections: {', '.join(self._arrays)})")
+
+    def image_index(self, sample: int, frame: int, camera: int) -> int:
+        """The row of ``images`` (and ``superpixels``, ``image_stamps``, the number in
+        ``pairing_image``) of camera slot ``camera`` of ``frame`` of ``sample``:
+        ``F · sample_cameras[b] + f · K_b + k``."""
+        frames = len(self["frame_offsets"])
+        if not (0 <= sample < len(self.cameras) and 0 <= frame < frames
+                and 0 <= camera < self.cameras[sample]):
+            raise IndexError(f"no image (sample {sample}, frame {frame}, camera {camera}): the "
+                             f"batch has {len(self.cameras)} samples of {frames} frames, with "
+                             f"{self.cameras} cameras")
+        return frames * self._first_slot[sample] + frame * self.cameras[sample] + camera
+
+    def sample_images(self, sample: int, name: str = "images") -> SectionArray:
+        """Sample ``sample``'s rows of an image section (``images``, ``superpixels``,
+        ``image_stamps``, ``image_flipped``) as ``F × K_b × ...``: a view, no copy."""
+        first = self.image_index(sample, 0, 0)
+        frames = len(self["frame_offsets"])
+        rows = self[name][first:first + frames * self.cameras[sample]]
+        return rows.reshape((frames, self.cameras[sample]) + rows.shape[1:])
 
     def torch(self) -> dict[str, Any]:
         """Every section as a ``torch.Tensor`` sharing the shared memory (``torch.from_numpy``,
@@ -463,6 +542,9 @@ class Stream:
         self._position: tuple[int, int] | None = None  # of the next batch, once known
         self._ended = False
         self._last: tuple[int, int, int] | None = None  # publisher, epoch, step
+        # After a resume: batches of that publisher numbered below this belong to the old
+        # position (one may still be on its way when the answer comes): dropped.
+        self._floor: tuple[int, int] | None = None
 
     # -- receiving -------------------------------------------------------------------
 
@@ -480,6 +562,9 @@ class Stream:
             return sample
         while True:
             sample = self._receive_sample()
+            if sample is not None and self._before_floor(sample):
+                sample.delete()
+                continue
             if sample is not None:
                 return sample
             now = time.monotonic()
@@ -492,6 +577,12 @@ class Stream:
             slice_ms = _WAIT_SLICE_MS if deadline is None else max(1, min(
                 _WAIT_SLICE_MS, int((deadline - now) * 1000)))
             self._listener.timed_wait(iox2.Duration.from_millis(slice_ms))
+
+    def _before_floor(self, sample: Any) -> bool:
+        """Whether ``sample`` is a batch of the position a resume left."""
+        return (self._floor is not None
+                and sample.header.publisher_id.value == self._floor[0]
+                and int(_header(sample)["sequence"]) < self._floor[1])
 
     def pipeline_attached(self) -> bool:
         """Whether a pipeline publishes on this stream (dead ones are cleaned up first)."""
@@ -537,10 +628,16 @@ class Stream:
         sample = self._wait(deadline)
         publisher = sample.header.publisher_id.value
         if (self.auto_resume and self._last is not None and publisher != self._last[0]):
-            # Another pipeline (a restart): continue after the last batch received.
+            # Another pipeline (a restart): continue after the last batch received, by the
+            # samples the job had consumed when the old pipeline said how it deals them
+            # (the new one may start the epoch elsewhere).
             _, epoch, step = self._last
             sample.delete()
-            self.resume(epoch, step + 1)
+            schedule = self._schedule
+            if schedule is not None and schedule.publisher == self._last[0] and schedule.global_batch:
+                self.resume(epoch, sample=schedule.consumed(epoch, step + 1))
+            else:
+                self.resume(epoch, step + 1)
             sample = self._wait(deadline)
             publisher = sample.header.publisher_id.value
         batch = Batch(sample, self.run, self.service, self._held, self._subscriber)
@@ -566,7 +663,7 @@ class Stream:
         if schedule is None:
             self._position = None
             return
-        batch.last_in_epoch = batch.step + 1 >= schedule.steps
+        batch.last_in_epoch = batch.step + 1 >= schedule.steps_in(batch.epoch)
         batch.last_in_stream = (batch.last_in_epoch and schedule.epochs > 0
                                 and batch.epoch + 1 >= schedule.epochs)
         self._ended = batch.last_in_stream
@@ -648,8 +745,11 @@ class Stream:
                         raise SuperflowError(
                             f"run {self.run!r}: the pipeline has no stream {self.service!r} "
                             f"({_REFUSALS[1]})", self.run, self.service)
-                    self._schedule = Schedule(reply.steps, reply.min_steps, reply.epochs,
-                                              (reply.publisher_hi << 64) | reply.publisher_lo)
+                    self._schedule = Schedule(
+                        reply.steps, reply.min_steps, reply.epochs,
+                        (reply.publisher_hi << 64) | reply.publisher_lo, reply.samples,
+                        reply.global_batch, reply.start_epoch, reply.start_sample,
+                        reply.start_steps, reply.start_min_steps)
                     return self._schedule
                 if deadline is not None and time.monotonic() >= deadline:
                     return None
@@ -663,11 +763,19 @@ class Stream:
 
     # -- resuming --------------------------------------------------------------------
 
-    def resume(self, epoch: int, step: int, timeout_s: float = 30.0) -> None:
-        """Asks the pipeline to continue this stream at ``(epoch, step)``: the next batch
-        received is that one. Batches of the old position still queued are dropped (told
-        apart by the reply's sequence number). Raises :class:`ResumeRefused` when the
-        pipeline refuses, :class:`PipelineTimeout` when none answers in ``timeout_s``."""
+    def resume(self, epoch: int, step: int | None = None, *, sample: int | None = None,
+               global_batch: int | None = None, timeout_s: float = 30.0) -> None:
+        """Asks the pipeline to continue this stream at ``step`` of ``epoch`` (a position
+        of a job of this size), or after ``sample`` samples of ``epoch`` consumed by the
+        whole job (every rank and host; ``global_batch``: the samples per step of the job
+        that saved it, when known): that one holds whatever the job's size, and a job of
+        another size continues the epoch there, dealt to its own ranks. The next batch
+        received is the one there. Batches of the old position still queued are dropped
+        (told apart by the reply's sequence number). Raises :class:`ResumeRefused` when
+        the pipeline refuses, :class:`PipelineTimeout` when none answers in
+        ``timeout_s``."""
+        if (step is None) == (sample is None):
+            raise ValueError("resume(epoch, step) or resume(epoch, sample=...): one of them")
         if self._pending is not None:
             self._pending.release()
             self._pending = None
@@ -687,8 +795,20 @@ class Stream:
         except Exception as e:
             raise SuperflowError(f"run {self.run!r}: opening its control service: {e}",
                                  self.run, self.service) from e
-        request = _ResumeRequest(rank=self.rank or 0, broadcast=int(self.rank is None),
-                                 epoch=epoch, step=step)
+        if sample is None:
+            expected = step
+            request = _ResumeRequest(rank=self.rank or 0, broadcast=int(self.rank is None),
+                                     epoch=epoch, step=step, sample=_UNKNOWN,
+                                     global_batch=_UNKNOWN)
+        else:
+            # The step the answer will name: a step boundary of the pipeline's schedule, or
+            # step 0 of an epoch made to start at `sample`.
+            schedule = self._ask_schedule(time.monotonic() + 2.0)
+            expected = 0 if schedule is None else _step_at(schedule, epoch, sample)
+            request = _ResumeRequest(rank=self.rank or 0, broadcast=int(self.rank is None),
+                                     epoch=epoch, step=_UNKNOWN, sample=sample,
+                                     global_batch=_UNKNOWN if global_batch is None
+                                     else global_batch)
         if self._stash is not None:
             self._stash.delete()
             self._stash = None
@@ -703,27 +823,31 @@ class Stream:
                 if response is not None:
                     reply = _ResumeReply.from_buffer_copy(response.payload().contents)
                     response.delete()
-                    return self._accept(reply, epoch, step)
+                    return self._accept(reply, epoch, step if sample is None else None, sample)
                 # No answer yet: keep the queue moving (a pipeline blocked on this full
                 # queue could not answer); keep only a batch at the asked position.
                 sample = self._receive_sample()
                 if sample is None:
                     time.sleep(0.002)
-                elif self._stash is None and _position(sample) == (epoch, step):
+                elif self._stash is None and _position(sample) == (epoch, expected):
                     self._stash = sample
                 else:
                     sample.delete()
+        where = f"({epoch}, {step})" if sample is None else f"epoch {epoch} sample {sample}"
         raise PipelineTimeout(f"run {self.run!r}: no pipeline answered the request to resume "
-                              f"{self.service!r} at ({epoch}, {step}) within {timeout_s} s",
+                              f"{self.service!r} at {where} within {timeout_s} s",
                               self.run, self.service)
 
-    def _accept(self, reply: _ResumeReply, epoch: int, step: int) -> None:
+    def _accept(self, reply: _ResumeReply, epoch: int, step: int | None,
+                sample: int | None) -> None:
         if not reply.accepted:
+            where = f"({epoch}, {step})" if sample is None else f"epoch {epoch} sample {sample}"
             raise ResumeRefused(
                 f"run {self.run!r}: the pipeline refused to resume {self.service!r} at "
-                f"({epoch}, {step}): {_REFUSALS.get(reply.reason, f'reason {reply.reason}')}",
+                f"{where}: {_REFUSALS.get(reply.reason, f'reason {reply.reason}')}",
                 self.run, self.service)
         publisher = (reply.publisher_hi << 64) | reply.publisher_lo
+        self._floor = (publisher, int(reply.next_sequence))
 
         def new(sample: Any) -> bool:
             return (sample.header.publisher_id.value == publisher
@@ -742,7 +866,27 @@ class Stream:
                 sample.delete()
         self._last = None
         self._ended = False
-        self._position = (epoch, step)
+        self._position = (int(reply.epoch), int(reply.step))
+        # The pipeline may deal the epoch differently now (a resume by sample): ask again.
+        self._schedule = None
+
+    def state_dict(self) -> dict[str, int]:
+        """Where the whole job stands, for a checkpoint: ``{"epoch", "samples",
+        "global_batch"}``, the samples of the epoch of the next batch that every rank
+        together consumed (data-parallel ranks step together). ``load_state_dict`` of it
+        resumes there on any number of ranks and hosts (``torchrun`` with another
+        ``--nproc-per-node``, a pipeline with another ``--world-size``)."""
+        at = self.position()
+        schedule = self.schedule()
+        if at is None:
+            at = (schedule.start_epoch, 0)
+        return {"epoch": at[0], "samples": schedule.consumed(at[0], at[1]),
+                "global_batch": schedule.global_batch}
+
+    def load_state_dict(self, state: dict[str, int]) -> None:
+        """Continues where ``state`` (a ``state_dict()``, of a job of any size) stopped."""
+        self.resume(int(state["epoch"]), sample=int(state["samples"]),
+                    global_batch=state.get("global_batch"))
 
     # -- lifetime --------------------------------------------------------------------
 
@@ -788,7 +932,10 @@ class Epoch:
 
     def __len__(self) -> int:
         schedule = self.stream.schedule()
-        return schedule.min_steps if self.drop_uneven else schedule.steps
+        at = self.stream.position()
+        # A stream that has received nothing yet starts where the pipeline starts.
+        epoch = schedule.start_epoch if at is None else at[0]
+        return schedule.min_steps_in(epoch) if self.drop_uneven else schedule.steps_in(epoch)
 
     def __iter__(self) -> Iterator[Batch]:
         stream = self.stream
@@ -806,7 +953,7 @@ class Epoch:
             schedule = stream._schedule
             if not (self.drop_uneven and schedule is not None
                     and schedule.publisher == batch.publisher
-                    and batch.step >= schedule.min_steps):
+                    and batch.step >= schedule.min_steps_in(batch.epoch)):
                 yield batch
             if batch.last_in_epoch:
                 return

@@ -44,6 +44,15 @@ class TorchIterable(_Base):  # type: ignore[valid-type,misc]
     def __len__(self) -> int:
         return len(self.stream.epoch(self.drop_uneven))
 
+    def state_dict(self) -> dict[str, int]:
+        """The stream's ``state_dict()``: where the whole job stands (save it with the
+        model; ``load_state_dict`` resumes there on any number of ranks)."""
+        return self.stream.state_dict()
+
+    def load_state_dict(self, state: dict[str, int]) -> None:
+        """Continues where a ``state_dict()`` (of a job of any size) stopped."""
+        self.stream.load_state_dict(state)
+
     def set_epoch(self, epoch: int) -> None:
         """Starts the next ``iter()`` at epoch ``epoch`` (a fresh stream is taken to be at
         epoch 0, where a pipeline starts)."""

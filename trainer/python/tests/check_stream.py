@@ -12,6 +12,8 @@ non-zero when a check fails.
     check_stream.py torch_views --run R                      # torch tensors share the memory
     check_stream.py timeout --run R --timeout S              # no pipeline: PipelineTimeout
     check_stream.py malformed --run R                        # bad batches: typed errors
+    check_stream.py fleet --run R                            # an epoch of mixed rigs
+    check_stream.py elastic --run R --count N [--state JSON] # state_dict / load_state_dict
 
 `--prefix` defaults to SUPERFLOW_IOX_PREFIX; RANK / WORLD_SIZE select a shard.
 """
@@ -331,7 +333,8 @@ def malformed(args: argparse.Namespace) -> int:
 
     points = np.arange(8, dtype="<f4").tobytes()
     cases = {
-        "version 2": (_header([("points", 7, (2, 4), 0, 32)], 64, version=2),
+        # A batch of the layout before mixed rigs (every sample K cameras).
+        "version 1": (_header([("points", 7, (2, 4), 0, 32)], 64, version=1),
                       superflow.FormatVersionMismatch),
         "overlapping sections": (_header([("points", 7, (2, 4), 0, 32),
                                           ("pairing_depth", 7, (8,), 0, 32)], 64),
@@ -355,16 +358,80 @@ def malformed(args: argparse.Namespace) -> int:
     results["good batch"] = np.asarray(good["points"]).reshape(-1).tolist()
     emit(results)
     stream.close()
-    expected = {"version 2": "FormatVersionMismatch", "overlapping sections": "MalformedBatch",
+    expected = {"version 1": "FormatVersionMismatch", "overlapping sections": "MalformedBatch",
                 "dtype against the table": "MalformedBatch", "unknown section": "MalformedBatch",
                 "good batch": list(map(float, range(8)))}
     return 0 if results == expected else 1
 
 
+def fleet(args: argparse.Namespace) -> int:
+    """One epoch of a dataset of several rigs: each sample has its own cameras (never an
+    empty image), ``sample_images`` views them, every pairing of a sample's clouds names
+    one of its images, and torch tensors and spconv tensors take the batch as it is."""
+    import torch
+
+    import superflow.torch as sft
+
+    stream = superflow.Stream(args.run, prefix=args.prefix, timeout_s=args.timeout)
+    frames = None
+    samples = []
+    ok = True
+    for batch in stream.epoch():
+        frames = len(batch["frame_offsets"])
+        slots = np.asarray(batch["sample_cameras"]).astype(np.int64)
+        images = batch["images"]
+        ok &= images.shape[0] == frames * int(slots[-1]) and len(batch.cameras) == len(slots) - 1
+        clouds = np.asarray(batch["pairing_clouds"]).astype(np.int64)
+        pairing_image = np.asarray(batch["pairing_image"])
+        per_sample = frames + 1
+        for b, k in enumerate(batch.cameras):
+            view = batch.sample_images(b)
+            ok &= view.shape == (frames, k) + images.shape[1:]
+            ok &= bool(np.shares_memory(view, images))
+            first = batch.image_index(b, 0, 0)
+            mine = pairing_image[clouds[b * per_sample]:clouds[(b + 1) * per_sample]]
+            ok &= bool(((mine >= first) & (mine < first + frames * k)).all())
+            # Every image row is a camera image: no all-zero slot.
+            ok &= bool(all(view[f, c].any() for f in range(frames) for c in range(k)))
+            ids = batch["sample_ids"][b]
+            samples.append({"drive": int(ids[3]), "keyframe": int(ids[2]), "cameras": k})
+        tensors = batch.torch()
+        ok &= tuple(tensors["images"].shape) == tuple(images.shape)
+        x = sft.spconv_tensor(batch)
+        ok &= x.features.shape[0] == batch["l0_coords"].shape[0]
+        del tensors, x, view, images
+    try:
+        batch.image_index(0, 0, 99)
+        ok = False
+    except IndexError:
+        pass
+    emit({"ok": bool(ok), "frames": frames, "samples": samples, "torch": torch.__version__})
+    stream.close()
+    return 0 if ok else 1
+
+
+def elastic(args: argparse.Namespace) -> int:
+    """A rank of a data-parallel job: with --state, continue where a job of any size
+    stopped (``load_state_dict``); read this rank's --count batches (0: the rest of the
+    epoch); print the samples read and the ``state_dict`` to resume from."""
+    stream = superflow.Stream(args.run, prefix=args.prefix, timeout_s=args.timeout)
+    if args.state:
+        stream.load_state_dict(json.loads(args.state))
+    samples = []
+    batches = stream.epoch() if args.count == 0 else (next(stream) for _ in range(args.count))
+    for batch in batches:
+        ids = batch["sample_ids"]
+        samples.extend([int(i[1]), int(i[3]), int(i[2])] for i in ids)
+    emit({"samples": samples, "state": stream.state_dict()})
+    stream.close()
+    return 0
+
+
 def main() -> int:
     parser = argparse.ArgumentParser()
     parser.add_argument("scenario", choices=["read", "resume", "kept", "epochs", "uneven", "spconv", "torch_views", "timeout",
-                                             "malformed"])
+                                             "malformed", "fleet", "elastic"])
+    parser.add_argument("--state", help="elastic: a state_dict (JSON) to resume from")
     parser.add_argument("--run", required=True)
     parser.add_argument("--prefix")
     parser.add_argument("--count", type=int, default=1)

@@ -5,10 +5,11 @@ use super::job::Ddp;
 use super::options::RunOptions;
 use super::paths::RunPaths;
 use super::start::ask_resume;
+use crate::checkpoint::JobPosition;
 use crate::loss::LossValues;
 use crate::metrics::{self, DdpRecord, MetricsWriter, StepRecord};
-use crate::stream::{self, Action, StreamPosition, StreamTracker};
-use crate::subscribe::{Received, Subscription};
+use crate::stream::{self, Action, RankState, StreamPosition, StreamTracker};
+use crate::subscribe::{Received, ResumeAt, Subscription};
 use crate::train::{StepOutcome, Trainer};
 use anyhow::Context as _;
 use indicatif::{ProgressBar, ProgressStyle};
@@ -154,23 +155,21 @@ impl Session<'_> {
                 ],
                 &what,
             );
-            let states: Vec<_> = ranks
+            let states: Vec<RankState> = ranks
                 .chunks(3)
-                .map(|r| {
-                    (
-                        (r[0] != u64::MAX).then(|| StreamPosition::new(r[0], r[1])),
-                        r[2] != 0,
-                    )
+                .map(|r| match r[2] {
+                    1 => RankState::Stopping,
+                    2 => RankState::Ended,
+                    _ => RankState::At(StreamPosition::new(r[0], r[1])),
                 })
                 .collect();
             let Some(at) = stream::agree(&states) else {
                 self.held = batch;
-                let codes: Vec<u64> = ranks.chunks(3).map(|r| r[2]).collect();
-                if codes.contains(&2) && !codes.contains(&1) {
-                    self.ended = true;
-                    tracing::info!("a rank's stream ended: every rank ends after the same step");
-                } else {
+                if states.contains(&RankState::Stopping) {
                     tracing::warn!("a rank is stopping: every rank stops after the same step");
+                } else {
+                    self.ended = true;
+                    tracing::info!("every rank's stream ended");
                 }
                 break;
             };
@@ -233,6 +232,8 @@ impl Session<'_> {
                 tracing::debug!(
                     steps_per_epoch = reply.steps,
                     epochs = reply.epochs,
+                    samples_per_epoch = reply.samples,
+                    samples_per_step = reply.global_batch,
                     "the pipeline's schedule of this stream"
                 );
                 self.schedule = Some(reply);
@@ -266,9 +267,43 @@ impl Session<'_> {
             restarted,
             "the stream is not at this trainer's next batch (a restarted pipeline, or another trainer's resume); asking it to continue there"
         );
-        let publisher = ask_resume(&self.subscription, &self.options.run, at, self.timeout())?;
+        // By the samples the job had consumed when the old pipeline said how it deals
+        // them: a pipeline restarted at another start sample still finds the place.
+        let resume_at = match self.job_position(at) {
+            Some(job) => ResumeAt::Sample {
+                epoch: job.epoch,
+                sample: job.samples,
+                global_batch: job.global_batch,
+            },
+            None => ResumeAt::Step {
+                epoch: at.epoch,
+                step: at.batch,
+            },
+        };
+        let (publisher, position) = ask_resume(
+            &self.subscription,
+            &self.options.run,
+            resume_at,
+            self.timeout(),
+        )?;
         self.stream.resumed(publisher);
+        self.stream.expect(position);
+        // The new pipeline may deal the epoch differently: ask it at its first batch.
+        self.schedule = None;
         Ok(())
+    }
+
+    /// The whole job's position when this stream's next batch is at `at` (data-parallel
+    /// ranks step together), from the pipeline's schedule; `None` while it is unknown.
+    fn job_position(&self, at: StreamPosition) -> Option<JobPosition> {
+        let schedule = self
+            .schedule
+            .filter(|s| s.known == 1 && s.global_batch > 0)?;
+        Some(JobPosition {
+            epoch: at.epoch,
+            samples: schedule.consumed(at.epoch, at.batch),
+            global_batch: schedule.global_batch,
+        })
     }
 
     /// One step at stream position `at` on `batch` (waited for `wait` seconds; `None`: a
@@ -356,7 +391,8 @@ impl Session<'_> {
             let next = self
                 .next_position()
                 .context("a checkpoint before the first step")?;
-            let state = self.trainer.checkpoint_state(run, next, losses);
+            let mut state = self.trainer.checkpoint_state(run, next, losses);
+            state.job = self.job_position(next);
             return Ok(Some(
                 self.trainer
                     .save_checkpoint(&self.paths.checkpoints, &state)?,
@@ -370,6 +406,15 @@ impl Session<'_> {
         }
         let mut state = self.trainer.checkpoint_state(run, next, losses);
         state.ranks = all.chunks(2).map(|p| [p[0], p[1]]).collect();
+        // The job's samples: the slowest rank's position (ranks step together, so those
+        // still in its epoch are all there; the others finished their share of it).
+        let slowest = state
+            .ranks
+            .iter()
+            .map(|&[e, b]| StreamPosition::new(e, b))
+            .min()
+            .unwrap_or(next);
+        state.job = self.job_position(slowest);
         Ok(Some(
             self.trainer
                 .save_checkpoint(&self.paths.checkpoints, &state)?,

@@ -7,32 +7,45 @@ use super::paths::RunPaths;
 use crate::checkpoint::CheckpointState;
 use crate::metrics;
 use crate::stream::StreamPosition;
-use crate::subscribe::Subscription;
+use crate::subscribe::{ResumeAt, Subscription};
 use crate::train::Trainer;
 use anyhow::Context as _;
 use std::path::PathBuf;
 use std::time::Duration;
 
-/// Asks the pipeline to continue this trainer's stream at `at`.
+/// Asks the pipeline to continue this trainer's stream at `at`; the publisher that
+/// answered, and the position its next batch has there.
 pub fn ask_resume(
     subscription: &Subscription,
     run: &str,
-    at: StreamPosition,
+    at: ResumeAt,
     timeout: Duration,
-) -> anyhow::Result<u128> {
+) -> anyhow::Result<(u128, StreamPosition)> {
     let reply = subscription
-        .resume(at.epoch, at.batch, timeout)
+        .resume(at, timeout)
         .with_context(|| format!("asking run {run} to resume"))?;
     if reply.accepted != 1 {
-        anyhow::bail!(
-            "the pipeline refused to resume run {run} at epoch {} batch {} (reason {}): \
-             is it the same recording and configuration?",
-            at.epoch,
-            at.batch,
-            reply.reason
-        );
+        let position = match at {
+            ResumeAt::Step { epoch, step } => format!("epoch {epoch} batch {step}"),
+            ResumeAt::Sample { epoch, sample, .. } => {
+                format!("epoch {epoch} after {sample} samples")
+            }
+        };
+        let why = match reply.reason {
+            1 => "no such stream: another --world-size or --mode?".to_string(),
+            2 => "past the end of its epochs: is it the same recording and configuration?"
+                .to_string(),
+            3 => "the position was saved by a job of another size: resume by sample (start the \
+                  pipeline with --start-sample, from a checkpoint that counts samples)"
+                .to_string(),
+            other => format!("reason {other}"),
+        };
+        anyhow::bail!("the pipeline refused to resume run {run} at {position}: {why}");
     }
-    Ok(reply.publisher())
+    Ok((
+        reply.publisher(),
+        StreamPosition::new(reply.epoch, reply.step),
+    ))
 }
 
 /// How rank 0 starts a data-parallel job; every rank receives it.
@@ -100,17 +113,23 @@ pub fn start_ranks(
         );
         return Ok(None);
     };
-    if state.ranks.len() != ddp.size() {
-        anyhow::bail!(
-            "the checkpoint at step {} was written by a job of {} data-parallel ranks; resume it with mpirun -np {}",
+    // Every rank resumes after the samples the whole job had consumed: the pipeline deals
+    // the rest of the epoch to this job's ranks, however many there were before.
+    let own = state
+        .ranks
+        .get(rank)
+        .map(|&[e, b]| StreamPosition::new(e, b));
+    let at = match (state.job, own) {
+        (Some(_), _) => state.resume_at(state.next()),
+        (None, Some(own)) if state.ranks.len() == ddp.size() => state.resume_at(own),
+        (None, _) => anyhow::bail!(
+            "the checkpoint at step {} was written by a job of {} data-parallel ranks and does not count the samples it consumed; resume it with mpirun -np {}",
             state.step,
             state.ranks.len(),
             state.ranks.len().max(1)
-        );
-    }
-    let [epoch, batch] = state.ranks[rank];
-    let at = StreamPosition::new(epoch, batch);
-    ask_resume(
+        ),
+    };
+    let (_, position) = ask_resume(
         subscription,
         &options.run,
         at,
@@ -119,12 +138,14 @@ pub fn start_ranks(
     tracing::info!(
         rank,
         step,
-        epoch,
-        batch,
-        "resuming: this rank's shard continues at its checkpointed position"
+        epoch = position.epoch,
+        batch = position.batch,
+        ranks_before = state.ranks.len(),
+        ranks = ddp.size(),
+        "resuming: this rank's shard continues where the job stopped"
     );
     drop_redone_metrics(paths, step)?;
-    Ok(Some(at))
+    Ok(Some(position))
 }
 
 /// Rank 0's part of [`start_ranks`]: the decision and the records to send.
@@ -173,20 +194,21 @@ pub fn resume(
     let Some(state) = restore_newest(trainer, paths)? else {
         return Ok(None);
     };
-    ask_resume(
+    let (_, position) = ask_resume(
         subscription,
         &options.run,
-        state.next(),
+        state.resume_at(state.next()),
         Duration::from_secs(options.timeout_secs),
     )?;
     tracing::info!(
         step = state.step,
-        epoch = state.next_epoch,
-        batch = state.next_batch,
+        epoch = position.epoch,
+        batch = position.batch,
+        samples = state.job.map(|j| j.samples),
         "resuming: the pipeline continues at the checkpoint's next batch"
     );
     drop_redone_metrics(paths, state.step)?;
-    Ok(Some(state.next()))
+    Ok(Some(position))
 }
 
 /// Restores the newest checkpoint of `paths` into `trainer`; `None` (said in the log)

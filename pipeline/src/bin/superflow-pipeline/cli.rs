@@ -4,15 +4,24 @@ use anyhow::bail;
 use clap::{Parser, Subcommand};
 use std::path::PathBuf;
 use superflow_pipeline::config::{Overrides, PipelineConfig};
-use superflow_pipeline::publish::Mode;
+use superflow_pipeline::drive::DatasetGroup;
+use superflow_pipeline::drive::groups::validate_groups;
+use superflow_pipeline::publish::{Mode, StartAt};
 
 /// Streams SuperFlow training batches from recorded drives to trainers over shared memory.
 #[derive(Debug, Parser)]
 #[command(version, about)]
 pub struct Args {
-    /// MCAP files or directories of them (searched for `*.mcap`).
+    /// MCAP files or directories of them (searched for `*.mcap`): the dataset group
+    /// `default`, served once per epoch.
     #[arg(long, num_args = 1.., global = true)]
     pub mcap: Vec<PathBuf>,
+    /// A named group of drives and how many times per epoch each of its keyframes is
+    /// served: `NAME=PATH[,PATH...][:REPEAT]` (repeat 1 when left out; 2 serves each
+    /// twice, 0.5 half of them, another half each epoch). Repeatable; replaces the
+    /// configuration's `[[dataset]]` groups.
+    #[arg(long, global = true, value_name = "NAME=PATHS[:REPEAT]", value_parser = parse_group)]
+    pub dataset: Vec<DatasetGroup>,
     /// Configuration file (TOML); defaults are the paper's.
     #[arg(long, global = true)]
     pub config: Option<PathBuf>,
@@ -51,9 +60,16 @@ pub struct Args {
     /// Start at this epoch ...
     #[arg(long, default_value_t = 0)]
     pub start_epoch: u64,
-    /// ... and this step of it (nothing before it is built).
-    #[arg(long, default_value_t = 0)]
+    /// ... and this step of every stream (a position of a job of this size: nothing
+    /// before it is built). A job resumed with another number of ranks or hosts starts
+    /// with --start-sample.
+    #[arg(long, default_value_t = 0, conflicts_with = "start_sample")]
     pub start_step: u64,
+    /// ... or after this many samples of the epoch, consumed by the whole job that
+    /// stopped (every rank and host: a trainer's checkpoint keeps it as `epoch_samples`):
+    /// the rest of the epoch is dealt to this job's ranks, whatever their number.
+    #[arg(long)]
+    pub start_sample: Option<u64>,
     /// Serve Prometheus text metrics on this address (e.g. 127.0.0.1:9464).
     #[arg(long)]
     pub metrics_addr: Option<std::net::SocketAddr>,
@@ -123,7 +139,48 @@ pub enum Command {
     },
 }
 
+/// `--dataset NAME=PATH[,PATH...][:REPEAT]`.
+fn parse_group(text: &str) -> Result<DatasetGroup, String> {
+    DatasetGroup::parse(text).map_err(|e| e.to_string())
+}
+
 impl Args {
+    /// The dataset groups to open: `--dataset` (else the configuration's `[[dataset]]`),
+    /// after a `default` group of `--mcap` when given.
+    pub fn groups(&self, config: &PipelineConfig) -> anyhow::Result<Vec<DatasetGroup>> {
+        let mut groups = Vec::new();
+        if !self.mcap.is_empty() {
+            groups.push(DatasetGroup::default_of(self.mcap.clone()));
+        }
+        if self.dataset.is_empty() {
+            groups.extend(config.dataset.iter().cloned());
+        } else {
+            groups.extend(self.dataset.iter().cloned());
+        }
+        if groups.is_empty() {
+            bail!(
+                "no input: pass --mcap <file or directory>..., --dataset NAME=PATH[:REPEAT], \
+                 or [[dataset]] groups in --config"
+            );
+        }
+        validate_groups(&groups)?;
+        Ok(groups)
+    }
+
+    /// Where the service starts: `--start-epoch` with `--start-step` or `--start-sample`.
+    pub fn start(&self) -> StartAt {
+        match self.start_sample {
+            Some(sample) => StartAt::Sample {
+                epoch: self.start_epoch,
+                sample,
+            },
+            None => StartAt::Step {
+                epoch: self.start_epoch,
+                step: self.start_step,
+            },
+        }
+    }
+
     /// The `--config` file, or the defaults without one, with `--index-cache` laid over.
     pub fn config(&self) -> anyhow::Result<PipelineConfig> {
         let mut config = match &self.config {

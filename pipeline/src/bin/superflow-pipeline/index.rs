@@ -2,6 +2,7 @@
 
 use crate::cli::Args;
 use std::time::Instant;
+use superflow_pipeline::fleet::{FleetReport, keyframes_per_drive};
 use superflow_pipeline::sample::plan::Plan;
 
 pub fn run(args: &Args) -> anyhow::Result<()> {
@@ -40,6 +41,15 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             * 1e-9
     );
     println!("keyframes       {}", plan.keyframes.len());
+    let fleet = FleetReport::new(
+        &dataset,
+        &keyframes_per_drive(&plan, dataset.drives.len()),
+        &[],
+    );
+    println!("samples/epoch   {}", fleet.samples_per_epoch);
+    for line in fleet.lines() {
+        println!("  {line}");
+    }
     println!("not trainable   {} drives", unusable.len());
     println!("skipped         {skipped} messages");
     println!("damaged         {damaged} files");

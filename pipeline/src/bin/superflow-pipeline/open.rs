@@ -1,16 +1,14 @@
 //! Opening the `--mcap` drives, with a progress bar while they are indexed.
 
 use crate::cli::Args;
-use anyhow::bail;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use superflow_pipeline::drive::Dataset;
 
-/// The drives of `--mcap`, indexed with the configuration's `[ingest]` choices.
+/// The drives of `--mcap` and the dataset groups, indexed with the configuration's
+/// `[ingest]` choices.
 pub fn dataset(args: &Args) -> anyhow::Result<Dataset> {
-    if args.mcap.is_empty() {
-        bail!("no input: pass --mcap <file or directory>...");
-    }
     let config = args.config()?;
+    let groups = args.groups(&config)?;
     let bar = indicatif::ProgressBar::new(0).with_style(
         indicatif::ProgressStyle::with_template(
             "indexing {bar:40} {msg} {bytes}/{total_bytes} ({bytes_per_sec}, {eta} left)",
@@ -20,7 +18,7 @@ pub fn dataset(args: &Args) -> anyhow::Result<Dataset> {
     // Drives are indexed on several threads: the message changes only when the count of
     // files done does (the first caller to see it writes it).
     let shown_files = AtomicUsize::new(usize::MAX);
-    let dataset = Dataset::open_with_progress(&args.mcap, &config.ingest, |p| {
+    let dataset = Dataset::open_groups(&groups, &config.ingest, |p| {
         bar.set_length(p.bytes_total);
         if bar.position() < p.bytes_done {
             bar.set_position(p.bytes_done);

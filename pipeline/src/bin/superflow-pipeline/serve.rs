@@ -5,6 +5,7 @@ use crate::cli::Args;
 use anyhow::Context as _;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
+use superflow_pipeline::fleet::{FleetReport, keyframes_per_drive};
 use superflow_pipeline::inspect::InspectReport;
 use superflow_pipeline::publish::Metrics;
 use superflow_pipeline::sample::SampleBuilder;
@@ -35,9 +36,16 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let builder = SampleBuilder::new(&dataset, config.sample.clone())?;
     tracing::info!(
         keyframes = builder.plan().keyframes.len(),
+        samples_per_epoch = builder.epoch_len(),
         skipped_at_edges = builder.plan().skipped_at_edges,
         "plan"
     );
+    FleetReport::new(
+        &dataset,
+        &keyframes_per_drive(builder.plan(), dataset.drives.len()),
+        &[],
+    )
+    .log();
     let stop = Arc::new(AtomicBool::new(false));
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(1)
@@ -71,7 +79,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         &args.run,
         &config.service,
         &iox,
-        (args.start_epoch, args.start_step),
+        args.start(),
         &stop,
         &metrics,
     );
