@@ -370,6 +370,12 @@ fn first_published(inputs: &Path, cache: &Path, dir: &Path) -> anyhow::Result<f6
         std::thread::sleep(Duration::from_millis(10));
     }
     drop((subscriber, listener, ready, service, node));
+    // iceoryx2 leaves one management file per prefix; nothing else runs under this one.
+    for entry in std::fs::read_dir("/dev/shm")?.flatten() {
+        if entry.file_name().to_string_lossy().starts_with(&prefix) {
+            let _ = std::fs::remove_file(entry.path());
+        }
+    }
     std::fs::remove_file(&log)?;
     received
 }
