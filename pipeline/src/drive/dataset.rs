@@ -2,15 +2,16 @@
 //! grouped by [`super::files`], in named groups ([`super::groups`]: `[[dataset]]` of
 //! `pipeline.toml`). Every file is indexed on its own ([`index_file`]: from the index
 //! cache, or scanned), all files of all groups in parallel (one per rayon thread at a
-//! time); then each drive joins its files' indexes ([`Drive::join`]). Drives come in
-//! input order, group after group, and the first error in input order is returned, as
-//! if one file after the other.
+//! time); each drive joins its files' indexes ([`Drive::join`]) as soon as they are all
+//! there. Drives come in input order, group after group, and the first error in input
+//! order is returned, as if one file after the other.
 
 use super::discover::IngestConfig;
 use super::error::IngestError;
 use super::files::drive_groups;
 use super::groups::{DatasetGroup, DriveGroup};
 use super::index::{Drive, IndexedBy, index_file};
+use crate::source::SourceError;
 use rayon::prelude::*;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
@@ -61,6 +62,15 @@ pub struct IndexProgress {
     pub files_done: usize,
     /// Every input file (drives and sidecars).
     pub files_total: usize,
+}
+
+/// One drive of [`Dataset::open_with_progress`]: joined (with how each file's index was
+/// had, and the file's size), its first file error, or not joined because an earlier
+/// file failed.
+enum Opened {
+    Joined(Box<Drive>, Vec<(IndexedBy, u64)>),
+    Failed(SourceError),
+    Skipped,
 }
 
 impl Dataset {
@@ -129,64 +139,89 @@ impl Dataset {
         // The lowest input position that failed: files after it are not indexed (their
         // result would be dropped), those before it still are (one of them may fail first).
         let first_failed = AtomicUsize::new(usize::MAX);
-        let results: Vec<_> = files
+        let index_one = |i: usize, path: &PathBuf| {
+            if i > first_failed.load(Ordering::Relaxed) {
+                return None;
+            }
+            let mut reported = 0u64;
+            let mut grow = |to: u64| {
+                let grown = to.saturating_sub(reported);
+                reported = reported.max(to);
+                bytes_done.fetch_add(grown, Ordering::Relaxed) + grown
+            };
+            let indexed = index_file(path, cache.as_ref(), |done| {
+                report(grow(done), files_done.load(Ordering::Relaxed))
+            });
+            match &indexed {
+                Ok(indexed) => {
+                    let bytes = grow(indexed.file.len());
+                    report(bytes, files_done.fetch_add(1, Ordering::Relaxed) + 1);
+                }
+                Err(_) => {
+                    first_failed.fetch_min(i, Ordering::Relaxed);
+                }
+            }
+            Some(indexed)
+        };
+        let starts: Vec<usize> = groups
+            .iter()
+            .scan(0, |next, group| {
+                let start = *next;
+                *next += group.len();
+                Some(start)
+            })
+            .collect();
+        // Each drive is joined as soon as its files are indexed, so that the indexes of
+        // files never all live at once (memory, and the time to fault it in).
+        let results: Vec<Opened> = groups
             .par_iter()
-            .enumerate()
-            // One file per task: files differ too much in size to share out in runs.
+            .zip(&starts)
+            // One drive, and within it one file, per task: files differ too much in size
+            // to share out in runs.
             .with_max_len(1)
-            .map(|(i, path)| {
-                if i > first_failed.load(Ordering::Relaxed) {
-                    return None;
-                }
-                let mut reported = 0u64;
-                let mut grow = |to: u64| {
-                    let grown = to.saturating_sub(reported);
-                    reported = reported.max(to);
-                    bytes_done.fetch_add(grown, Ordering::Relaxed) + grown
-                };
-                let indexed = index_file(path, cache.as_ref(), |done| {
-                    report(grow(done), files_done.load(Ordering::Relaxed))
-                });
-                match &indexed {
-                    Ok((file, _, _)) => {
-                        let bytes = grow(file.len());
-                        report(bytes, files_done.fetch_add(1, Ordering::Relaxed) + 1);
-                    }
-                    Err(_) => {
-                        first_failed.fetch_min(i, Ordering::Relaxed);
+            .map(|(group, &start)| {
+                let files: Vec<_> = group
+                    .par_iter()
+                    .enumerate()
+                    .with_max_len(1)
+                    .map(|(k, path)| index_one(start + k, path))
+                    .collect();
+                let mut indexed = Vec::with_capacity(files.len());
+                for file in files {
+                    match file {
+                        Some(Ok(file)) => indexed.push(file),
+                        Some(Err(e)) => return Opened::Failed(e),
+                        None => return Opened::Skipped,
                     }
                 }
-                Some(indexed)
+                if first_failed.load(Ordering::Relaxed) < start {
+                    return Opened::Skipped; // an earlier drive's error returns
+                }
+                let by = indexed.iter().map(|f| (f.by, f.file.len())).collect();
+                Opened::Joined(Box::new(Drive::join(indexed, config)), by)
             })
             .collect();
         let mut indexed = IndexStats::default();
-        let mut results = results.into_iter();
-        let mut joined = Vec::with_capacity(groups.len());
-        for group in &groups {
-            let mut files = Vec::with_capacity(group.len());
-            for _ in group {
+        let mut drives = Vec::with_capacity(groups.len());
+        for result in results {
+            let (drive, by) = match result {
+                Opened::Joined(drive, by) => (drive, by),
+                Opened::Failed(e) => return Err(e.into()),
                 // A skipped file comes after a failed one, whose error returns first.
-                let Some(Some(result)) = results.next() else {
-                    unreachable!("a file is skipped only after one that failed")
-                };
-                let (file, index, by) = result?;
+                Opened::Skipped => unreachable!("a drive is skipped only after one that failed"),
+            };
+            for (by, len) in by {
                 match by {
                     IndexedBy::Cache => indexed.from_cache += 1,
                     IndexedBy::Scan => indexed.scanned += 1,
                     IndexedBy::ScanUncacheable => indexed.uncacheable += 1,
                 }
                 if by != IndexedBy::Cache {
-                    indexed.bytes_scanned += file.len();
+                    indexed.bytes_scanned += len;
                 }
-                files.push((file, index));
             }
-            joined.push(files);
+            drives.push(*drive);
         }
-        let drives = joined
-            .into_par_iter()
-            .with_max_len(1)
-            .map(|files| Drive::join(files, config))
-            .collect();
         Ok(Dataset {
             drives,
             groups: drive_groups_of,

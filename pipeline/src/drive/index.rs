@@ -55,6 +55,10 @@ pub struct Drive {
     pub skipped: SkipReport,
     /// The configuration used.
     pub config: IngestConfig,
+    /// The fingerprints of the files ([`McapFile::fingerprint`]) hashed together in the
+    /// drive's order, when every file has one and the index cache is on: what the
+    /// cache's entries of the whole drive (its camera scan) are keyed by.
+    pub fingerprint: Option<u128>,
 }
 
 impl Drive {
@@ -205,31 +209,63 @@ pub enum IndexedBy {
     ScanUncacheable,
 }
 
+/// One file indexed by [`index_file`].
+pub(super) struct IndexedFile {
+    pub file: McapFile,
+    pub index: FileIndex,
+    pub by: IndexedBy,
+    /// Its fingerprint, when the index cache is on and it has one.
+    pub fingerprint: Option<u128>,
+}
+
 /// Opens and indexes one file: from `cache` when it holds the file's index, by a scan
 /// otherwise (then stored there). `progress` gets the bytes read so far.
 pub(super) fn index_file(
     path: &Path,
     cache: Option<&IndexCache>,
     mut progress: impl FnMut(u64),
-) -> Result<(McapFile, FileIndex, IndexedBy), SourceError> {
+) -> Result<IndexedFile, SourceError> {
     let file = McapFile::open(path)?;
+    let indexed = |(file, index), by, fingerprint| IndexedFile {
+        file,
+        index,
+        by,
+        fingerprint,
+    };
     let Some(cache) = cache else {
-        let (file, index) = FileIndex::scan(file, progress)?;
-        return Ok((file, index, IndexedBy::Scan));
+        return Ok(indexed(
+            FileIndex::scan(file, progress)?,
+            IndexedBy::Scan,
+            None,
+        ));
     };
     let Some(fingerprint) = file.fingerprint()? else {
         tracing::debug!(file = %path.display(), "no footer and summary to fingerprint: indexed at every opening, not cached");
-        let (file, index) = FileIndex::scan(file, progress)?;
-        return Ok((file, index, IndexedBy::ScanUncacheable));
+        return Ok(indexed(
+            FileIndex::scan(file, progress)?,
+            IndexedBy::ScanUncacheable,
+            None,
+        ));
     };
     if let Some(index) = cache.load(&file, fingerprint) {
         progress(file.len());
         let file = file.restore(&index.scanned);
-        return Ok((file, index, IndexedBy::Cache));
+        return Ok(indexed((file, index), IndexedBy::Cache, Some(fingerprint)));
     }
     let (file, index) = FileIndex::scan(file, progress)?;
     cache.store(fingerprint, &index);
-    Ok((file, index, IndexedBy::Scan))
+    Ok(indexed((file, index), IndexedBy::Scan, Some(fingerprint)))
+}
+
+/// The fingerprint of a drive from those of its files, in order: `None` when one has
+/// none.
+fn drive_fingerprint(files: &[Option<u128>]) -> Option<u128> {
+    let mut hash = xxhash_rust::xxh3::Xxh3::new();
+    hash.update(&(files.len() as u64).to_le_bytes());
+    for file in files {
+        hash.update(&(*file)?.to_le_bytes());
+    }
+    Some(hash.digest128())
 }
 
 impl Drive {
@@ -257,17 +293,17 @@ impl Drive {
         let mut indexed = Vec::with_capacity(files.len());
         let mut before = 0u64;
         for path in files {
-            let (file, index, _) = index_file(path, cache.as_ref(), |done| {
+            let file = index_file(path, cache.as_ref(), |done| {
                 progress(before + done, total_bytes)
             })?;
-            before += file.len();
-            indexed.push((file, index));
+            before += file.file.len();
+            indexed.push(file);
         }
         Ok(Drive::join(indexed, config))
     }
 
     /// The drive of these files and their indexes, in the drive's order.
-    pub(super) fn join(indexed: Vec<(McapFile, FileIndex)>, config: &IngestConfig) -> Drive {
+    pub(super) fn join(indexed: Vec<IndexedFile>, config: &IngestConfig) -> Drive {
         let mut index = Index {
             topics: BTreeMap::new(),
             label_topics: BTreeMap::new(),
@@ -275,9 +311,10 @@ impl Drive {
             skipped: SkipReport::default(),
         };
         let mut files = Vec::with_capacity(indexed.len());
-        for (number, (file, file_index)) in indexed.into_iter().enumerate() {
-            index.add_file(number as u32, &file, file_index);
-            files.push(file);
+        let fingerprints: Vec<Option<u128>> = indexed.iter().map(|f| f.fingerprint).collect();
+        for (number, file) in indexed.into_iter().enumerate() {
+            index.add_file(number as u32, &file.file, file.index);
+            files.push(file.file);
         }
         let paths: Vec<PathBuf> = files.iter().map(|f| f.path().to_path_buf()).collect();
         let frozen_edges = index.tf.freeze_constant_edges();
@@ -296,6 +333,7 @@ impl Drive {
             ego_frame: streams.ego_frame,
             skipped: index.skipped,
             config: config.clone(),
+            fingerprint: drive_fingerprint(&fingerprints),
         }
     }
 }
@@ -580,6 +618,7 @@ mod tests {
             ego_frame,
             skipped: SkipReport::default(),
             config: IngestConfig::default(),
+            fingerprint: None,
         }
     }
 

@@ -4,8 +4,9 @@
 
 use super::recipe::{EdgePolicy, KeyframeChoice, SampleConfig};
 use super::rng::{Purpose, SampleRng};
-use super::timing::{CameraScan, median_sweep_period, scan_offsets};
+use super::timing::{CameraScan, ScanFrom, camera_scan, camera_scan_from, median_sweep_period};
 use crate::drive::{CameraStream, Dataset, Drive, FrameRef, nearest};
+use rayon::prelude::*;
 use serde::Serialize;
 use superflow_schemas::Stamp;
 
@@ -46,7 +47,21 @@ pub(super) fn camera_frame_for<'a>(
     stamp: Stamp,
     moments: &[i64],
 ) -> Option<(&'a FrameRef, i64)> {
-    let half = camera.period_nanos().unwrap_or(0) / 2;
+    frame_within(
+        camera,
+        camera.period_nanos().unwrap_or(0) / 2,
+        stamp,
+        moments,
+    )
+}
+
+/// [`camera_frame_for`] with the camera's half period `half` worked out by the caller.
+fn frame_within<'a>(
+    camera: &'a CameraStream,
+    half: i64,
+    stamp: Stamp,
+    moments: &[i64],
+) -> Option<(&'a FrameRef, i64)> {
     moments
         .iter()
         .filter_map(|m| {
@@ -58,36 +73,64 @@ pub(super) fn camera_frame_for<'a>(
         .min_by_key(|(_, offset)| offset.abs())
 }
 
-/// The worst camera offset of sweep `i` when it can be a frame of a sample (the ego pose
+/// Per sweep, its worst camera offset when it can be a frame of a sample (the ego pose
 /// is known at the sweep, and every camera has a calibration and an image within half
-/// its period of its scan instant whose pose is known); `None` when it cannot.
-fn usable(drive: &Drive, scan: &CameraScan, i: usize) -> Option<i64> {
-    let (Some(lidar), Some(map), Some(ego)) = (&drive.lidar, &drive.map_frame, &drive.ego_frame)
-    else {
-        return None;
+/// its period of its scan instant whose pose is known); `None` when it cannot. Each
+/// camera's period is worked out once and each pose looked up once: an image is the
+/// nearest of several sweeps, and a sweep is a context frame of several keyframes.
+fn usable_sweeps(drive: &Drive, scan: &CameraScan) -> Vec<Option<i64>> {
+    let Some(lidar) = &drive.lidar else {
+        return Vec::new();
     };
-    let sweep = lidar.sweeps.get(i)?;
+    let (Some(map), Some(ego)) = (&drive.map_frame, &drive.ego_frame) else {
+        return vec![None; lidar.sweeps.len()];
+    };
+    if drive.cameras.is_empty() || drive.cameras.iter().any(|c| c.calibrations.is_empty()) {
+        return vec![None; lidar.sweeps.len()];
+    }
     let pose_ok = |s: Stamp| drive.tf.lookup(map, ego, s).is_ok();
-    if !pose_ok(sweep.stamp) || drive.cameras.is_empty() {
-        return None;
-    }
-    let mut worst = 0;
-    for (camera, moments) in drive.cameras.iter().zip(&scan.offsets_nanos) {
-        let (frame, offset) = camera_frame_for(camera, sweep.stamp, moments)?;
-        if !pose_ok(frame.stamp) || camera.calibrations.is_empty() {
-            return None;
-        }
-        worst = worst.max(offset.abs());
-    }
-    Some(worst)
+    let halves: Vec<i64> = drive
+        .cameras
+        .iter()
+        .map(|c| c.period_nanos().unwrap_or(0) / 2)
+        .collect();
+    let mut image_pose: Vec<Vec<Option<bool>>> = drive
+        .cameras
+        .iter()
+        .map(|c| vec![None; c.frames.len()])
+        .collect();
+    lidar
+        .sweeps
+        .iter()
+        .map(|sweep| {
+            if !pose_ok(sweep.stamp) {
+                return None;
+            }
+            let mut worst = 0;
+            let cameras = drive.cameras.iter().zip(&scan.offsets_nanos);
+            for ((camera, moments), (half, poses)) in
+                cameras.zip(halves.iter().zip(&mut image_pose))
+            {
+                let (frame, offset) = frame_within(camera, *half, sweep.stamp, moments)?;
+                // Frames are sorted by stamp, no two alike.
+                let f = camera.frames.partition_point(|x| x.stamp < frame.stamp);
+                if !*poses[f].get_or_insert_with(|| pose_ok(frame.stamp)) {
+                    return None;
+                }
+                worst = worst.max(offset.abs());
+            }
+            Some(worst)
+        })
+        .collect()
 }
 
-/// The keyframes of `drive` with their worst camera offsets: one per interval of
-/// `interval` nanoseconds from the first usable sweep (the least offset, the earliest
-/// on a tie), or the first usable sweep and the next at least an interval later.
+/// The keyframes of `drive` with their worst camera offsets, from its usable sweeps
+/// ([`usable_sweeps`]): one per interval of `interval` nanoseconds from the first usable
+/// sweep (the least offset, the earliest on a tie), or the first usable sweep and the
+/// next at least an interval later.
 fn keyframes(
     drive: &Drive,
-    scan: &CameraScan,
+    usable: &[Option<i64>],
     interval: i64,
     choice: KeyframeChoice,
 ) -> Vec<(usize, i64)> {
@@ -101,7 +144,7 @@ fn keyframes(
     let mut first: Option<Stamp> = None;
     let mut window = 0;
     for (i, sweep) in lidar.sweeps.iter().enumerate() {
-        let Some(worst) = usable(drive, scan, i) else {
+        let Some(worst) = usable.get(i).copied().flatten() else {
             continue;
         };
         let t0 = *first.get_or_insert(sweep.stamp);
@@ -132,69 +175,139 @@ fn keyframes(
     out
 }
 
-/// When `drive`'s LiDAR scans its cameras, and its keyframes (sweep index, worst camera
-/// offset in nanoseconds) under `config`'s interval and choice.
+/// The usable sweeps of `drive` ([`usable_sweeps`]); none looked at when its ego poses
+/// are missing (it has no keyframes).
+fn usable_unless_poseless(drive: &Drive, scan: &CameraScan) -> Vec<Option<i64>> {
+    if drive.ego_poses_missing() {
+        Vec::new()
+    } else {
+        usable_sweeps(drive, scan)
+    }
+}
+
+/// When `drive`'s LiDAR scans its cameras (through the index cache, see
+/// [`camera_scan`]), and its keyframes (sweep index, worst camera offset in
+/// nanoseconds) under `config`'s interval and choice.
 pub fn drive_keyframes(drive: &Drive, config: &SampleConfig) -> (CameraScan, Vec<(usize, i64)>) {
-    let scan = scan_offsets(drive, config);
+    let scan = camera_scan(drive, config);
     let interval = (config.keyframe_interval_secs * 1e9).round() as i64;
-    let keys = keyframes(drive, &scan, interval, config.keyframe_choice);
+    let usable = usable_unless_poseless(drive, &scan);
+    let keys = keyframes(drive, &usable, interval, config.keyframe_choice);
     (scan, keys)
+}
+
+/// Where the camera scans of a plan came from, in drives.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize)]
+pub struct ScanCounts {
+    /// Read from the index cache.
+    pub from_cache: usize,
+    /// Measured from a sweep.
+    pub measured: usize,
+    /// Not measured: every camera at the sweep stamp.
+    pub at_stamp: usize,
+}
+
+/// The part of the plan one drive contributes.
+struct DrivePlan {
+    keyframes: Vec<KeyframeRef>,
+    skipped_at_edges: u64,
+    scan: CameraScan,
+    from: ScanFrom,
+}
+
+/// The keyframes of drive number `d` with their context frames (see [`Plan::new`]).
+fn plan_drive(d: usize, drive: &Drive, config: &SampleConfig) -> DrivePlan {
+    let interval = (config.keyframe_interval_secs * 1e9).round() as i64;
+    let delta = (config.delta_t_secs * 1e9).round() as i64;
+    let (scan, from) = camera_scan_from(drive, config);
+    let mut out = DrivePlan {
+        keyframes: Vec::new(),
+        skipped_at_edges: 0,
+        scan,
+        from,
+    };
+    let Some(lidar) = &drive.lidar else {
+        return out;
+    };
+    let usable = usable_unless_poseless(drive, &out.scan);
+    let half_period = median_sweep_period(drive) / 2;
+    for (key, worst) in keyframes(drive, &usable, interval, config.keyframe_choice) {
+        let t = lidar.sweeps[key].stamp;
+        let mut frame_sweeps = Vec::new();
+        let mut reused = 0;
+        let mut skip = false;
+        for &offset in config.frame_offsets() {
+            if offset == 0 {
+                frame_sweeps.push(key as u32);
+                continue;
+            }
+            let target = t.add_nanos(i64::from(offset) * delta);
+            let found = nearest(&lidar.sweeps, target)
+                .filter(|f| f.stamp.nanos_since(target).abs() <= half_period)
+                .map(|f| lidar.sweeps.partition_point(|s| s.stamp < f.stamp))
+                .filter(|&i| usable[i].is_some());
+            match (found, config.edge) {
+                (Some(i), _) => frame_sweeps.push(i as u32),
+                (None, EdgePolicy::Reuse) => {
+                    frame_sweeps.push(key as u32);
+                    reused += 1;
+                }
+                (None, EdgePolicy::Skip) => skip = true,
+            }
+        }
+        if skip {
+            out.skipped_at_edges += 1;
+        } else {
+            out.keyframes.push(KeyframeRef {
+                drive: d as u32,
+                sweep: key as u32,
+                frame_sweeps,
+                reused,
+                worst_camera_offset_nanos: worst,
+            });
+        }
+    }
+    out
 }
 
 impl Plan {
     /// Keyframes of every drive (one per `keyframe_interval_secs`, chosen by
     /// `keyframe_choice`) with their context frames: the sweep nearest to `t + k·Δt` if
-    /// within half a LiDAR period and usable, else the edge policy decides.
+    /// within half a LiDAR period and usable, else the edge policy decides. Drives are
+    /// planned in parallel (each on its own, the camera scan from the index cache when
+    /// it holds it) and joined in dataset order.
     pub fn new(dataset: &Dataset, config: &SampleConfig) -> Plan {
-        let mut plan = Plan::default();
-        let interval = (config.keyframe_interval_secs * 1e9).round() as i64;
-        let delta = (config.delta_t_secs * 1e9).round() as i64;
-        for (d, drive) in dataset.drives.iter().enumerate() {
-            let scan = scan_offsets(drive, config);
-            let Some(lidar) = &drive.lidar else {
-                plan.scans.push(scan);
-                continue;
-            };
-            let half_period = median_sweep_period(drive) / 2;
-            for (key, worst) in keyframes(drive, &scan, interval, config.keyframe_choice) {
-                let t = lidar.sweeps[key].stamp;
-                let mut frame_sweeps = Vec::new();
-                let mut reused = 0;
-                let mut skip = false;
-                for &offset in config.frame_offsets() {
-                    if offset == 0 {
-                        frame_sweeps.push(key as u32);
-                        continue;
-                    }
-                    let target = t.add_nanos(i64::from(offset) * delta);
-                    let found = nearest(&lidar.sweeps, target)
-                        .filter(|f| f.stamp.nanos_since(target).abs() <= half_period)
-                        .map(|f| lidar.sweeps.partition_point(|s| s.stamp < f.stamp))
-                        .filter(|&i| usable(drive, &scan, i).is_some());
-                    match (found, config.edge) {
-                        (Some(i), _) => frame_sweeps.push(i as u32),
-                        (None, EdgePolicy::Reuse) => {
-                            frame_sweeps.push(key as u32);
-                            reused += 1;
-                        }
-                        (None, EdgePolicy::Skip) => skip = true,
-                    }
-                }
-                if skip {
-                    plan.skipped_at_edges += 1;
-                } else {
-                    plan.keyframes.push(KeyframeRef {
-                        drive: d as u32,
-                        sweep: key as u32,
-                        frame_sweeps,
-                        reused,
-                        worst_camera_offset_nanos: worst,
-                    });
-                }
-            }
-            plan.scans.push(scan);
+        Self::with_counts(dataset, config).0
+    }
+
+    /// [`Plan::new`], and where its camera scans came from.
+    pub fn with_counts(dataset: &Dataset, config: &SampleConfig) -> (Plan, ScanCounts) {
+        let drives: Vec<DrivePlan> = dataset
+            .drives
+            .par_iter()
+            .enumerate()
+            // One drive per task: a drive whose scan is measured takes far longer than
+            // one whose scan is read.
+            .with_max_len(1)
+            .map(|(d, drive)| plan_drive(d, drive, config))
+            .collect();
+        let mut plan = Plan {
+            keyframes: Vec::with_capacity(drives.iter().map(|p| p.keyframes.len()).sum()),
+            skipped_at_edges: 0,
+            scans: Vec::with_capacity(drives.len()),
+        };
+        let mut counts = ScanCounts::default();
+        for drive in drives {
+            plan.keyframes.extend(drive.keyframes);
+            plan.skipped_at_edges += drive.skipped_at_edges;
+            plan.scans.push(drive.scan);
+            *match drive.from {
+                ScanFrom::Cache => &mut counts.from_cache,
+                ScanFrom::Measured => &mut counts.measured,
+                ScanFrom::Stamp => &mut counts.at_stamp,
+            } += 1;
         }
-        plan
+        (plan, counts)
     }
 
     /// The keyframe order of `epoch`: a shuffle seeded by `(seed, epoch)`.
@@ -202,5 +315,440 @@ impl Plan {
         let mut order: Vec<u32> = (0..self.keyframes.len() as u32).collect();
         SampleRng::new(seed, epoch, 0, Purpose::Shuffle).shuffle(&mut order);
         order
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::drive::index_cache::EntryKind;
+    use crate::drive::{IndexCache, IngestConfig};
+    use crate::sample::recipe::{CameraSync, EdgePolicy, KeyframeChoice};
+    use crate::sample::timing::{SCAN_ENTRY, ScanTiming, scan_key, scan_offsets};
+    use std::path::{Path, PathBuf};
+
+    /// The sample drives (the ROS 2 one with its labels sidecar, found next to it).
+    fn drives() -> Vec<PathBuf> {
+        ["street_ros2", "street_foxglove"]
+            .iter()
+            .map(|name| {
+                Path::new(env!("CARGO_MANIFEST_DIR"))
+                    .join(format!("../recordings/drives/{name}.mcap"))
+            })
+            .collect()
+    }
+
+    fn scratch(tag: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("superflow-plan-{tag}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        dir
+    }
+
+    fn open(cache: Option<&Path>) -> Dataset {
+        let config = IngestConfig {
+            index_cache: Some(cache.map_or_else(|| PathBuf::from("off"), Path::to_path_buf)),
+            ..IngestConfig::default()
+        };
+        Dataset::open(&drives(), &config).unwrap_or_else(|e| panic!("{e}"))
+    }
+
+    fn on_threads<T: Send>(threads: usize, f: impl FnOnce() -> T + Send) -> T {
+        rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap_or_else(|e| panic!("{e}"))
+            .install(f)
+    }
+
+    fn assert_same_plan(a: &Plan, b: &Plan, what: &str) {
+        assert_eq!(a.keyframes, b.keyframes, "{what}: keyframes");
+        assert_eq!(a.skipped_at_edges, b.skipped_at_edges, "{what}: skipped");
+        assert_eq!(a.scans, b.scans, "{what}: scans");
+    }
+
+    /// The plan of `dataset` one drive after the other, each camera scan measured.
+    fn sequential_from_scratch(dataset: &Dataset, config: &SampleConfig) -> Plan {
+        let (plan, counts) = on_threads(1, || Plan::with_counts(dataset, config));
+        assert_eq!(counts.from_cache, 0);
+        for (drive, scan) in dataset.drives.iter().zip(&plan.scans) {
+            assert_eq!(*scan, scan_offsets(drive, config));
+        }
+        plan
+    }
+
+    #[test]
+    fn a_plan_from_cached_scans_is_the_plan_measured_from_scratch() {
+        let dir = scratch("warm");
+        let cache = dir.join("cache");
+        let config = SampleConfig::default();
+        let off = open(None);
+        assert!(off.drives.iter().all(|d| d.fingerprint.is_none()));
+        let scratch = sequential_from_scratch(&off, &config);
+        assert!(scratch.keyframes.len() >= 10);
+        assert!(
+            scratch.scans.iter().all(|s| s.timing != ScanTiming::Stamp),
+            "{:?}",
+            scratch.scans
+        );
+
+        let cold = open(Some(&cache));
+        assert!(cold.drives.iter().all(|d| d.fingerprint.is_some()));
+        let (filled, counts) = on_threads(4, || Plan::with_counts(&cold, &config));
+        assert_eq!((counts.from_cache, counts.measured), (0, 2), "{counts:?}");
+        assert_same_plan(&scratch, &filled, "measured into the cache");
+        let entries = |ext: &str| {
+            std::fs::read_dir(&cache)
+                .unwrap()
+                .filter(|e| {
+                    e.as_ref()
+                        .is_ok_and(|e| e.path().extension().is_some_and(|x| x == ext))
+                })
+                .count()
+        };
+        assert_eq!(entries("sfscan"), 2);
+
+        let warm = open(Some(&cache));
+        assert_eq!(warm.indexed.from_cache, 3);
+        for threads in [1, 4] {
+            let (hit, counts) = on_threads(threads, || Plan::with_counts(&warm, &config));
+            assert_eq!((counts.from_cache, counts.measured), (2, 0), "{counts:?}");
+            assert_same_plan(
+                &scratch,
+                &hit,
+                &format!("from the cache on {threads} threads"),
+            );
+        }
+        // `drive_keyframes` (the inspect report) reads the same entries.
+        for (d, drive) in warm.drives.iter().enumerate() {
+            let (scan, keys) = drive_keyframes(drive, &config);
+            assert_eq!(scan, scratch.scans[d]);
+            assert!(
+                keys.len()
+                    >= scratch
+                        .keyframes
+                        .iter()
+                        .filter(|k| k.drive as usize == d)
+                        .count()
+            );
+        }
+
+        // Matching images at the sweep stamp measures nothing and stores nothing.
+        let stamp = SampleConfig {
+            camera_sync: CameraSync::Stamp,
+            ..SampleConfig::default()
+        };
+        let at_stamp = sequential_from_scratch(&off, &stamp);
+        let (hit, counts) = Plan::with_counts(&warm, &stamp);
+        assert_eq!(counts.at_stamp, 2, "{counts:?}");
+        assert_same_plan(&at_stamp, &hit, "camera_sync = stamp");
+        assert_eq!(entries("sfscan"), 2);
+        std::fs::remove_dir_all(dir).unwrap();
+    }
+
+    /// The plan as it was computed before drives were planned in parallel and their
+    /// scans kept in the cache: one drive after the other, every scan measured, every
+    /// sweep's usability worked out wherever it was asked for.
+    mod before {
+        use super::super::*;
+        use crate::sample::timing::scan_offsets;
+
+        fn usable(drive: &Drive, scan: &CameraScan, i: usize) -> Option<i64> {
+            let (Some(lidar), Some(map), Some(ego)) =
+                (&drive.lidar, &drive.map_frame, &drive.ego_frame)
+            else {
+                return None;
+            };
+            let sweep = lidar.sweeps.get(i)?;
+            let pose_ok = |s: Stamp| drive.tf.lookup(map, ego, s).is_ok();
+            if !pose_ok(sweep.stamp) || drive.cameras.is_empty() {
+                return None;
+            }
+            let mut worst = 0;
+            for (camera, moments) in drive.cameras.iter().zip(&scan.offsets_nanos) {
+                let (frame, offset) = camera_frame_for(camera, sweep.stamp, moments)?;
+                if !pose_ok(frame.stamp) || camera.calibrations.is_empty() {
+                    return None;
+                }
+                worst = worst.max(offset.abs());
+            }
+            Some(worst)
+        }
+
+        fn keyframes(
+            drive: &Drive,
+            scan: &CameraScan,
+            interval: i64,
+            choice: KeyframeChoice,
+        ) -> Vec<(usize, i64)> {
+            let Some(lidar) = &drive.lidar else {
+                return Vec::new();
+            };
+            if drive.ego_poses_missing() {
+                return Vec::new();
+            }
+            let mut out: Vec<(usize, i64)> = Vec::new();
+            let mut first: Option<Stamp> = None;
+            let mut window = 0;
+            for (i, sweep) in lidar.sweeps.iter().enumerate() {
+                let Some(worst) = usable(drive, scan, i) else {
+                    continue;
+                };
+                let t0 = *first.get_or_insert(sweep.stamp);
+                let since = sweep.stamp.nanos_since(t0);
+                match choice {
+                    KeyframeChoice::First => {
+                        let last = out.last().map(|(k, _)| lidar.sweeps[*k].stamp);
+                        if last.is_none_or(|l| sweep.stamp.nanos_since(l) >= interval) {
+                            out.push((i, worst));
+                        }
+                    }
+                    KeyframeChoice::LeastCameraOffset => {
+                        let w = since / interval.max(1);
+                        match out.last_mut() {
+                            Some(last) if w == window => {
+                                if worst < last.1 {
+                                    *last = (i, worst);
+                                }
+                            }
+                            _ => {
+                                window = w;
+                                out.push((i, worst));
+                            }
+                        }
+                    }
+                }
+            }
+            out
+        }
+
+        pub fn plan(dataset: &Dataset, config: &SampleConfig) -> Plan {
+            let mut plan = Plan::default();
+            let interval = (config.keyframe_interval_secs * 1e9).round() as i64;
+            let delta = (config.delta_t_secs * 1e9).round() as i64;
+            for (d, drive) in dataset.drives.iter().enumerate() {
+                let scan = scan_offsets(drive, config);
+                let Some(lidar) = &drive.lidar else {
+                    plan.scans.push(scan);
+                    continue;
+                };
+                let half_period = median_sweep_period(drive) / 2;
+                for (key, worst) in keyframes(drive, &scan, interval, config.keyframe_choice) {
+                    let t = lidar.sweeps[key].stamp;
+                    let mut frame_sweeps = Vec::new();
+                    let mut reused = 0;
+                    let mut skip = false;
+                    for &offset in config.frame_offsets() {
+                        if offset == 0 {
+                            frame_sweeps.push(key as u32);
+                            continue;
+                        }
+                        let target = t.add_nanos(i64::from(offset) * delta);
+                        let found = nearest(&lidar.sweeps, target)
+                            .filter(|f| f.stamp.nanos_since(target).abs() <= half_period)
+                            .map(|f| lidar.sweeps.partition_point(|s| s.stamp < f.stamp))
+                            .filter(|&i| usable(drive, &scan, i).is_some());
+                        match (found, config.edge) {
+                            (Some(i), _) => frame_sweeps.push(i as u32),
+                            (None, EdgePolicy::Reuse) => {
+                                frame_sweeps.push(key as u32);
+                                reused += 1;
+                            }
+                            (None, EdgePolicy::Skip) => skip = true,
+                        }
+                    }
+                    if skip {
+                        plan.skipped_at_edges += 1;
+                    } else {
+                        plan.keyframes.push(KeyframeRef {
+                            drive: d as u32,
+                            sweep: key as u32,
+                            frame_sweeps,
+                            reused,
+                            worst_camera_offset_nanos: worst,
+                        });
+                    }
+                }
+                plan.scans.push(scan);
+            }
+            plan
+        }
+    }
+
+    #[test]
+    fn the_plan_is_the_plan_of_before_under_every_recipe_cold_and_warm() {
+        let dir = scratch("before");
+        let cache = dir.join("cache");
+        let off = open(None);
+        let _filled = Plan::new(&open(Some(&cache)), &SampleConfig::default());
+        let warm = open(Some(&cache));
+        let mut recipes = Vec::new();
+        for choice in [KeyframeChoice::LeastCameraOffset, KeyframeChoice::First] {
+            for edge in [EdgePolicy::Reuse, EdgePolicy::Skip] {
+                for sync in [CameraSync::Scan, CameraSync::Stamp] {
+                    for (temporal_frames, delta_t_secs, interval) in
+                        [(3, 0.5, 0.5), (2, 0.1, 0.2), (3, 3.0, 1.0)]
+                    {
+                        recipes.push(SampleConfig {
+                            keyframe_choice: choice,
+                            edge,
+                            camera_sync: sync,
+                            temporal_frames,
+                            delta_t_secs,
+                            keyframe_interval_secs: interval,
+                            ..SampleConfig::default()
+                        });
+                    }
+                }
+            }
+        }
+        let mut skipped = 0;
+        for recipe in &recipes {
+            let expected = before::plan(&off, recipe);
+            assert!(
+                expected.keyframes.len() as u64 + expected.skipped_at_edges > 0,
+                "{recipe:?}"
+            );
+            skipped += expected.skipped_at_edges;
+            let what = format!("{recipe:?}");
+            assert_same_plan(&expected, &Plan::new(&off, recipe), &format!("cold {what}"));
+            assert_same_plan(
+                &expected,
+                &Plan::new(&warm, recipe),
+                &format!("warm {what}"),
+            );
+        }
+        assert!(skipped > 0);
+        std::fs::remove_dir_all(dir).unwrap();
+    }
+
+    #[test]
+    fn a_damaged_or_foreign_scan_entry_is_measured_again_not_trusted() {
+        let dir = scratch("damaged");
+        let cache_dir = dir.join("cache");
+        let cache = IndexCache::new(&cache_dir);
+        let config = SampleConfig::default();
+        let scratch = sequential_from_scratch(&open(None), &config);
+        let dataset = open(Some(&cache_dir));
+        let (_, counts) = Plan::with_counts(&dataset, &config);
+        assert_eq!(counts.measured, 2);
+        let keys: Vec<u128> = dataset
+            .drives
+            .iter()
+            .map(|d| scan_key(d).unwrap())
+            .collect();
+        assert_ne!(keys[0], keys[1]);
+        let paths: Vec<PathBuf> = keys
+            .iter()
+            .map(|k| cache.path_of(&SCAN_ENTRY, *k))
+            .collect();
+        let whole: Vec<Vec<u8>> = paths.iter().map(|p| std::fs::read(p).unwrap()).collect();
+        // A measurement no drive has: trusted, it would change the plan.
+        let bogus = |cameras: usize| CameraScan {
+            offsets_nanos: vec![vec![-123_456_789]; cameras],
+            timing: ScanTiming::PointTime,
+        };
+        #[derive(Serialize)]
+        struct Entry {
+            key: u128,
+            scan: CameraScan,
+        }
+        let cameras = dataset.drives[0].cameras.len();
+        type Damage<'a> = (&'a str, Box<dyn Fn() + 'a>);
+        let damages: Vec<Damage<'_>> = vec![
+            (
+                "truncated",
+                Box::new(|| std::fs::write(&paths[0], &whole[0][..whole[0].len() / 2]).unwrap()),
+            ),
+            (
+                "a flipped bit",
+                Box::new(|| {
+                    let mut flipped = whole[0].clone();
+                    let at = flipped.len() - 3;
+                    flipped[at] ^= 0x10;
+                    std::fs::write(&paths[0], &flipped).unwrap()
+                }),
+            ),
+            (
+                "another version",
+                Box::new(|| {
+                    let other = EntryKind {
+                        version: SCAN_ENTRY.version + 1,
+                        ..SCAN_ENTRY
+                    };
+                    let entry = Entry {
+                        key: keys[0],
+                        scan: bogus(cameras),
+                    };
+                    cache.store_entry(&other, keys[0], &entry);
+                }),
+            ),
+            (
+                "another kind's magic",
+                Box::new(|| {
+                    let other = EntryKind {
+                        magic: *b"SFINDEX\0",
+                        ..SCAN_ENTRY
+                    };
+                    let entry = Entry {
+                        key: keys[0],
+                        scan: bogus(cameras),
+                    };
+                    cache.store_entry(&other, keys[0], &entry);
+                }),
+            ),
+            (
+                "another drive's entry",
+                Box::new(|| std::fs::write(&paths[0], &whole[1]).unwrap()),
+            ),
+            (
+                "too few cameras",
+                Box::new(|| {
+                    let entry = Entry {
+                        key: keys[0],
+                        scan: bogus(cameras - 1),
+                    };
+                    cache.store_entry(&SCAN_ENTRY, keys[0], &entry);
+                }),
+            ),
+        ];
+        for (what, damage) in &damages {
+            damage();
+            let (plan, counts) = Plan::with_counts(&dataset, &config);
+            assert_eq!((counts.from_cache, counts.measured), (1, 1), "{what}");
+            assert_same_plan(&scratch, &plan, what);
+            // Measured again, the entry is whole again.
+            assert_eq!(std::fs::read(&paths[0]).unwrap(), whole[0], "{what}");
+            let (plan, counts) = Plan::with_counts(&dataset, &config);
+            assert_eq!(counts.from_cache, 2, "{what}");
+            assert_same_plan(&scratch, &plan, what);
+        }
+        std::fs::remove_dir_all(dir).unwrap();
+    }
+
+    #[test]
+    fn a_scan_key_changes_with_what_shapes_the_drive() {
+        let dir = scratch("keys");
+        let cache = dir.join("cache");
+        let reopen = |config: IngestConfig| {
+            Dataset::open(&drives(), &config).unwrap_or_else(|e| panic!("{e}"))
+        };
+        let dataset = open(Some(&cache));
+        let keys = |d: &Dataset| d.drives.iter().map(scan_key).collect::<Vec<_>>();
+        let base = dataset.drives[0].config.clone();
+        let tolerance = reopen(IngestConfig {
+            tf_tolerance_ms: 10.0,
+            ..base.clone()
+        });
+        for (a, b) in keys(&dataset).iter().zip(keys(&tolerance)) {
+            assert!(a.is_some() && b.is_some() && *a != b);
+        }
+        // Where the cache is and how many files stay open change nothing.
+        let moved = reopen(IngestConfig {
+            index_cache: Some(dir.join("elsewhere")),
+            max_open_files: Some(17),
+            ..base
+        });
+        assert_eq!(keys(&dataset), keys(&moved));
+        std::fs::remove_dir_all(dir).unwrap();
     }
 }

@@ -13,12 +13,17 @@
 //! repeats the same pattern every revolution, so one sweep is enough. The images of a
 //! sample are then the ones nearest `sweep stamp + offset` ([`SampleConfig::camera_sync`]
 //! `scan`), and keyframes are the sweeps whose cameras are nearest their scan moments.
+//!
+//! [`camera_scan`] is that measurement kept in the index cache ([`IndexCache`]) beside
+//! the indexes of the drive's files: a start with a warm cache reads a few hundred
+//! bytes per drive instead of decompressing a chunk and decoding a sweep.
 
 use super::recipe::{CameraSync, SampleConfig};
-use crate::drive::Drive;
+use crate::drive::index_cache::EntryKind;
+use crate::drive::{Drive, IndexCache, LidarStream, ReadError};
 use crate::source::ChunkCache;
 use nalgebra::Vector3;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 /// Half-width of the azimuth sector around a camera's axis whose points time its scan.
 const SECTOR_RAD: f64 = 2.0 * std::f64::consts::PI / 180.0;
@@ -27,7 +32,7 @@ const SECTOR_RAD: f64 = 2.0 * std::f64::consts::PI / 180.0;
 const MIN_POINTS: usize = 8;
 
 /// How the moments a drive's LiDAR scans its cameras were found.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum ScanTiming {
     /// From the sweep's per-point time field.
@@ -42,7 +47,7 @@ pub enum ScanTiming {
 /// sweep stamp, nanoseconds (in the drive's camera order), and how they were found. A
 /// camera at the azimuth where the driver cuts its sweeps is scanned twice, at the start
 /// and at the end: it has two moments; every other camera one.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct CameraScan {
     /// Offsets from the sweep stamp, per camera one or two.
     pub offsets_nanos: Vec<Vec<i64>>,
@@ -101,25 +106,169 @@ fn wrap(a: f64) -> f64 {
     }
 }
 
-/// The scan moments of `drive`'s cameras (see the module documentation); every camera
-/// at the stamp when `config` says so or nothing can be measured.
+/// The index cache's entries of camera scans: one per drive, keyed by [`scan_key`].
+pub const SCAN_ENTRY: EntryKind = EntryKind {
+    magic: *b"SFSCAN\0\0",
+    // Raised whenever the measurement (or what `ScanEntry` holds) changes.
+    version: 1,
+    extension: "sfscan",
+    what: "camera scan",
+};
+
+/// What a camera-scan entry holds: the key again (an entry copied under another name
+/// is not another drive's) and the measurement.
+#[derive(Debug, Serialize, Deserialize)]
+struct ScanEntry {
+    key: u128,
+    scan: CameraScan,
+}
+
+/// The sweep whose points time the cameras.
+fn measured_sweep(lidar: &LidarStream) -> usize {
+    lidar.sweeps.len() / 2
+}
+
+/// What a drive's camera scan is stored under in the index cache: a hash of everything
+/// the measurement depends on — the drive's files (their fingerprints), the choices of
+/// its `[ingest]` configuration that shape its streams and transforms, the sweep
+/// measured, the LiDAR and the cameras it found. `None` when the drive has no
+/// fingerprint (index cache off, a file without a summary).
+pub fn scan_key(drive: &Drive) -> Option<u128> {
+    let fingerprint = drive.fingerprint?;
+    let lidar = drive.lidar.as_ref()?;
+    let sweep = measured_sweep(lidar);
+    let mut hash = xxhash_rust::xxh3::Xxh3::new();
+    hash.update(SCAN_ENTRY.extension.as_bytes());
+    hash.update(&fingerprint.to_le_bytes());
+    // Where the cache is and how many files stay open change no stream.
+    let shaping = crate::drive::IngestConfig {
+        max_open_files: None,
+        index_cache: None,
+        ..drive.config.clone()
+    };
+    hash.update(&bincode::serde::encode_to_vec(&shaping, bincode::config::standard()).ok()?);
+    hash.update(&(sweep as u64).to_le_bytes());
+    let frame = lidar.sweeps.get(sweep)?;
+    hash.update(&frame.stamp.nanos().to_le_bytes());
+    for name in [&lidar.topic, &lidar.frame_id] {
+        hash.update(&(name.len() as u64).to_le_bytes());
+        hash.update(name.as_bytes());
+    }
+    hash.update(&(drive.cameras.len() as u64).to_le_bytes());
+    for camera in &drive.cameras {
+        for name in [&camera.name, &camera.frame_id] {
+            hash.update(&(name.len() as u64).to_le_bytes());
+            hash.update(name.as_bytes());
+        }
+    }
+    Some(hash.digest128())
+}
+
+/// [`scan_offsets`] through the index cache of `drive`'s configuration: read from the
+/// drive's entry when it has a usable one; else measured and stored. An entry that is
+/// damaged, of another version or of another drive is ignored (one INFO line) and
+/// rewritten; a sweep that cannot be read is never stored. Without a cache (or a
+/// fingerprint) it is [`scan_offsets`].
+pub fn camera_scan(drive: &Drive, config: &SampleConfig) -> CameraScan {
+    camera_scan_from(drive, config).0
+}
+
+/// Where a camera scan came from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ScanFrom {
+    /// Read from the index cache.
+    Cache,
+    /// Measured from a sweep (and stored in the cache, if there is one).
+    Measured,
+    /// Not measured: every camera at the sweep stamp (`camera_sync = "stamp"`, no
+    /// sweep, or a sweep that does not read).
+    Stamp,
+}
+
+/// [`camera_scan`], and where it came from.
+pub fn camera_scan_from(drive: &Drive, config: &SampleConfig) -> (CameraScan, ScanFrom) {
+    let cameras = drive.cameras.len();
+    if config.camera_sync == CameraSync::Stamp {
+        return (CameraScan::at_stamp(cameras), ScanFrom::Stamp);
+    }
+    let cache = drive.config.index_cache().zip(scan_key(drive));
+    if let Some((cache, key)) = &cache
+        && let Some(scan) = load(cache, *key, drive)
+    {
+        return (scan, ScanFrom::Cache);
+    }
+    match measure(drive) {
+        Ok(scan) if scan.timing == ScanTiming::Stamp => (scan, ScanFrom::Stamp),
+        Ok(scan) => {
+            if let Some((cache, key)) = &cache {
+                let entry = ScanEntry {
+                    key: *key,
+                    scan: scan.clone(),
+                };
+                cache.store_entry(&SCAN_ENTRY, *key, &entry);
+            }
+            (scan, ScanFrom::Measured)
+        }
+        Err(e) => (unmeasured(cameras, &e), ScanFrom::Stamp),
+    }
+}
+
+/// The camera scan stored under `key`, if its entry is usable for `drive`.
+fn load(cache: &IndexCache, key: u128, drive: &Drive) -> Option<CameraScan> {
+    let ignored = |why: &dyn std::fmt::Display| {
+        tracing::info!(drive = %drive.file_list(), entry = %cache.path_of(&SCAN_ENTRY, key).display(), "camera scan cache entry ignored: {why}; measuring again");
+    };
+    match cache.load_entry::<ScanEntry>(&SCAN_ENTRY, key) {
+        Ok(None) => None,
+        Ok(Some(entry)) if entry.key != key => {
+            ignored(&"it is another drive's");
+            None
+        }
+        Ok(Some(entry))
+            if entry.scan.offsets_nanos.len() != drive.cameras.len()
+                || entry
+                    .scan
+                    .offsets_nanos
+                    .iter()
+                    .any(|m| !(1..=2).contains(&m.len())) =>
+        {
+            ignored(&"it does not fit the drive's cameras");
+            None
+        }
+        Ok(Some(entry)) => Some(entry.scan),
+        Err(e) => {
+            ignored(&e);
+            None
+        }
+    }
+}
+
+/// Every camera at the sweep stamp, saying why.
+fn unmeasured(cameras: usize, e: &ReadError) -> CameraScan {
+    tracing::warn!("camera timing: cameras matched at the sweep stamp ({e})");
+    CameraScan::at_stamp(cameras)
+}
+
+/// The scan moments of `drive`'s cameras (see the module documentation), measured from
+/// its data; every camera at the stamp when `config` says so or nothing can be
+/// measured.
 pub fn scan_offsets(drive: &Drive, config: &SampleConfig) -> CameraScan {
+    if config.camera_sync == CameraSync::Stamp {
+        return CameraScan::at_stamp(drive.cameras.len());
+    }
+    measure(drive).unwrap_or_else(|e| unmeasured(drive.cameras.len(), &e))
+}
+
+/// The scan moments measured from the drive's middle sweep; every camera at the stamp
+/// without a sweep; the error when the sweep does not read.
+fn measure(drive: &Drive) -> Result<CameraScan, ReadError> {
     let cameras = drive.cameras.len();
     let Some(lidar) = drive.lidar.as_ref().filter(|l| !l.sweeps.is_empty()) else {
-        return CameraScan::at_stamp(cameras);
+        return Ok(CameraScan::at_stamp(cameras));
     };
-    if config.camera_sync == CameraSync::Stamp {
-        return CameraScan::at_stamp(cameras);
-    }
-    let frame = &lidar.sweeps[lidar.sweeps.len() / 2];
+    let frame = &lidar.sweeps[measured_sweep(lidar)];
     let mut cache = ChunkCache::new(2);
-    let decoded = match drive.read_sweep(frame, &mut cache) {
-        Ok(d) => d,
-        Err(e) => {
-            tracing::warn!("camera timing: cameras matched at the sweep stamp ({e})");
-            return CameraScan::at_stamp(cameras);
-        }
-    };
+    let decoded = drive.read_sweep(frame, &mut cache)?;
     let cloud = &decoded.cloud;
     let period = median_sweep_period(drive);
     let n = cloud.len().max(1) as f64;
@@ -169,8 +318,8 @@ pub fn scan_offsets(drive: &Drive, config: &SampleConfig) -> CameraScan {
             moments(&near, period)
         })
         .collect();
-    CameraScan {
+    Ok(CameraScan {
         offsets_nanos,
         timing,
-    }
+    })
 }

@@ -6,7 +6,6 @@ use anyhow::Context as _;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use superflow_pipeline::fleet::{FleetReport, keyframes_per_drive};
-use superflow_pipeline::inspect::InspectReport;
 use superflow_pipeline::publish::Metrics;
 use superflow_pipeline::sample::SampleBuilder;
 
@@ -21,13 +20,15 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         .check_sensors()
         .context("the drives cannot be trained on")?;
     let metrics = Arc::new(Metrics::default());
-    for drive in InspectReport::new(&dataset).drives {
+    // Only what indexing already knows: a full report per drive would measure every
+    // drive's camera timing again before the plan does.
+    for drive in &dataset.drives {
         metrics
             .skipped_messages
             .fetch_add(drive.skipped.total(), Ordering::Relaxed);
-        tracing::info!(
+        tracing::debug!(
             files = drive.files.len(),
-            sweeps = drive.lidar_sweeps,
+            sweeps = drive.lidar.as_ref().map_or(0, |l| l.sweeps.len()),
             cameras = drive.cameras.len(),
             skipped = drive.skipped.total(),
             "drive indexed"
