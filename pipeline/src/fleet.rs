@@ -63,6 +63,13 @@ pub fn keyframes_per_drive(plan: &Plan, drives: usize) -> Vec<usize> {
     counts
 }
 
+/// Each drive's LiDAR facts and the points of the sweep they were read from, as the
+/// plan's camera scans learned them (from the index cache on a warm start: no sweep is
+/// read again).
+pub fn lidar_facts_of(plan: &Plan) -> Vec<Option<(LidarFacts, usize)>> {
+    plan.scans.iter().map(|scan| scan.lidar).collect()
+}
+
 /// Each drive's LiDAR facts and the points of the sweep they were read from (its middle
 /// one), drives in parallel; `None` for a drive whose sweep could not be read (said at
 /// DEBUG: `inspect` reports the drive's problems).

@@ -646,6 +646,7 @@ mod tests {
         let bogus = |cameras: usize| CameraScan {
             offsets_nanos: vec![vec![-123_456_789]; cameras],
             timing: ScanTiming::PointTime,
+            lidar: None,
         };
         #[derive(Serialize)]
         struct Entry {

@@ -20,7 +20,7 @@
 
 use super::recipe::{CameraSync, SampleConfig};
 use crate::drive::index_cache::EntryKind;
-use crate::drive::{Drive, IndexCache, LidarStream, ReadError};
+use crate::drive::{Drive, IndexCache, LidarFacts, LidarStream, ReadError};
 use crate::source::ChunkCache;
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
@@ -46,13 +46,18 @@ pub enum ScanTiming {
 /// Per camera of a drive, the moments the LiDAR scans along its axis relative to the
 /// sweep stamp, nanoseconds (in the drive's camera order), and how they were found. A
 /// camera at the azimuth where the driver cuts its sweeps is scanned twice, at the start
-/// and at the end: it has two moments; every other camera one.
+/// and at the end: it has two moments; every other camera one. The sweep measured also
+/// says what the LiDAR's sweeps hold (its rig, for `index` and the service's start-up
+/// lines), kept with the moments so that a warm start reads no sweep.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct CameraScan {
     /// Offsets from the sweep stamp, per camera one or two.
     pub offsets_nanos: Vec<Vec<i64>>,
     /// How they were found.
     pub timing: ScanTiming,
+    /// What the measured sweep held: the LiDAR's facts and its points (`None` when no
+    /// sweep was read).
+    pub lidar: Option<(LidarFacts, usize)>,
 }
 
 impl CameraScan {
@@ -61,6 +66,7 @@ impl CameraScan {
         Self {
             offsets_nanos: vec![vec![0]; cameras],
             timing: ScanTiming::Stamp,
+            lidar: None,
         }
     }
 }
@@ -110,7 +116,7 @@ fn wrap(a: f64) -> f64 {
 pub const SCAN_ENTRY: EntryKind = EntryKind {
     magic: *b"SFSCAN\0\0",
     // Raised whenever the measurement (or what `ScanEntry` holds) changes.
-    version: 1,
+    version: 2,
     extension: "sfscan",
     what: "camera scan",
 };
@@ -321,5 +327,6 @@ fn measure(drive: &Drive) -> Result<CameraScan, ReadError> {
     Ok(CameraScan {
         offsets_nanos,
         timing,
+        lidar: Some((LidarFacts::of(&decoded), decoded.cloud.len())),
     })
 }

@@ -4,7 +4,7 @@
 
 use crate::cli::Args;
 use std::time::Instant;
-use superflow_pipeline::fleet::{FleetReport, keyframes_per_drive};
+use superflow_pipeline::fleet::{FleetReport, keyframes_per_drive, lidar_facts_of};
 use superflow_pipeline::sample::plan::Plan;
 
 pub fn run(args: &Args) -> anyhow::Result<()> {
@@ -48,7 +48,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     let fleet = FleetReport::new(
         &dataset,
         &keyframes_per_drive(&plan, dataset.drives.len()),
-        &[],
+        &lidar_facts_of(&plan),
     );
     println!("samples/epoch   {}", fleet.samples_per_epoch);
     for line in fleet.lines() {

@@ -5,7 +5,7 @@ use crate::cli::Args;
 use anyhow::Context as _;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
-use superflow_pipeline::fleet::{FleetReport, keyframes_per_drive};
+use superflow_pipeline::fleet::{FleetReport, keyframes_per_drive, lidar_facts_of};
 use superflow_pipeline::publish::Metrics;
 use superflow_pipeline::sample::SampleBuilder;
 
@@ -44,7 +44,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     FleetReport::new(
         &dataset,
         &keyframes_per_drive(builder.plan(), dataset.drives.len()),
-        &[],
+        &lidar_facts_of(builder.plan()),
     )
     .log();
     let stop = Arc::new(AtomicBool::new(false));
