@@ -39,6 +39,54 @@ pub struct ResumeRequest {
 /// A field a request does not know.
 pub const UNKNOWN: u64 = u64::MAX;
 
+/// Where a stream continues (a resume request) or a service starts.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum ResumeAt {
+    /// At `step` of `epoch` of the stream: a position of a job of this size.
+    Step {
+        /// The epoch.
+        epoch: u64,
+        /// The step of the stream.
+        step: u64,
+    },
+    /// After `sample` samples of `epoch`, consumed by the whole job (every rank and
+    /// host) that saved the position with `global_batch` samples per step ([`UNKNOWN`]
+    /// when not known): holds across a change of the job's size.
+    Sample {
+        /// The epoch.
+        epoch: u64,
+        /// Samples of it the job had consumed.
+        sample: u64,
+        /// Samples per step of the job that saved it.
+        global_batch: u64,
+    },
+}
+
+impl ResumeAt {
+    /// The request of stream `rank` (`broadcast`: the broadcast stream).
+    pub fn request(self, rank: u32, broadcast: bool) -> ResumeRequest {
+        match self {
+            ResumeAt::Step { epoch, step } => ResumeRequest::at_step(rank, broadcast, epoch, step),
+            ResumeAt::Sample {
+                epoch,
+                sample,
+                global_batch,
+            } => ResumeRequest {
+                sample,
+                global_batch,
+                ..ResumeRequest::at_step(rank, broadcast, epoch, UNKNOWN)
+            },
+        }
+    }
+
+    /// The epoch.
+    pub fn epoch(self) -> u64 {
+        match self {
+            ResumeAt::Step { epoch, .. } | ResumeAt::Sample { epoch, .. } => epoch,
+        }
+    }
+}
+
 impl ResumeRequest {
     /// A request by step, the position's job size unknown.
     pub fn at_step(rank: u32, broadcast: bool, epoch: u64, step: u64) -> Self {

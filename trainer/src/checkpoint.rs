@@ -30,6 +30,17 @@ pub struct JobPosition {
     pub global_batch: u64,
 }
 
+impl JobPosition {
+    /// The resume request's position: after these samples of the epoch.
+    pub fn resume_at(self) -> ResumeAt {
+        ResumeAt::Sample {
+            epoch: self.epoch,
+            sample: self.samples,
+            global_batch: self.global_batch,
+        }
+    }
+}
+
 /// Everything besides the tensors.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct CheckpointState {
@@ -71,11 +82,7 @@ impl CheckpointState {
     /// the same size only: the pipeline refuses it from a job of another size).
     pub fn resume_at(&self, at: StreamPosition) -> ResumeAt {
         match self.job {
-            Some(job) => ResumeAt::Sample {
-                epoch: job.epoch,
-                sample: job.samples,
-                global_batch: job.global_batch,
-            },
+            Some(job) => job.resume_at(),
             None => ResumeAt::Step {
                 epoch: at.epoch,
                 step: at.batch,

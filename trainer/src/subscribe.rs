@@ -12,58 +12,10 @@ use iceoryx2::prelude::*;
 use iceoryx2::sample::Sample;
 use std::time::{Duration, Instant};
 use superflow_schemas::batch::{BatchError, BatchHeader, BatchView};
+pub use superflow_schemas::service::ResumeAt;
 use superflow_schemas::service::{
-    self as names, IpcError, ResumeReply, ResumeRequest, ScheduleReply, ScheduleRequest,
-    ServiceSetupError, UNKNOWN,
+    self as names, IpcError, ResumeReply, ScheduleReply, ScheduleRequest, ServiceSetupError,
 };
-
-/// Where a resume asks the stream to continue.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum ResumeAt {
-    /// At `step` of `epoch` of this stream: a position of a job of this size.
-    Step {
-        /// The epoch.
-        epoch: u64,
-        /// The step of this stream.
-        step: u64,
-    },
-    /// After `sample` samples of `epoch`, consumed by the whole job (every rank and
-    /// host) that saved the position with `global_batch` samples per step: holds across
-    /// a change of the job's size.
-    Sample {
-        /// The epoch.
-        epoch: u64,
-        /// Samples of it the job had consumed.
-        sample: u64,
-        /// Samples per step of the job that saved it.
-        global_batch: u64,
-    },
-}
-
-impl ResumeAt {
-    /// The request of stream `rank` (`broadcast`: the broadcast stream).
-    fn request(self, rank: u32, broadcast: bool) -> ResumeRequest {
-        match self {
-            ResumeAt::Step { epoch, step } => ResumeRequest::at_step(rank, broadcast, epoch, step),
-            ResumeAt::Sample {
-                epoch,
-                sample,
-                global_batch,
-            } => ResumeRequest {
-                sample,
-                global_batch,
-                ..ResumeRequest::at_step(rank, broadcast, epoch, UNKNOWN)
-            },
-        }
-    }
-
-    /// The epoch.
-    pub fn epoch(self) -> u64 {
-        match self {
-            ResumeAt::Step { epoch, .. } | ResumeAt::Sample { epoch, .. } => epoch,
-        }
-    }
-}
 
 /// Which stream to read.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

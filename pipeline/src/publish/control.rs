@@ -17,7 +17,6 @@
 //! knows which batch ends an epoch and which ends the stream.
 
 use super::{Cursors, Metrics, Mode, Schedule, ServiceConfig, ServiceError};
-use iceoryx2::port::server::Server;
 use iceoryx2::prelude::*;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
@@ -55,51 +54,83 @@ impl ControlAnswers<'_> {
     }
 
     fn serve_until(&self, stop: &AtomicBool) -> Result<(), ServiceError> {
-        let node = NodeBuilder::new()
-            .config(self.iox)
-            .signal_handling_mode(SignalHandlingMode::Disabled)
-            .create::<ipc::Service>()
-            .map_err(ServiceError::ipc("creating the control server's node"))?;
-        let service = names::open_control_service(&node, self.run)?;
-        let server = service
-            .server_builder()
-            .create()
-            .map_err(ServiceError::ipc("control server"))?;
-        while !stop.load(Ordering::SeqCst) {
-            self.answer_pending(&server);
-            std::thread::sleep(Duration::from_millis(5));
-        }
-        Ok(())
+        serve_requests(
+            self.iox,
+            "control",
+            |node| names::open_control_service(node, self.run),
+            stop,
+            |ask: &ResumeRequest| {
+                let publisher = self.publishers.get(ask.rank as usize).copied().unwrap_or(0);
+                ResumeReply {
+                    publisher_lo: publisher as u64,
+                    publisher_hi: (publisher >> 64) as u64,
+                    ..decide(ask, &self.streams)
+                }
+            },
+        )
     }
+}
 
-    /// Answers every pending resume request.
-    fn answer_pending(&self, server: &Server<ipc::Service, ResumeRequest, (), ResumeReply, ()>) {
+/// Answers the requests of a run's request-response service (`what`: its name in logs)
+/// from a node of its own, every few milliseconds until `stop`; each reply is
+/// `answer(request)`.
+fn serve_requests<Req, Resp>(
+    iox: &iceoryx2::config::Config,
+    what: &str,
+    open: impl FnOnce(
+        &Node<ipc::Service>,
+    ) -> Result<
+        iceoryx2::service::port_factory::request_response::PortFactory<
+            ipc::Service,
+            Req,
+            (),
+            Resp,
+            (),
+        >,
+        superflow_schemas::service::ServiceSetupError,
+    >,
+    stop: &AtomicBool,
+    mut answer: impl FnMut(&Req) -> Resp,
+) -> Result<(), ServiceError>
+where
+    Req: std::fmt::Debug + ZeroCopySend + Copy,
+    Resp: std::fmt::Debug + ZeroCopySend + Copy,
+{
+    let node = NodeBuilder::new()
+        .config(iox)
+        .signal_handling_mode(SignalHandlingMode::Disabled)
+        .create::<ipc::Service>()
+        .map_err(ServiceError::ipc(format!(
+            "creating the {what} server's node"
+        )))?;
+    let service = open(&node)?;
+    let server = service
+        .server_builder()
+        .create()
+        .map_err(ServiceError::ipc(format!("{what} server")))?;
+    while !stop.load(Ordering::SeqCst) {
         loop {
             let request = match server.receive() {
                 Ok(Some(r)) => r,
-                Ok(None) => return,
+                Ok(None) => break,
                 Err(e) => {
-                    tracing::warn!("control service: {e:?}");
-                    return;
+                    tracing::warn!("{what} service: {e:?}");
+                    break;
                 }
             };
-            let ask = *request.payload();
-            let publisher = self.publishers.get(ask.rank as usize).copied().unwrap_or(0);
-            let reply = ResumeReply {
-                publisher_lo: publisher as u64,
-                publisher_hi: (publisher >> 64) as u64,
-                ..decide(&ask, &self.streams)
-            };
+            let reply = answer(request.payload());
             match request.loan_uninit() {
                 Ok(response) => {
                     if let Err(e) = response.write_payload(reply).send() {
-                        tracing::warn!("control reply: {e:?}");
+                        tracing::warn!("{what} reply: {e:?}");
                     }
                 }
-                Err(e) => tracing::warn!("control reply: {e:?}"),
+                Err(e) => tracing::warn!("{what} reply: {e:?}"),
             }
         }
+        std::thread::sleep(Duration::from_millis(5));
     }
+    Ok(())
 }
 
 /// Accepts (and carries out) or refuses one request: `accepted`, `reason`, `epoch`,
@@ -233,39 +264,13 @@ impl ScheduleAnswers<'_> {
     }
 
     fn serve_until(&self, stop: &AtomicBool) -> Result<(), ServiceError> {
-        let node = NodeBuilder::new()
-            .config(self.iox)
-            .signal_handling_mode(SignalHandlingMode::Disabled)
-            .create::<ipc::Service>()
-            .map_err(ServiceError::ipc("creating the schedule server's node"))?;
-        let service = names::open_schedule_service(&node, self.run)?;
-        let server = service
-            .server_builder()
-            .create()
-            .map_err(ServiceError::ipc("schedule server"))?;
-        while !stop.load(Ordering::SeqCst) {
-            loop {
-                let request = match server.receive() {
-                    Ok(Some(r)) => r,
-                    Ok(None) => break,
-                    Err(e) => {
-                        tracing::warn!("schedule service: {e:?}");
-                        break;
-                    }
-                };
-                let reply = self.answer(request.payload());
-                match request.loan_uninit() {
-                    Ok(response) => {
-                        if let Err(e) = response.write_payload(reply).send() {
-                            tracing::warn!("schedule reply: {e:?}");
-                        }
-                    }
-                    Err(e) => tracing::warn!("schedule reply: {e:?}"),
-                }
-            }
-            std::thread::sleep(Duration::from_millis(10));
-        }
-        Ok(())
+        serve_requests(
+            self.iox,
+            "schedule",
+            |node| names::open_schedule_service(node, self.run),
+            stop,
+            |ask: &ScheduleRequest| self.answer(ask),
+        )
     }
 }
 

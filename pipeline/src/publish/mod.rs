@@ -36,6 +36,10 @@ pub use config::{Mode, ServiceConfig};
 pub use metrics::Metrics;
 pub use schedule::{Schedule, Slot};
 pub use serve::serve;
+/// Where the service starts: at a step of every stream (`--start-step`), or after the
+/// samples of an epoch a job of any size had consumed (`--start-sample`; its
+/// `global_batch` is not used).
+pub use superflow_schemas::service::ResumeAt;
 
 /// How many steps a stream's batches may run ahead of the stream furthest behind (both
 /// built and published). Data-parallel ranks take their steps together: a rank's
@@ -44,27 +48,6 @@ pub use serve::serve;
 /// when ranks resume one after another, each from where the job stopped. Two steps keep
 /// streams in lockstep with room for epoch ends, where shares differ by one batch.
 const MAX_LEAD_STEPS: u128 = 2;
-
-/// Where the service starts.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum StartAt {
-    /// At `step` of `epoch` of every stream (`--start-epoch`, `--start-step`): a position
-    /// of a job of this size.
-    Step {
-        /// The epoch.
-        epoch: u64,
-        /// The step of every stream.
-        step: u64,
-    },
-    /// At sample `sample` of `epoch`: the samples of the epoch a job of any size had
-    /// consumed (`--start-sample`); the rest of the epoch is dealt to this job's ranks.
-    Sample {
-        /// The epoch.
-        epoch: u64,
-        /// Samples of it already consumed.
-        sample: u64,
-    },
-}
 
 use std::sync::{Mutex, MutexGuard};
 use superflow_common::InvalidSetting;

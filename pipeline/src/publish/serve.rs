@@ -7,7 +7,7 @@ use super::metrics::log_counters;
 use super::ports::{Stamp, StreamPorts};
 use super::producer::{Prepared, Producer};
 use super::{
-    Cursors, MAX_LEAD_STEPS, Metrics, Mode, Schedule, ServiceConfig, ServiceError, StartAt,
+    Cursors, MAX_LEAD_STEPS, Metrics, Mode, ResumeAt, Schedule, ServiceConfig, ServiceError,
 };
 use crate::batch::BatchShape;
 use crate::sample::SampleBuilder;
@@ -26,14 +26,14 @@ pub fn serve(
     run: &str,
     config: &ServiceConfig,
     iox: &iceoryx2::config::Config,
-    start: StartAt,
+    start: ResumeAt,
     stop: &Arc<AtomicBool>,
     metrics: &Arc<Metrics>,
 ) -> Result<(), ServiceError> {
     let schedule = schedule_of(builder, config)?;
     let start = match start {
-        StartAt::Step { epoch, step } => (epoch, step),
-        StartAt::Sample { epoch, sample } => {
+        ResumeAt::Step { epoch, step } => (epoch, step),
+        ResumeAt::Sample { epoch, sample, .. } => {
             let samples = schedule.samples();
             let sample = usize::try_from(sample)
                 .ok()

@@ -321,7 +321,7 @@ pub fn stream(
                 &run,
                 &service,
                 &iox,
-                publish::StartAt::Step { epoch: 0, step: 0 },
+                publish::ResumeAt::Step { epoch: 0, step: 0 },
                 &stop,
                 &metrics,
             )

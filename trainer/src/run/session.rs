@@ -270,11 +270,7 @@ impl Session<'_> {
         // By the samples the job had consumed when the old pipeline said how it deals
         // them: a pipeline restarted at another start sample still finds the place.
         let resume_at = match self.job_position(at) {
-            Some(job) => ResumeAt::Sample {
-                epoch: job.epoch,
-                sample: job.samples,
-                global_batch: job.global_batch,
-            },
+            Some(job) => job.resume_at(),
             None => ResumeAt::Step {
                 epoch: at.epoch,
                 step: at.batch,

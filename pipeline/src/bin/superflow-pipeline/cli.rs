@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use superflow_pipeline::config::{Overrides, PipelineConfig};
 use superflow_pipeline::drive::DatasetGroup;
 use superflow_pipeline::drive::groups::validate_groups;
-use superflow_pipeline::publish::{Mode, StartAt};
+use superflow_pipeline::publish::{Mode, ResumeAt};
 
 /// Streams SuperFlow training batches from recorded drives to trainers over shared memory.
 #[derive(Debug, Parser)]
@@ -168,13 +168,14 @@ impl Args {
     }
 
     /// Where the service starts: `--start-epoch` with `--start-step` or `--start-sample`.
-    pub fn start(&self) -> StartAt {
+    pub fn start(&self) -> ResumeAt {
         match self.start_sample {
-            Some(sample) => StartAt::Sample {
+            Some(sample) => ResumeAt::Sample {
                 epoch: self.start_epoch,
                 sample,
+                global_batch: superflow_schemas::service::UNKNOWN,
             },
-            None => StartAt::Step {
+            None => ResumeAt::Step {
                 epoch: self.start_epoch,
                 step: self.start_step,
             },
