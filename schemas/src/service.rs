@@ -108,9 +108,9 @@ impl ResumeRequest {
 pub struct ResumeReply {
     /// 1: the stream continues at the requested position; 0: refused (see `reason`).
     pub accepted: u32,
-    /// 0 accepted; 1 no such stream (rank out of range or wrong mode); 2 position past
-    /// the end of the configured epochs; 3 a step saved by a job of another size (resume
-    /// by sample).
+    /// Why a request was refused: 0 accepted; [`ResumeReply::NO_SUCH_STREAM`] (1);
+    /// [`ResumeReply::OUT_OF_RANGE`] (2); [`ResumeReply::OTHER_JOB_SIZE`] (3);
+    /// [`ResumeReply::RUN_COMPLETE`] (4, and `epoch` holds the configured epoch count).
     pub reason: u32,
     /// Sequence number of the first batch at the new position (publisher-wide).
     pub next_sequence: u64,
@@ -119,13 +119,29 @@ pub struct ResumeReply {
     pub publisher_lo: u64,
     /// High 64 bits of that id.
     pub publisher_hi: u64,
-    /// Epoch of the first batch at the new position.
+    /// Epoch of the first batch at the new position; refused with
+    /// [`ResumeReply::RUN_COMPLETE`]: the epochs the pipeline serves (`--epochs`).
     pub epoch: u64,
     /// Its step in this stream (a request by sample names the step it became).
     pub step: u64,
 }
 
 impl ResumeReply {
+    /// `reason`: no such stream (rank out of range, or the pipeline runs in the other
+    /// mode).
+    pub const NO_SUCH_STREAM: u32 = 1;
+    /// `reason`: a position that does not exist: a step past its epoch's end, a sample
+    /// past the epoch's samples, in an epoch before the last.
+    pub const OUT_OF_RANGE: u32 = 2;
+    /// `reason`: a step saved by a job of another size (`global_batch` differs): resume
+    /// by sample.
+    pub const OTHER_JOB_SIZE: u32 = 3;
+    /// `reason`: the run is complete. The position is at or past the end of the
+    /// configured epochs (`--epochs E`): epoch `E` or later, or the end of epoch `E - 1`
+    /// (its last step + 1, or all its samples). Nothing is left to serve; the reply's
+    /// `epoch` is `E`. A requeued job of a finished run gets this, not an error.
+    pub const RUN_COMPLETE: u32 = 4;
+
     /// The publisher id (iceoryx2 `UniquePublisherId` value).
     pub fn publisher(&self) -> u128 {
         (u128::from(self.publisher_hi) << 64) | u128::from(self.publisher_lo)
@@ -187,6 +203,20 @@ pub struct ScheduleReply {
     pub start_steps: u64,
     /// The fewest batches of any stream in epoch `start_epoch`.
     pub start_min_steps: u64,
+    /// The run's seed (`[sample] seed`): with `(epoch, sample)` it fixes every draw.
+    pub seed: u64,
+    /// This pipeline's host among `host_count` (`[service] host_rank`).
+    pub host_rank: u32,
+    /// Hosts whose pipelines share each epoch (`[service] host_count`).
+    pub host_count: u32,
+    /// Distinct keyframes of the whole dataset (every host's share, before the dataset
+    /// groups' repeats).
+    pub keyframes: u64,
+    /// A digest of what defines the samples served: the seed, the sample recipe, the
+    /// dataset groups with their repeats, and per drive its keyframes (count and
+    /// stamps); never file paths. Every host of one job must show the same digest, or
+    /// its pipelines deal different epochs and the hosts' shares overlap or leave gaps.
+    pub plan_digest: u64,
 }
 
 impl ScheduleReply {
@@ -348,9 +378,17 @@ pub enum ServiceSetupError {
         /// iceoryx2's reason.
         source: iceoryx2::service::builder::event::EventOpenOrCreateError,
     },
-    /// Opening or creating the control or the schedule service failed.
-    #[error("opening service `{name}`: {source}")]
+    /// Opening or creating the control service failed.
+    #[error("opening service `{name}`: {source}{}", other_layout(.source, "ResumeRequest or ResumeReply"))]
     Control {
+        /// The service.
+        name: String,
+        /// iceoryx2's reason.
+        source: iceoryx2::service::builder::request_response::RequestResponseOpenOrCreateError,
+    },
+    /// Opening or creating the schedule service failed.
+    #[error("opening the schedule service `{name}`: {source}{}", other_layout(.source, "ScheduleReply"))]
+    Schedule {
         /// The service.
         name: String,
         /// iceoryx2's reason.
@@ -370,6 +408,26 @@ pub enum ServiceSetupError {
         /// iceoryx2's reason.
         source: iceoryx2::prelude::SemanticStringError,
     },
+}
+
+/// What to add to iceoryx2's refusal of a request-response service whose request or
+/// reply type (`types`) another process created with another layout: which process
+/// and what to do, since iceoryx2 names only the error.
+fn other_layout(
+    source: &iceoryx2::service::builder::request_response::RequestResponseOpenOrCreateError,
+    types: &str,
+) -> String {
+    use iceoryx2::service::builder::request_response::{
+        RequestResponseOpenError, RequestResponseOpenOrCreateError,
+    };
+    match source {
+        RequestResponseOpenOrCreateError::RequestResponseOpenError(
+            RequestResponseOpenError::IncompatibleRequestOrResponseType,
+        ) => format!(
+            " — a process of another superflow version created it with another {types} layout: run the pipeline and every trainer or reader of the run from one version"
+        ),
+        _ => String::new(),
+    }
 }
 
 /// `name` as an iceoryx2 service name.
@@ -442,7 +500,7 @@ pub fn open_schedule_service(
         .max_servers(qos::MAX_PUBLISHERS)
         .max_nodes(qos::MAX_NODES * 2)
         .open_or_create()
-        .map_err(|source| ServiceSetupError::Control { name, source })
+        .map_err(|source| ServiceSetupError::Schedule { name, source })
 }
 
 /// The control service type (request-response).
@@ -595,6 +653,74 @@ mod tests {
             "inside a step: the epoch starts there"
         );
         assert_eq!(reply.step_at(4, 16), 1);
+    }
+
+    /// The offsets `BATCH_FORMAT.md` documents and the Python package mirrors.
+    #[test]
+    fn reply_layouts_match_the_documented_offsets() {
+        use std::mem::{offset_of, size_of};
+        assert_eq!(size_of::<ScheduleReply>(), 128);
+        assert_eq!(offset_of!(ScheduleReply, start_min_steps), 88);
+        assert_eq!(offset_of!(ScheduleReply, seed), 96);
+        assert_eq!(offset_of!(ScheduleReply, host_rank), 104);
+        assert_eq!(offset_of!(ScheduleReply, host_count), 108);
+        assert_eq!(offset_of!(ScheduleReply, keyframes), 112);
+        assert_eq!(offset_of!(ScheduleReply, plan_digest), 120);
+        assert_eq!(size_of::<ResumeReply>(), 48);
+        assert_eq!(offset_of!(ResumeReply, epoch), 32);
+        assert_eq!(size_of::<ResumeRequest>(), 40);
+        assert_eq!(
+            [
+                ResumeReply::NO_SUCH_STREAM,
+                ResumeReply::OUT_OF_RANGE,
+                ResumeReply::OTHER_JOB_SIZE,
+                ResumeReply::RUN_COMPLETE
+            ],
+            [1, 2, 3, 4]
+        );
+    }
+
+    /// The schedule reply of an earlier version (before the plan fields): a peer that
+    /// created the service with it is named, with what to do.
+    #[derive(Debug, Clone, Copy, Default, ZeroCopySend)]
+    #[type_name("superflow::ScheduleReply")]
+    #[repr(C)]
+    struct EarlierScheduleReply {
+        known: u32,
+        reserved: u32,
+        fields: [u64; 11],
+    }
+
+    #[test]
+    fn a_schedule_service_of_another_layout_is_named() {
+        use iceoryx2::prelude::*;
+        let prefix = format!("sfschedlayout{}", std::process::id());
+        let config = iceoryx2_config(Some(&prefix)).unwrap();
+        let node = NodeBuilder::new()
+            .config(&config)
+            .create::<ipc::Service>()
+            .unwrap();
+        let name = schedule_service("layout").unwrap();
+        let earlier = node
+            .service_builder(&name.as_str().try_into().unwrap())
+            .request_response::<ScheduleRequest, EarlierScheduleReply>()
+            .max_clients(qos::MAX_SUBSCRIBERS * 4)
+            .max_servers(qos::MAX_PUBLISHERS)
+            .max_nodes(qos::MAX_NODES * 2)
+            .open_or_create()
+            .unwrap();
+        let err = open_schedule_service(&node, "layout").unwrap_err();
+        assert!(matches!(err, ServiceSetupError::Schedule { .. }), "{err}");
+        let text = err.to_string();
+        assert!(
+            text.contains("opening the schedule service `superflow/layout/schedule`"),
+            "{text}"
+        );
+        assert!(
+            text.contains("another ScheduleReply layout: run the pipeline and every trainer"),
+            "{text}"
+        );
+        drop(earlier);
     }
 
     #[test]

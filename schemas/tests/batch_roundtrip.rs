@@ -3,8 +3,8 @@
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
 
 use superflow_schemas::batch::{
-    BATCH_FORMAT_VERSION, BatchError, BatchHeader, BatchLayout, BatchMeta, BatchView, BatchWriter,
-    DType, SectionId,
+    BATCH_FORMAT_VERSION, BATCH_LOST, BatchError, BatchHeader, BatchLayout, BatchMeta, BatchView,
+    BatchWriter, DType, SectionId,
 };
 
 /// 8-byte aligned storage, as iceoryx2 hands out.
@@ -248,7 +248,18 @@ fn malformed_batches_are_rejected_with_clear_errors() {
     let shifted: &mut [u8] = bytemuck::cast_slice_mut(&mut shifted);
     shifted[4..4 + payload.len()].copy_from_slice(payload);
     check(&|_| {}, &shifted[4..], "aligned to 4 bytes; 8 needed");
-    check(&|h| h.flags = 1, payload, "flags 0x1");
+    // Bits other than BATCH_LOST, and BATCH_LOST on a batch that holds something.
+    check(
+        &|h| h.flags = 2,
+        payload,
+        "flags 0x2 set; version 2 defines only BATCH_LOST",
+    );
+    check(&|h| h.flags = BATCH_LOST | 4, payload, "flags 0x5 set");
+    check(
+        &|h| h.flags = BATCH_LOST,
+        payload,
+        "a lost batch (flag BATCH_LOST) holds nothing, but this one declares 6 sections",
+    );
     check(&|h| h.run[0] = b'/', payload, "run name");
     check(&|h| h.run = [0; 64], payload, "empty");
     check(
@@ -298,4 +309,92 @@ fn random_header_corruption_never_panics() {
             }
         }
     }
+}
+
+/// A lost batch (every sample failed in the pipeline): its place in the stream and
+/// nothing else. Written by `BatchHeader::lost`, read with any payload slice (iceoryx2
+/// may hand out a few bytes), refused when it claims sections, samples or payload bytes.
+#[test]
+fn lost_batches_keep_their_place_and_hold_nothing() {
+    let meta = BatchMeta {
+        run: "lost".into(),
+        epoch: 2,
+        step: 5,
+        seed: 9,
+        sequence: 77,
+        created_unix_nanos: 1,
+        sample_count: 4, // ignored: a lost batch has none
+        flags: 0,
+    };
+    let header = BatchHeader::lost(&meta).unwrap();
+    assert_eq!(
+        (
+            header.flags,
+            header.section_count,
+            header.sample_count,
+            header.payload_len
+        ),
+        (BATCH_LOST, 0, 0, 0)
+    );
+    assert!(
+        header
+            .sections
+            .iter()
+            .all(|s| s.len_bytes == 0 && s.ndim == 0)
+    );
+    for payload in [&[][..], &[0u8; 8][..]] {
+        let view = BatchView::new(&header, payload).unwrap();
+        assert!(view.is_lost() && view.meta().lost());
+        let m = view.meta();
+        assert_eq!((m.epoch, m.step, m.seed, m.sequence), (2, 5, 9, 77));
+        assert_eq!(m.run, "lost");
+        assert_eq!(view.section_names().count(), 0);
+        assert!(matches!(
+            view.get::<u64>("sample_ids"),
+            Err(BatchError::Missing { .. })
+        ));
+    }
+    // An ordinary batch is not lost.
+    let example = example();
+    let mut store = storage(example.layout.payload_len());
+    let payload: &mut [u8] = bytemuck::cast_slice_mut(&mut store);
+    fill(&example, payload);
+    assert!(!BatchView::new(&example.header, payload).unwrap().is_lost());
+
+    let refused = |mutate: &dyn Fn(&mut BatchHeader)| {
+        let mut bad = header;
+        mutate(&mut bad);
+        BatchView::new(&bad, &[0u8; 64]).unwrap_err()
+    };
+    for err in [
+        refused(&|h| h.sample_count = 1),
+        refused(&|h| h.payload_len = 8),
+        refused(&|h| h.section_count = 1),
+    ] {
+        assert!(matches!(err, BatchError::LostWithContent { .. }), "{err}");
+    }
+    // The writer refuses the flag on a layout that holds something, and unknown flags.
+    let mut layout = BatchLayout::new();
+    layout.add::<u8>("x", &[1]).unwrap();
+    let lost_meta = BatchMeta {
+        flags: BATCH_LOST,
+        sample_count: 0,
+        ..meta.clone()
+    };
+    assert!(matches!(
+        layout.header(&lost_meta),
+        Err(BatchError::LostWithContent { sections: 1, .. })
+    ));
+    assert!(matches!(
+        BatchLayout::new().header(&BatchMeta {
+            sample_count: 1,
+            ..lost_meta.clone()
+        }),
+        Err(BatchError::LostWithContent { samples: 1, .. })
+    ));
+    assert!(matches!(
+        BatchLayout::new().header(&BatchMeta { flags: 2, ..meta }),
+        Err(BatchError::Flags { found: 2 })
+    ));
+    assert!(BatchLayout::new().header(&lost_meta).is_ok());
 }

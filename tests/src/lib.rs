@@ -185,3 +185,36 @@ pub fn workspace_binary(sibling: &str, name: &str) -> PathBuf {
     }
     path
 }
+
+/// Both sample drives copied into `dir`, beside a pipeline configuration that reopens a
+/// file at every read (`max_open_files = 1`) and keeps no index cache: the drives and
+/// the configuration file. [`truncate_drives`] then breaks them under a running service.
+pub fn replaceable_drives(dir: &std::path::Path) -> anyhow::Result<(Vec<PathBuf>, PathBuf)> {
+    std::fs::create_dir_all(dir)?;
+    let mut drives = Vec::new();
+    for name in ["street_ros2.mcap", "street_foxglove.mcap"] {
+        let to = dir.join(name);
+        std::fs::copy(workspace_root().join("recordings/drives").join(name), &to)
+            .with_context(|| format!("copying {name}"))?;
+        drives.push(to);
+    }
+    let config = dir.join("pipeline.toml");
+    std::fs::write(
+        &config,
+        "[ingest]\nmax_open_files = 1\nindex_cache = \"off\"\n",
+    )?;
+    Ok((drives, config))
+}
+
+/// Replaces each drive by a copy of its first half, written aside and renamed over it (a
+/// new inode, as a dataset re-sync writes files): samples read from them from then on
+/// fail, unless the pipeline still holds their data.
+pub fn truncate_drives(drives: &[PathBuf]) -> anyhow::Result<()> {
+    for drive in drives {
+        let bytes = std::fs::read(drive)?;
+        let fresh = drive.with_extension("new");
+        std::fs::write(&fresh, &bytes[..bytes.len() / 2])?;
+        std::fs::rename(&fresh, drive)?;
+    }
+    Ok(())
+}

@@ -9,7 +9,10 @@
 //!   ranks at every step, different from a run without `--ddp`, both ranks ending
 //!   together at the end of the stream (asked for more steps than it holds); a rank SIGKILLed
 //!   mid-epoch ends the job, and the job restarted with `--resume` continues both ranks
-//!   from the checkpoint with every keyframe trained exactly once per epoch.
+//!   from the checkpoint with every keyframe trained exactly once per epoch; the finished
+//!   job requeued with `--resume` is told the run is complete and succeeds on every rank;
+//!   batches lost in the pipeline keep the ranks in step (a rank with a lost batch adds
+//!   no gradient, a position lost on every rank is no step).
 //!
 //! The toy and hang tests run this test binary itself under `mpirun` (an ignored worker
 //! test, selected by `SUPERFLOW_DDP_WORKER`).
@@ -438,6 +441,33 @@ fn two_ranks_hold_the_same_model_at_every_step_and_differ_from_one_rank_alone() 
         "both ranks end with the stream, together: {stderr}"
     );
 
+    // The finished job requeued: every rank is told the run is complete, and the job
+    // succeeds without a step.
+    let p = prefix("tworanks-done");
+    let pipe = shard_pipeline(&p, "ddp", 2);
+    let (ok, stdout, stderr) = finish(
+        trainer(
+            Some(mpirun(2)),
+            &p,
+            "ddp",
+            ASKED,
+            &out,
+            &["--ddp", "--resume"],
+        ),
+        LIMIT,
+    );
+    assert!(ok, "{stdout}\n{stderr}");
+    assert_eq!(
+        stderr
+            .matches("the run is complete (2 epochs): nothing left to train")
+            .count(),
+        2,
+        "{stderr}"
+    );
+    send_signal(&pipe, "-TERM");
+    let _ = finish(pipe, LIMIT);
+    no_shared_memory_left(&p);
+
     // The same 2 shards trained by 2 independent trainers (no --ddp): what a skipped
     // all-reduce would give.
     let p = prefix("onerank");
@@ -650,4 +680,113 @@ fn a_job_of_two_ranks_resumed_on_three_trains_every_keyframe_once() {
         "a sample trained twice: {seen:?}"
     );
     let _ = std::fs::remove_dir_all(&out);
+}
+
+/// 2 `--ddp` ranks on a pipeline whose drives are replaced by truncated copies after its
+/// first batch was built (it reopens its files for every read): most batches built from
+/// then on are lost, on both shards. At a position where one rank's batch is lost it
+/// takes part in the all-reduce with no gradient; where every rank's is, no rank steps.
+/// The replicas stay equal, the samples trained are exactly those of the batches not
+/// lost, and both ranks end with the stream, together.
+#[test]
+fn lost_batches_keep_the_ranks_in_step_and_the_stream_ends() {
+    const ASKED: u64 = 20;
+    // 12 keyframes of both sample drives, 6 per rank, one epoch.
+    const POSITIONS: usize = 6;
+    let p = prefix("ddplost");
+    let out = temp_dir("lost");
+    let dir = temp_dir("lost-drives");
+    let (drives, config) = superflow_tests::replaceable_drives(&dir).unwrap();
+    let (first, second, config) = (
+        drives[0].to_str().unwrap(),
+        drives[1].to_str().unwrap(),
+        config.to_str().unwrap(),
+    );
+    let args = [
+        "--mcap",
+        second,
+        "--config",
+        config,
+        "--mode",
+        "shard",
+        "--world-size",
+        "2",
+        "--batch-size",
+        "1",
+        "--epochs",
+        "1",
+    ];
+    let mut pipe = pipeline(
+        env!("CARGO_BIN_EXE_superflow-subscriber"),
+        first,
+        &p,
+        "ddplost",
+        &args,
+    );
+    let rx = lines_of(pipe.stderr.take().unwrap());
+    let mut pipe_log = String::new();
+    while !pipe_log.contains("waiting for subscribers") {
+        let line = rx
+            .recv_timeout(LIMIT)
+            .unwrap_or_else(|_| panic!("the pipeline starts:\n{pipe_log}"));
+        pipe_log.push_str(&line);
+        pipe_log.push('\n');
+    }
+    superflow_tests::truncate_drives(&drives).unwrap();
+    let (ok, stdout, stderr) = finish(
+        trainer(Some(mpirun(2)), &p, "ddplost", ASKED, &out, &["--ddp"]),
+        LIMIT,
+    );
+    assert!(ok, "{stdout}\n{stderr}");
+    let (ok, _, _) = finish(pipe, LIMIT);
+    while let Ok(line) = rx.recv_timeout(Duration::from_secs(2)) {
+        pipe_log.push_str(&line);
+        pipe_log.push('\n');
+    }
+    assert!(ok, "the pipeline ends once the job left: {pipe_log}");
+    no_shared_memory_left(&p);
+
+    let lost = stderr
+        .matches("batch lost: every sample failed in the pipeline")
+        .count();
+    assert_eq!(
+        pipe_log.matches("batch lost: all").count(),
+        lost,
+        "every lost batch reached its rank:\n{pipe_log}\n{stderr}"
+    );
+    assert!(lost > 0, "{stderr}");
+    let ranks = [rank_records(&out, 0), rank_records(&out, 1)];
+    let steps = ranks[0].len();
+    assert_eq!(ranks[1].len(), steps, "both ranks took every step");
+    assert!((1..=POSITIONS).contains(&steps), "{steps} steps: {stderr}");
+    let mut samples = 0;
+    for (step, a) in &ranks[0] {
+        let b = &ranks[1][step];
+        assert_eq!(
+            a.params_hash, b.params_hash,
+            "step {step}: the replicas differ"
+        );
+        assert_eq!((a.epoch, a.batch), (b.epoch, b.batch), "step {step}");
+        let global = a.ddp.as_ref().unwrap().samples;
+        assert!(global >= 1, "step {step}: a step without a sample");
+        assert_eq!(global, a.samples + b.samples, "step {step}");
+        assert!(a.loss.is_finite() && b.loss.is_finite());
+        samples += global;
+    }
+    // Each of the 12 batches is either trained (1 sample) or lost.
+    assert_eq!(samples + lost, 2 * POSITIONS, "{stderr}");
+    // Which samples still build depends on what the pipeline's chunk caches hold: say
+    // which paths this run took (in practice both: positions with one rank's batch lost,
+    // and positions lost on both ranks, which are no step).
+    let alone = ranks[0]
+        .values()
+        .filter(|r| r.ddp.as_ref().unwrap().samples == 1);
+    eprintln!(
+        "{steps} steps ({} with one rank's batch lost), {lost} batches lost",
+        alone.count()
+    );
+    let asked = format!("trained {steps} of the {ASKED} steps asked");
+    assert_eq!(stderr.matches(&asked).count(), 2, "{stderr}");
+    let _ = std::fs::remove_dir_all(&out);
+    let _ = std::fs::remove_dir_all(&dir);
 }

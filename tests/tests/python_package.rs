@@ -238,7 +238,7 @@ fn python_resume_replays_the_following_batches_bit_identically() {
         out[1]["message"]
             .as_str()
             .unwrap()
-            .contains("past the end of the configured epochs"),
+            .contains("the run is complete (1 epochs)"),
         "{out:?}"
     );
     stop(pipe);
@@ -698,4 +698,355 @@ fn python_iteration_times_out_when_the_pipeline_dies_for_good() {
     assert!(err.contains("PipelineTimeout"), "{err}");
     assert!(err.contains("no pipeline publishes on it"), "{err}");
     assert!(err.contains("superflow/pydead/batches"), "{err}");
+}
+
+/// The PyTorch habit of normalising and augmenting in place (`images.sub_`,
+/// `points.mul_`, `x[:, :3] -= c`, a flip by `neg_`, numpy `*=`): each works on the
+/// batch's own tensors, copies only the pages it writes (the batch is a copy-on-write
+/// mapping of the shared memory), and another reader of the same batch sees the
+/// pipeline's bytes, unchanged.
+#[test]
+fn python_in_place_ops_on_batch_tensors_change_only_this_process() {
+    let p = prefix("pyinplace");
+    let python = scenario(&p, &["in_place", "--run", "pyinplace"], &[]);
+    let rust = process::subscriber(
+        env!("CARGO_BIN_EXE_superflow-subscriber"),
+        &p,
+        "pyinplace",
+        &["--count", "2", "--sections"],
+    );
+    let pipe = pipeline(
+        &p,
+        "pyinplace",
+        &["--batch-size", "2", "--epochs", "1", "--subscribers", "2"],
+    );
+    let py = succeeded(python);
+    let got = &py[0];
+    for (check, ok) in got["checks"].as_object().unwrap() {
+        assert_eq!(ok, true, "{check}: {got}");
+    }
+    assert_eq!(got["returned"], true, "{got}");
+    let (ok, rust_out, err) = finish(rust, LIMIT);
+    assert!(ok, "{err}");
+    let theirs = json_lines(&rust_out)
+        .into_iter()
+        .find(|v| v["sequence"] == got["sequence"])
+        .expect("the Rust reader got the same batch");
+    for (name, section) in theirs["sections"].as_object().unwrap() {
+        assert_eq!(got["pristine"][name], section["checksum"], "section {name}");
+    }
+    let (ok, _, err) = finish(pipe, LIMIT);
+    assert!(ok, "{err}");
+    no_shared_memory_left(&p);
+}
+
+/// `DataLoader(TorchIterable(stream), batch_size=None, num_workers=N)`: 2 and 4 forked
+/// workers raise `WorkersUnsupported` in the training process, spawn and forkserver
+/// `StreamNotPicklable`, each saying to use `num_workers=0`; the same stream then gives
+/// the whole epoch with `num_workers=0` and `pin_memory=True`, every batch once.
+#[test]
+fn python_data_loader_workers_get_a_clear_error_and_lose_nothing() {
+    let p = prefix("pyworkers");
+    let python = scenario(&p, &["workers", "--run", "pyworkers"], &[]);
+    let pipe = pipeline(&p, "pyworkers", &["--batch-size", "1", "--epochs", "1"]);
+    let out = succeeded(python);
+    let got = &out[0];
+    let unsupported = serde_json::json!(["WorkersUnsupported", true]);
+    let unpicklable = serde_json::json!(["StreamNotPicklable", true]);
+    assert_eq!(got["outcomes"]["2 fork"], unsupported, "{got}");
+    assert_eq!(got["outcomes"]["4 fork"], unsupported, "{got}");
+    assert_eq!(got["outcomes"]["2 spawn"], unpicklable, "{got}");
+    assert_eq!(got["outcomes"]["2 forkserver"], unpicklable, "{got}");
+    assert_eq!(
+        got["outcomes"]["pickle"],
+        serde_json::json!(["StreamNotPicklable", true, true])
+    );
+    assert_eq!(got["len"], KEYFRAMES, "{got}");
+    assert_eq!(got["batches"], KEYFRAMES, "{got}");
+    assert_eq!(
+        got["samples"],
+        serde_json::json!((0..KEYFRAMES).collect::<Vec<_>>())
+    );
+    let (ok, _, err) = finish(pipe, LIMIT);
+    assert!(ok, "{err}");
+    no_shared_memory_left(&p);
+}
+
+/// A free TCP port on this machine for a torch.distributed rendezvous.
+fn free_port() -> String {
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    listener.local_addr().unwrap().port().to_string()
+}
+
+/// The ranks of `torchrun --nnodes 2 --nproc-per-node 2`, simulated on one machine: each
+/// node runs its own pipeline (`--host-rank h --host-count 2`, its own iceoryx2 prefix),
+/// each rank has torchrun's environment (`RANK`, `LOCAL_RANK`, `WORLD_SIZE`,
+/// `LOCAL_WORLD_SIZE`, `GROUP_RANK`). Returns every rank's JSON line and whether the
+/// pipelines ended well. `host_config`: a configuration file per host, if any.
+fn two_node_job(test: &str, host_config: [Option<&str>; 2]) -> Vec<Value> {
+    let port = free_port();
+    let prefixes = [prefix(&format!("{test}0")), prefix(&format!("{test}1"))];
+    let readers: Vec<Proc> = (0..4usize)
+        .map(|r| {
+            let (rank, local, node) = (r.to_string(), (r % 2).to_string(), (r / 2).to_string());
+            let env = [
+                ("RANK", rank.as_str()),
+                ("LOCAL_RANK", local.as_str()),
+                ("GROUP_RANK", node.as_str()),
+                ("WORLD_SIZE", "4"),
+                ("LOCAL_WORLD_SIZE", "2"),
+                ("MASTER_ADDR", "127.0.0.1"),
+                ("MASTER_PORT", port.as_str()),
+            ];
+            scenario(&prefixes[r / 2], &["hosts", "--run", test], &env)
+        })
+        .collect();
+    let pipes: Vec<Proc> = (0..2usize)
+        .map(|h| {
+            let host = h.to_string();
+            let mut args = vec![
+                "--world-size",
+                "2",
+                "--host-rank",
+                host.as_str(),
+                "--host-count",
+                "2",
+                "--batch-size",
+                "1",
+                "--epochs",
+                "1",
+            ];
+            if let Some(config) = host_config[h] {
+                args.extend(["--config", config]);
+            }
+            pipeline(&prefixes[h], test, &args)
+        })
+        .collect();
+    let out: Vec<Value> = readers
+        .into_iter()
+        .map(|r| succeeded(r).remove(0))
+        .collect();
+    for pipe in pipes {
+        stop(pipe);
+    }
+    for p in &prefixes {
+        no_shared_memory_left(p);
+    }
+    out
+}
+
+/// Multi-node torchrun with one pipeline per node: a rank finds its node's stream by
+/// `LOCAL_RANK` (not the global `RANK`, which names no stream of its node's pipeline),
+/// every rank is checked to be served the same plan, and the four ranks of the two
+/// nodes cover the epoch's keyframes once.
+#[test]
+fn python_multi_node_torchrun_ranks_find_their_node_stream() {
+    let out = two_node_job("pynodes", [None, None]);
+    let mut samples: Vec<u64> = Vec::new();
+    for (r, got) in out.iter().enumerate() {
+        assert_eq!(got["rank"], r, "{got}");
+        assert_eq!(
+            got["service"],
+            format!("superflow/pynodes/rank/{}", r % 2),
+            "{got}"
+        );
+        assert_eq!(got["source"], "LOCAL_RANK/LOCAL_WORLD_SIZE", "{got}");
+        assert_eq!(got["plan"], out[0]["plan"], "{got}");
+        assert_eq!(got["plan"]["host_count"], 2, "{got}");
+        assert_eq!(got["plan"]["keyframes"], KEYFRAMES, "{got}");
+        samples.extend(
+            got["samples"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|s| s[1].as_u64().unwrap()),
+        );
+    }
+    samples.sort_unstable();
+    assert_eq!(samples, (0..KEYFRAMES).collect::<Vec<_>>(), "{out:?}");
+}
+
+/// Two nodes whose pipelines were given other seeds: every rank's plan check fails,
+/// naming the seed.
+#[test]
+fn python_multi_node_plans_that_differ_are_refused() {
+    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("pyplans");
+    std::fs::create_dir_all(&dir).unwrap();
+    let config = dir.join("seed7.toml");
+    std::fs::write(&config, "[sample]\nseed = 7\n").unwrap();
+    let out = two_node_job("pyplans", [None, Some(config.to_str().unwrap())]);
+    for got in &out {
+        let message = got["mismatch"].as_str().unwrap_or_else(|| panic!("{got}"));
+        assert!(message.contains("seed 7 vs 0"), "{message}");
+    }
+}
+
+/// Both drives replaced on disk by truncated copies while the service runs, as a
+/// dataset re-sync gone wrong does: later samples fail, and the batches they leave empty
+/// are still announced (`batch.lost`, no sections, `{}` from `torch()`), so every epoch
+/// yields `len(stream.epoch())` batches and the stream ends.
+#[test]
+fn python_epochs_with_lost_batches_still_end() {
+    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("pylost");
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let (drives, config) = superflow_tests::replaceable_drives(&dir).unwrap();
+    let signal = dir.join("replaced");
+    let p = prefix("pylost");
+    let mut reader = scenario(
+        &p,
+        &[
+            "lost",
+            "--run",
+            "pylost",
+            "--signal",
+            signal.to_str().unwrap(),
+        ],
+        &[],
+    );
+    let rx = process::lines_of(reader.stdout.take().unwrap());
+    let mcap: Vec<&str> = drives.iter().map(|d| d.to_str().unwrap()).collect();
+    let pipe = process::pipeline(
+        env!("CARGO_BIN_EXE_superflow-subscriber"),
+        mcap[0],
+        &p,
+        "pylost",
+        &[
+            "--mcap",
+            mcap[1],
+            "--config",
+            config.to_str().unwrap(),
+            "--batch-size",
+            "1",
+            "--epochs",
+            "2",
+        ],
+    );
+    let paused = rx.recv_timeout(LIMIT).expect("the reader's first line");
+    assert!(paused.contains("paused"), "{paused}");
+    superflow_tests::truncate_drives(&drives).unwrap();
+    std::fs::write(&signal, b"").unwrap();
+    let (ok, _, err) = finish(reader, LIMIT);
+    assert!(ok, "{err}");
+    let last = rx.recv_timeout(Duration::from_secs(5)).unwrap();
+    let got: Value = serde_json::from_str(&last).unwrap();
+    let length = got["len"].as_u64().unwrap();
+    assert_eq!(length, 2 * KEYFRAMES, "{got}");
+    assert_eq!(got["ended"], true, "{got}");
+    let epochs = got["epochs"].as_array().unwrap();
+    assert_eq!(epochs.len(), 2, "{got}");
+    let mut lost = 0;
+    for epoch in epochs {
+        let steps: Vec<u64> = epoch
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|b| b["step"].as_u64().unwrap())
+            .collect();
+        assert_eq!(steps, (0..length).collect::<Vec<_>>(), "{got}");
+        for b in epoch.as_array().unwrap() {
+            if b["lost"] == true {
+                lost += 1;
+                assert_eq!(
+                    (&b["samples"], &b["tensors"]),
+                    (&0.into(), &0.into()),
+                    "{b}"
+                );
+            } else {
+                assert_eq!(b["samples"], 1, "{b}");
+            }
+        }
+    }
+    // Samples whose chunks the pipeline still holds decoded, or that lie in the first
+    // half of a file, may still build: some batches are lost, which ones varies.
+    assert!(lost > 0, "{got}");
+    let (ok, _, err) = finish(pipe, LIMIT);
+    assert!(ok, "{err}");
+    assert!(err.contains("lost"), "{err}");
+    no_shared_memory_left(&p);
+}
+
+/// `stream.close()` while views of its batch are alive: the views keep their bytes and
+/// the pipeline stops counting the subscriber at once, so another subscriber of the
+/// same broadcast stream reads the whole epoch while the first process still holds its
+/// views.
+#[test]
+fn python_close_with_live_views_leaves_the_publisher_at_once() {
+    let p = prefix("pyclose");
+    let holder = scenario(
+        &p,
+        &["close_live", "--run", "pyclose", "--keep", "--count", "40"],
+        &[],
+    );
+    let other = scenario(&p, &["close_live", "--run", "pyclose"], &[]);
+    let pipe = pipeline(
+        &p,
+        "pyclose",
+        &["--batch-size", "1", "--epochs", "1", "--subscribers", "2"],
+    );
+    let out = succeeded(other);
+    assert_eq!(
+        out[0]["steps"],
+        serde_json::json!((0..KEYFRAMES).collect::<Vec<_>>())
+    );
+    let mut holder = holder;
+    assert!(
+        holder.try_wait().unwrap().is_none(),
+        "the other subscriber finished only once the holder was gone"
+    );
+    let out = succeeded(holder);
+    for (check, ok) in out[0]["checks"].as_object().unwrap() {
+        assert_eq!(ok, true, "{check}: {}", out[0]);
+    }
+    let (ok, _, err) = finish(pipe, LIMIT);
+    assert!(ok, "{err}");
+    no_shared_memory_left(&p);
+}
+
+/// A publisher without a schedule service (the stream's own, as in the malformed test):
+/// `len(stream.epoch())` and `stream.epoch()` raise `ScheduleUnavailable` within seconds
+/// instead of waiting forever; the batch itself is still read.
+#[test]
+fn python_epochs_without_a_schedule_service_raise_a_typed_error() {
+    let p = prefix("pynosched");
+    let out = succeeded(scenario(&p, &["no_schedule", "--run", "pynosched"], &[]));
+    let got = &out[0];
+    for what in ["len", "epoch"] {
+        assert_eq!(got[what]["error"], "ScheduleUnavailable", "{got}");
+        assert_eq!(got[what]["named"], true, "{got}");
+        let seconds = got[what]["seconds"].as_f64().unwrap();
+        assert!((4.0..15.0).contains(&seconds), "{got}");
+    }
+    assert_eq!(
+        got["batch"],
+        serde_json::json!([0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0])
+    );
+    no_shared_memory_left(&p);
+}
+
+/// A final checkpoint resumed: at the end of the last epoch (by step, by epoch, by a
+/// `state_dict`) the pipeline says the run is complete (`RunComplete`), and the last
+/// batch itself can still be asked for.
+#[test]
+fn python_resume_past_the_end_says_the_run_is_complete() {
+    let p = prefix("pypastend");
+    let python = scenario(&p, &["past_end", "--run", "pypastend"], &[]);
+    let pipe = pipeline(&p, "pypastend", &["--batch-size", "1", "--epochs", "1"]);
+    let out = succeeded(python);
+    let got = &out[0];
+    assert_eq!(
+        got["steps"],
+        serde_json::json!((0..KEYFRAMES).collect::<Vec<_>>())
+    );
+    for what in ["step", "epoch", "state"] {
+        assert_eq!(got[what]["epochs"], 1, "{what}: {got}");
+        let message = got[what]["message"].as_str().unwrap();
+        assert!(
+            message.contains("the run is complete (1 epochs)"),
+            "{message}"
+        );
+    }
+    assert_eq!(got["last again"], KEYFRAMES - 1, "{got}");
+    stop(pipe);
+    no_shared_memory_left(&p);
 }

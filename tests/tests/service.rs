@@ -1,7 +1,8 @@
 //! The real `superflow-pipeline` streaming to `superflow-subscriber` processes over
 //! iceoryx2 (each test with its own run name and iceoryx2 prefix, so tests run in
 //! parallel): shard accounting, broadcast identity, backpressure without loss, a
-//! SIGKILLed subscriber cleaned up, resume at a position.
+//! SIGKILLed subscriber cleaned up, resume at a position, and a resume past the last
+//! epoch told as the run being complete.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
 
@@ -283,6 +284,49 @@ fn resuming_at_a_position_replays_exactly_the_following_batches() {
     assert_eq!(first["hash"], got[2]["hash"]);
     no_shared_memory_left(&p);
     no_shared_memory_left(&p2);
+}
+
+/// A resume at the end of the last epoch (by step or by sample) or past it is refused
+/// as the run being complete (reason 4, the reply's epoch the run's epochs); a step
+/// beyond an epoch's end is still a position that does not exist (reason 2).
+#[test]
+fn a_resume_past_the_last_epoch_is_run_complete() {
+    let p = prefix("complete");
+    // A subscriber that never reads keeps the pipeline serving (it would end once its
+    // one epoch is published and its subscribers gone).
+    let mut holder = subscriber(&p, "complete", &["--count", "1", "--stall-after", "0"]);
+    // 6 keyframes in batches of 2: 3 steps, one epoch.
+    let pipe = pipeline(&p, "complete", &["--batch-size", "2", "--epochs", "1"]);
+    for (ask, expected) in [
+        (
+            ["--resume", "0", "3"],
+            "\"accepted\":0,\"reason\":4,\"at\":[1,0]",
+        ),
+        (
+            ["--resume-sample", "0", "6"],
+            "\"accepted\":0,\"reason\":4,\"at\":[1,0]",
+        ),
+        (
+            ["--resume", "4", "0"],
+            "\"accepted\":0,\"reason\":4,\"at\":[1,0]",
+        ),
+        (["--resume", "0", "4"], "\"accepted\":0,\"reason\":2"),
+        (
+            ["--resume", "0", "2"],
+            "\"accepted\":1,\"reason\":0,\"at\":[0,2]",
+        ),
+    ] {
+        let args: Vec<&str> = ask.iter().copied().chain(["--count", "0"]).collect();
+        let (ok, out, err) = finish(subscriber(&p, "complete", &args), LIMIT);
+        assert!(ok, "{ask:?}: {err}");
+        assert!(out.contains(expected), "{ask:?}: {out}");
+    }
+    holder.kill().unwrap();
+    let _ = holder.wait();
+    send_signal(&pipe, "-TERM");
+    let (ok, _, err) = finish(pipe, LIMIT);
+    assert!(ok, "{err}");
+    no_shared_memory_left(&p);
 }
 
 /// A pipeline killed with SIGKILL mid-epoch: the subscriber waits; a new pipeline comes

@@ -2,7 +2,9 @@
 //! the sample drive: the loss goes down, checkpoints are written, and a trainer killed
 //! after a checkpoint and restarted with `--resume` continues with the same batches and
 //! the same losses as an uninterrupted run; a trainer asked for more steps than the
-//! stream has ends at the end of the stream; `superflow-trainer probe` of the trained
+//! stream has ends at the end of the stream, and `--resume` of that finished run ends at
+//! once, successfully; batches lost in the pipeline (every sample failed) are counted
+//! without a step and the stream still ends; `superflow-trainer probe` of the trained
 //! checkpoint and of an untrained network on the drives' labels (linear and fine-tuned)
 //! prints its JSON report. `superflow-trainer check` (the backend
 //! comparison `deploy/gpu/check.sh` runs on a GPU) on a batch file from
@@ -303,7 +305,110 @@ fn the_trainer_ends_at_the_end_of_the_stream_saying_how_many_steps_it_trained() 
     let (ok, _, err) = finish(pipe, LIMIT);
     assert!(ok, "the pipeline ends once the trainer left: {err}");
     no_shared_memory_left(&p);
+
+    // The job requeued: the same pipeline again, the trainer with --resume. Its
+    // checkpoint is at the end of the last epoch: the run is complete, it says so and
+    // succeeds without a step, leaving the metrics as they were.
+    let p = prefix("ends-again");
+    let pipe = spawn(
+        Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-subscriber")))
+            .args(["--mcap", DRIVE, "--run", "ends", "--batch-size", "1"])
+            .args(["--epochs", "1"])
+            .env("SUPERFLOW_IOX_PREFIX", &p)
+            .env("RUST_LOG", "warn")
+            .current_dir(workspace_root())
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped()),
+    );
+    let (ok, _, err) = finish(trainer(&p, "ends", &out, &["--resume"]), LIMIT);
+    assert!(ok, "a finished run's resume is not a failure: {err}");
+    assert!(
+        err.contains("the run is complete (1 epochs): nothing left to train"),
+        "{err}"
+    );
+    assert!(!err.contains("done training"), "no step: {err}");
+    assert_eq!(metrics::read(&out.join("metrics.jsonl")).unwrap().len(), 6);
+    send_signal(&pipe, "-TERM");
+    let (ok, _, err) = finish(pipe, LIMIT);
+    assert!(ok, "{err}");
+    no_shared_memory_left(&p);
     let _ = std::fs::remove_dir_all(&out);
+}
+
+/// Both sample drives, copied into `dir`, replaced by truncated copies (a dataset re-sync
+/// gone wrong) while a pipeline serves them: the pipeline reopens its files for every
+/// read (`max_open_files = 1`, no index cache), so the samples it builds from then on
+/// fail (unless its chunk caches still hold their data), and batches of nothing but
+/// failed samples go out lost. The trainer counts each lost batch without a
+/// step and says so, and the stream ends as usual: it does not wait for batches that
+/// never come.
+#[test]
+fn lost_batches_are_counted_without_a_step_and_the_stream_still_ends() {
+    let p = prefix("lost");
+    let out = temp_dir("train-lost");
+    let dir = temp_dir("train-lost-drives");
+    let (drives, config) = superflow_tests::replaceable_drives(&dir).unwrap();
+    let mut pipe = spawn(
+        Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-subscriber")))
+            .arg("--mcap")
+            .arg(&drives[0])
+            .arg("--mcap")
+            .arg(&drives[1])
+            .arg("--config")
+            .arg(&config)
+            .args(["--run", "lost", "--batch-size", "1", "--epochs", "2"])
+            .env("SUPERFLOW_IOX_PREFIX", &p)
+            .env("RUST_LOG", "info")
+            .current_dir(workspace_root())
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped()),
+    );
+    // Its first batch is built (it waits for a subscriber to publish it): replace the
+    // drives before the trainer comes.
+    let rx = lines_of(pipe.stderr.take().unwrap());
+    let mut pipe_log = String::new();
+    while !pipe_log.contains("waiting for subscribers") {
+        let line = rx
+            .recv_timeout(LIMIT)
+            .unwrap_or_else(|_| panic!("the pipeline starts:\n{pipe_log}"));
+        pipe_log.push_str(&line);
+        pipe_log.push('\n');
+    }
+    superflow_tests::truncate_drives(&drives).unwrap();
+    // 2 epochs of the drives' 12 keyframes: 24 batches, fewer steps.
+    let (ok, _, err) = finish(trainer(&p, "lost", &out, &[]), LIMIT);
+    assert!(ok, "{err}");
+    let lost = err
+        .matches("batch lost: every sample failed in the pipeline")
+        .count();
+    let trained = metrics::read(&out.join("metrics.jsonl")).unwrap();
+    // Which samples still build depends on what the pipeline's chunk caches hold.
+    assert!(lost > 0, "{err}");
+    assert!(
+        !trained.is_empty(),
+        "the first batch was built before: {err}"
+    );
+    assert_eq!(trained.len() + lost, 24, "{err}");
+    assert!(
+        err.contains(&format!("trained {} of the 24 steps asked", trained.len())),
+        "the stream ended: {err}"
+    );
+    let steps: Vec<u64> = trained.iter().map(|r| r.step).collect();
+    assert_eq!(steps, (1..=trained.len() as u64).collect::<Vec<_>>());
+    let (ok, _, _) = finish(pipe, LIMIT);
+    while let Ok(line) = rx.recv_timeout(Duration::from_secs(2)) {
+        pipe_log.push_str(&line);
+        pipe_log.push('\n');
+    }
+    assert!(ok, "the pipeline ends once the trainer left: {pipe_log}");
+    assert_eq!(
+        pipe_log.matches("batch lost: all").count(),
+        lost,
+        "one error per lost batch: {pipe_log}"
+    );
+    no_shared_memory_left(&p);
+    let _ = std::fs::remove_dir_all(&out);
+    let _ = std::fs::remove_dir_all(&dir);
 }
 
 /// `dir/batch.bin`: a batch of `samples` samples of the sample drive, written by

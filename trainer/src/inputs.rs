@@ -102,6 +102,12 @@ impl StepInputs {
             epoch: view.meta().epoch,
             step: view.meta().step,
         };
+        if view.is_lost() {
+            return Err(at.invalid(
+                "the batch is lost (BATCH_LOST): every sample failed in the pipeline, there is nothing to train on"
+                    .to_string(),
+            ));
+        }
         let (geometry, images) = Geometry::read(view, at)?;
         let (plan, pairing_point) = loss_plan(view, &geometry, pixel_stride, device)?;
         let Geometry { n_images, h, w, .. } = geometry;
@@ -458,6 +464,27 @@ mod tests {
         assert!(
             err.to_string()
                 .starts_with("batch 3/7: l2_nbr: pair (4294967295, "),
+            "{err}"
+        );
+    }
+
+    /// A lost batch is refused by name, not as a missing section.
+    #[test]
+    fn a_lost_batch_is_not_trained_on() {
+        let meta = BatchMeta {
+            run: "inputs".into(),
+            epoch: 1,
+            step: 4,
+            ..Default::default()
+        };
+        let header = BatchHeader::lost(&meta).unwrap();
+        let view = BatchView::new(&header, &[]).unwrap();
+        let device = Device::flex();
+        let err = StepInputs::from_view(&view, &device, &device, 4).unwrap_err();
+        assert!(matches!(err, InputError::Invalid { .. }), "{err:?}");
+        assert!(
+            err.to_string()
+                .starts_with("batch 1/4: the batch is lost (BATCH_LOST)"),
             "{err}"
         );
     }

@@ -162,6 +162,9 @@ impl StreamTracker {
 pub enum RankState {
     /// It holds the batch at this position.
     At(StreamPosition),
+    /// It holds a lost batch at this position (every sample failed in the pipeline): it
+    /// counts as that position, with no gradient of its own.
+    Lost(StreamPosition),
     /// Its stream ended (the pipeline's last epoch is through for its shard).
     Ended,
     /// It caught a stop signal.
@@ -174,18 +177,175 @@ pub enum RankState {
 /// theirs: shards differ by at most one batch, more often after a job resumed on another
 /// number of ranks) keep it for a later step, and ranks whose stream ended wait for the
 /// others' last batches; neither adds a gradient to this step, so no sample is dropped or
-/// repeated.
+/// repeated. A lost batch holds its position like any other.
 pub fn agree(ranks: &[RankState]) -> Option<StreamPosition> {
     if ranks.contains(&RankState::Stopping) {
         return None;
     }
-    ranks
-        .iter()
-        .filter_map(|r| match r {
-            RankState::At(at) => Some(*at),
+    ranks.iter().filter_map(|r| r.position()).min()
+}
+
+/// Whether some rank has samples to train on at `at` (a batch there that is not lost).
+/// When none has, the ranks at `at` only count their lost batches: no rank steps, so no
+/// update is made from nothing.
+pub fn trains_at(ranks: &[RankState], at: StreamPosition) -> bool {
+    ranks.contains(&RankState::At(at))
+}
+
+impl RankState {
+    /// The position of the batch it holds, lost or not.
+    pub fn position(self) -> Option<StreamPosition> {
+        match self {
+            RankState::At(at) | RankState::Lost(at) => Some(at),
+            RankState::Ended | RankState::Stopping => None,
+        }
+    }
+}
+
+/// The plan a rank's pipeline serves (the plan fields of its schedule): every rank of a
+/// data-parallel job must see the same, or the hosts' pipelines deal different epochs
+/// and their shares overlap or leave gaps without anyone noticing.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct PlanView {
+    /// Digest of what defines the samples (`ScheduleReply::plan_digest`).
+    pub plan_digest: u64,
+    /// The run's seed.
+    pub seed: u64,
+    /// Hosts whose pipelines share each epoch.
+    pub host_count: u64,
+    /// Distinct keyframes of the whole dataset.
+    pub keyframes: u64,
+    /// Samples per epoch, all hosts.
+    pub samples: u64,
+    /// Samples per step of the whole job.
+    pub global_batch: u64,
+    /// Epochs served (0: endless).
+    pub epochs: u64,
+}
+
+impl PlanView {
+    /// Numbers exchanged per rank by [`PlanView::to_words`].
+    pub const WORDS: usize = 8;
+
+    /// The plan a schedule names.
+    pub fn of(schedule: &superflow_schemas::service::ScheduleReply) -> Self {
+        Self {
+            plan_digest: schedule.plan_digest,
+            seed: schedule.seed,
+            host_count: u64::from(schedule.host_count),
+            keyframes: schedule.keyframes,
+            samples: schedule.samples,
+            global_batch: schedule.global_batch,
+            epochs: schedule.epochs,
+        }
+    }
+
+    /// The fields, with what they are called in messages.
+    fn fields(&self) -> [(&'static str, u64); 7] {
+        [
+            ("plan digest", self.plan_digest),
+            ("seed", self.seed),
+            ("host count", self.host_count),
+            ("keyframes", self.keyframes),
+            ("samples per epoch", self.samples),
+            ("samples per step", self.global_batch),
+            ("epochs", self.epochs),
+        ]
+    }
+
+    /// `plan` (`None`: not known yet) as words for an all-gather: a known-flag, then the
+    /// fields.
+    pub fn to_words(plan: Option<&Self>) -> [u64; Self::WORDS] {
+        let mut words = [0u64; Self::WORDS];
+        if let Some(plan) = plan {
+            words[0] = 1;
+            for (word, (_, value)) in words[1..].iter_mut().zip(plan.fields()) {
+                *word = value;
+            }
+        }
+        words
+    }
+
+    /// The plan of [`PlanView::to_words`]'s words (`None`: not known).
+    pub fn from_words(words: &[u64]) -> Option<Self> {
+        match *words {
+            [
+                1,
+                plan_digest,
+                seed,
+                host_count,
+                keyframes,
+                samples,
+                global_batch,
+                epochs,
+            ] => Some(Self {
+                plan_digest,
+                seed,
+                host_count,
+                keyframes,
+                samples,
+                global_batch,
+                epochs,
+            }),
             _ => None,
+        }
+    }
+}
+
+/// Ranks whose pipelines serve another plan than the first rank that knows one.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error(
+    "{} — every host's pipeline needs the same drives, seed and configuration",
+    differences.join("; ")
+)]
+pub struct PlanMismatch {
+    /// One line per differing rank, such as `rank 2's pipeline serves another plan:
+    /// keyframes 36 vs 48 on rank 0`.
+    pub differences: Vec<String>,
+}
+
+/// Checks that every rank that knows its pipeline's plan (`None`: not yet) knows the same
+/// one; the error names each differing rank and field, against the first rank that knows
+/// one.
+pub fn check_plans(plans: &[Option<PlanView>]) -> Result<(), PlanMismatch> {
+    let Some((first, reference)) = plans
+        .iter()
+        .enumerate()
+        .find_map(|(rank, plan)| plan.map(|p| (rank, p)))
+    else {
+        return Ok(());
+    };
+    let differences: Vec<String> = plans
+        .iter()
+        .enumerate()
+        .filter_map(|(rank, plan)| {
+            let plan = (*plan)?;
+            let fields: Vec<String> = plan
+                .fields()
+                .iter()
+                .zip(reference.fields())
+                .filter(|((_, mine), (_, theirs))| mine != theirs)
+                .map(|((name, mine), (_, theirs))| {
+                    if *name == "plan digest" {
+                        format!("{name} {mine:016x} vs {theirs:016x}")
+                    } else {
+                        format!("{name} {mine} vs {theirs}")
+                    }
+                })
+                .collect();
+            (!fields.is_empty()).then(|| {
+                format!(
+                    "rank {rank}'s pipeline serves another plan: {} on rank {first}",
+                    fields.join(", ")
+                )
+            })
         })
-        .min()
+        .collect();
+    if differences.is_empty() {
+        Ok(())
+    } else {
+        Err(PlanMismatch { differences })
+    }
 }
 
 #[cfg(test)]
@@ -321,5 +481,71 @@ mod tests {
         assert_eq!(agree(&[Ended, Ended]), None);
         assert_eq!(agree(&[Ended, Stopping, At(a)]), None);
         assert_eq!(agree(&[]), None);
+    }
+
+    #[test]
+    fn a_lost_batch_holds_its_position_without_training() {
+        use RankState::{At, Ended, Lost, Stopping};
+        let (a, b) = (at(0, 2), at(1, 0));
+        // A rank with a lost batch takes part at its position; the others train there.
+        assert_eq!(agree(&[Lost(a), At(a)]), Some(a));
+        assert!(trains_at(&[Lost(a), At(a)], a));
+        // Every rank's batch at the position is lost: nobody trains, all move on.
+        assert_eq!(agree(&[Lost(a), Lost(a), Ended]), Some(a));
+        assert!(!trains_at(&[Lost(a), Lost(a), Ended], a));
+        // A lost batch of an earlier position goes first; the later batch waits.
+        assert_eq!(agree(&[At(b), Lost(a)]), Some(a));
+        assert!(!trains_at(&[At(b), Lost(a)], a));
+        assert_eq!(agree(&[Lost(a), Stopping]), None);
+        assert_eq!(Lost(b).position(), Some(b));
+    }
+
+    fn plan(keyframes: u64, seed: u64) -> PlanView {
+        PlanView {
+            plan_digest: 0xAB,
+            seed,
+            host_count: 2,
+            keyframes,
+            samples: keyframes,
+            global_batch: 4,
+            epochs: 3,
+        }
+    }
+
+    #[test]
+    fn ranks_must_see_one_plan() {
+        let same = plan(48, 0);
+        assert_eq!(check_plans(&[Some(same), None, Some(same)]), Ok(()));
+        assert_eq!(check_plans(&[None, None]), Ok(()));
+        let err = check_plans(&[None, Some(same), Some(same), Some(plan(36, 7))])
+            .expect_err("rank 3 differs");
+        let text = err.to_string();
+        assert!(
+            text.contains(
+                "rank 3's pipeline serves another plan: seed 7 vs 0, keyframes 36 vs 48, samples per epoch 36 vs 48 on rank 1"
+            ),
+            "{text}"
+        );
+        assert!(
+            text.ends_with("every host's pipeline needs the same drives, seed and configuration"),
+            "{text}"
+        );
+        assert_eq!(err.differences.len(), 1);
+        let digest = PlanView {
+            plan_digest: 0xCD,
+            ..same
+        };
+        let text = check_plans(&[Some(same), Some(digest)])
+            .expect_err("the digest differs")
+            .to_string();
+        assert!(
+            text.contains("plan digest 00000000000000cd vs 00000000000000ab on rank 0"),
+            "{text}"
+        );
+        // Words for the all-gather round-trip; unknown stays unknown.
+        for p in [Some(same), None] {
+            let words = PlanView::to_words(p.as_ref());
+            assert_eq!(PlanView::from_words(&words), p);
+        }
     }
 }

@@ -206,6 +206,10 @@ impl Trainer {
     /// Everything that can fail runs on a borrowed model; the model is taken out only
     /// for the optimizer's update, which cannot fail, so an error leaves the trainer as
     /// it was before the step.
+    ///
+    /// When no rank had a sample (every batch of the step lost, or none), there is
+    /// nothing to learn from: the parameters, the optimizer and the step count stay as
+    /// they were, and the outcome's `global.samples` is 0.
     pub fn step_synced(
         &mut self,
         view: Option<&BatchView<'_>>,
@@ -230,6 +234,20 @@ impl Trainer {
             None => (grads, None, None),
         };
         let lr = self.schedule.lr(self.step);
+        if global.as_ref().is_some_and(|g| g.samples == 0) {
+            // AdamW would still move the weights (decay, momentum) and the schedule
+            // would advance: no update from nothing.
+            return Ok(StepOutcome {
+                losses: local.losses,
+                sc_frames: local.sc_frames,
+                lr,
+                seconds: started.elapsed().as_secs_f64(),
+                phases,
+                counts: local.counts,
+                sample_ids: local.sample_ids,
+                global,
+            });
+        }
         let model = self
             .model
             .take()
@@ -464,5 +482,42 @@ impl Trainer {
         }
         self.step = step;
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::unet::UNetPreset;
+    use crate::vit::VitPreset;
+
+    /// A data-parallel step in which no rank had a sample (every batch lost): the
+    /// reduction brings zero samples, and nothing changes — parameters, step count — and
+    /// nothing is NaN.
+    #[test]
+    fn a_step_without_any_sample_leaves_the_model_alone() {
+        let mut config = TrainerConfig::default();
+        config.model.unet = UNetPreset::Tiny;
+        config.model.vit = VitPreset::Tiny;
+        let mut trainer =
+            Trainer::new(config, &burn::tensor::Device::flex()).expect("tiny trainer");
+        let before = trainer.params_hash();
+        let mut reduced = 0;
+        // One rank alone: the sum over ranks is its own buffer.
+        let mut reduce = |values: &mut [f32]| {
+            reduced += 1;
+            assert!(values.iter().all(|v| v.is_finite()));
+        };
+        let outcome = trainer
+            .step_synced(None, Some(&mut reduce))
+            .expect("a step without a batch takes part");
+        assert_eq!(reduced, 1, "the rank took part in the all-reduce");
+        let global = outcome.global.expect("a data-parallel step");
+        assert_eq!(global.samples, 0);
+        for loss in [global.losses.total, global.losses.sc, outcome.losses.total] {
+            assert!(loss.is_finite(), "{loss}");
+        }
+        assert_eq!(trainer.step_count(), 0, "no optimizer step");
+        assert_eq!(trainer.params_hash(), before, "no parameter moved");
     }
 }

@@ -16,6 +16,7 @@
 //! how many batches an epoch of its stream has and how many epochs the run serves, so it
 //! knows which batch ends an epoch and which ends the stream.
 
+use super::plan_id::PlanId;
 use super::{Cursors, Metrics, Mode, Schedule, ServiceConfig, ServiceError};
 use iceoryx2::prelude::*;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -135,6 +136,13 @@ where
 
 /// Accepts (and carries out) or refuses one request: `accepted`, `reason`, `epoch`,
 /// `step` and `next_sequence` of the reply.
+///
+/// A position at or past the end of the configured epochs — epoch `E` or later, or the
+/// end of epoch `E - 1` (its last step + 1, or all its samples) — is refused as the run
+/// being complete ([`ResumeReply::RUN_COMPLETE`], the reply's `epoch` is `E`): what a
+/// requeued job of a finished run asks for, to be told apart from a position that does
+/// not exist ([`ResumeReply::OUT_OF_RANGE`]: a step or sample beyond its epoch's end).
+/// The end of an earlier epoch is accepted: the stream goes on with the next one.
 fn decide(ask: &ResumeRequest, streams: &ResumeContext<'_>) -> ResumeReply {
     let config = streams.config;
     let schedule = streams.schedule;
@@ -144,26 +152,38 @@ fn decide(ask: &ResumeRequest, streams: &ResumeContext<'_>) -> ResumeReply {
         reason,
         ..Default::default()
     };
+    let complete = ResumeReply {
+        epoch: config.epochs,
+        ..refused(ResumeReply::RUN_COMPLETE)
+    };
+    let last_epoch = config.epochs > 0 && ask.epoch == config.epochs - 1;
     if wants_broadcast != (config.mode == Mode::Broadcast) || ask.rank >= config.streams() {
-        return refused(1);
+        return refused(ResumeReply::NO_SUCH_STREAM);
     }
     if config.epochs > 0 && ask.epoch >= config.epochs {
-        return refused(2);
+        return complete;
     }
     let step = if ask.sample == UNKNOWN {
         if ask.global_batch != UNKNOWN && ask.global_batch != schedule.global_batch() as u64 {
-            return refused(3);
+            return refused(ResumeReply::OTHER_JOB_SIZE);
         }
-        if ask.step > schedule.steps(ask.epoch, ask.rank as usize) {
-            return refused(2);
+        let steps = schedule.steps(ask.epoch, ask.rank as usize);
+        if ask.step > steps {
+            return refused(ResumeReply::OUT_OF_RANGE);
+        }
+        if last_epoch && ask.step == steps {
+            return complete;
         }
         ask.step
     } else {
         let Ok(sample) = usize::try_from(ask.sample) else {
-            return refused(2);
+            return refused(ResumeReply::OUT_OF_RANGE);
         };
         if sample > schedule.samples() {
-            return refused(2);
+            return refused(ResumeReply::OUT_OF_RANGE);
+        }
+        if last_epoch && sample == schedule.samples() {
+            return complete;
         }
         match schedule.step_at(ask.epoch, sample) {
             Some(step) => step,
@@ -213,6 +233,8 @@ pub(super) struct ScheduleAnswers<'a> {
     pub run: &'a str,
     pub config: &'a ServiceConfig,
     pub schedule: &'a Schedule,
+    /// The plan served, the same on every host of the job when they are set up alike.
+    pub plan: PlanId,
     /// The publisher id of each stream.
     pub publishers: Vec<u128>,
 }
@@ -241,6 +263,11 @@ impl ScheduleAnswers<'_> {
             start_sample: start_sample as u64,
             start_steps: schedule.steps(start_epoch, rank),
             start_min_steps: schedule.min_steps(start_epoch),
+            seed: self.plan.seed,
+            host_rank: self.config.host_rank,
+            host_count: self.config.host_count,
+            keyframes: self.plan.keyframes,
+            plan_digest: self.plan.digest,
         }
     }
 
@@ -302,9 +329,12 @@ mod tests {
         let ask = |rank, broadcast, epoch, step| {
             ResumeRequest::at_step(rank, broadcast == 1, epoch, step)
         };
+        // 16 samples, batches of 4, 2 ranks: 2 steps per epoch per rank.
         assert_eq!(decide(&ask(0, 1, 0, 0), &streams).reason, 1);
         assert_eq!(decide(&ask(2, 0, 0, 0), &streams).reason, 1);
-        assert_eq!(decide(&ask(1, 0, 3, 0), &streams).reason, 2);
+        // Past the last epoch: the run is complete, the reply names its epochs.
+        let done = decide(&ask(1, 0, 3, 0), &streams);
+        assert_eq!((done.accepted, done.reason, done.epoch), (0, 4, 3));
         assert_eq!(decide(&ask(1, 0, 0, 3), &streams).reason, 2);
         // A step saved by a job of another size: resume by sample instead.
         let other_size = ResumeRequest {
@@ -368,6 +398,11 @@ mod tests {
             run: "r",
             config: &config,
             schedule: &schedule,
+            plan: PlanId {
+                seed: 11,
+                keyframes: 7,
+                digest: 0xD1,
+            },
             publishers: vec![5, 6],
         };
         let ask = |rank, broadcast| answers.answer(&ScheduleRequest { rank, broadcast });
@@ -375,6 +410,11 @@ mod tests {
         assert_eq!((reply.known, reply.steps, reply.min_steps), (1, 2, 2));
         assert_eq!((reply.epochs, reply.publisher()), (3, 6));
         assert_eq!((reply.samples, reply.global_batch), (7, 4));
+        assert_eq!(
+            (reply.seed, reply.keyframes, reply.plan_digest),
+            (11, 7, 0xD1)
+        );
+        assert_eq!((reply.host_rank, reply.host_count), (0, 1));
         assert_eq!(ask(2, 0).known, 0);
         assert_eq!(ask(0, 1).known, 0);
         let uneven = Schedule::new(7, 1, 2, 0);
@@ -394,5 +434,63 @@ mod tests {
             (1, 1, 3)
         );
         assert_eq!(reply.consumed(2, 1), 6);
+    }
+
+    /// A finished run's requeued job asks for the position after its last batch: by
+    /// step, by sample, or an epoch past the end. Each is "run complete" (reason 4, the
+    /// epochs in the reply), not a bad position; the end of an earlier epoch is accepted
+    /// (the next epoch follows), a step beyond an epoch's end is still reason 2.
+    #[test]
+    fn a_resume_at_the_end_of_the_last_epoch_is_run_complete() {
+        // 16 samples an epoch, batches of 2, 2 ranks: 4 steps per rank, 4 samples a step.
+        let config = sharded(2, 3);
+        let schedule = Schedule::new(16, 2, 2, 0);
+        let cursors = Cursors::new(2, (0, 0));
+        let metrics = Metrics::default();
+        let streams = ResumeContext {
+            config: &config,
+            schedule: &schedule,
+            cursors: &cursors,
+            metrics: &metrics,
+        };
+        let by_step = |epoch, step| ResumeRequest::at_step(1, false, epoch, step);
+        let by_sample = |epoch, sample| ResumeRequest {
+            sample,
+            global_batch: 4,
+            ..ResumeRequest::at_step(0, false, epoch, UNKNOWN)
+        };
+        for ask in [
+            by_step(2, 4),
+            by_sample(2, 16),
+            by_step(3, 0),
+            by_sample(7, 0),
+        ] {
+            let reply = decide(&ask, &streams);
+            assert_eq!(
+                (reply.accepted, reply.reason, reply.epoch),
+                (0, ResumeReply::RUN_COMPLETE, 3),
+                "{ask:?}"
+            );
+        }
+        // Out of range, whatever the epoch.
+        assert_eq!(decide(&by_step(2, 5), &streams).reason, 2);
+        assert_eq!(decide(&by_step(1, 5), &streams).reason, 2);
+        assert_eq!(decide(&by_sample(2, 17), &streams).reason, 2);
+        assert_eq!(cursors.position(0), (0, 0, 0), "nothing moved");
+        assert_eq!(metrics.resumes.load(Ordering::Relaxed), 0);
+        // The end of an earlier epoch, and the last batch of the last: accepted.
+        let reply = decide(&by_step(1, 4), &streams);
+        assert_eq!((reply.accepted, reply.epoch, reply.step), (1, 1, 4));
+        let reply = decide(&by_step(2, 3), &streams);
+        assert_eq!((reply.accepted, reply.epoch, reply.step), (1, 2, 3));
+        let reply = decide(&by_sample(1, 16), &streams);
+        assert_eq!((reply.accepted, reply.epoch, reply.step), (1, 1, 4));
+        // An endless run is never complete.
+        let endless = sharded(2, 0);
+        let streams = ResumeContext {
+            config: &endless,
+            ..streams
+        };
+        assert_eq!(decide(&by_step(9, 4), &streams).accepted, 1);
     }
 }

@@ -6,8 +6,10 @@ use std::sync::atomic::{AtomicU64, Ordering};
 /// Counters of a running service, shared with the metrics endpoint and the log.
 #[derive(Debug, Default)]
 pub struct Metrics {
-    /// Batches published.
+    /// Batches published, lost ones included.
     pub batches: AtomicU64,
+    /// Batches published lost: every sample failed to build (`BATCH_LOST`, no sample).
+    pub lost_batches: AtomicU64,
     /// Samples published.
     pub samples: AtomicU64,
     /// Bytes of payload published.
@@ -33,7 +35,7 @@ pub struct Metrics {
     /// Subscribers found dead and cleaned up.
     pub dead_subscribers: AtomicU64,
     /// Samples that could not be built (counted, logged, replaced by nothing: the batch
-    /// is published short).
+    /// is published short, or lost when none of its samples was built).
     pub failed_samples: AtomicU64,
     /// Resume requests accepted.
     pub resumes: AtomicU64,
@@ -58,11 +60,16 @@ impl Metrics {
 
     /// The counters in Prometheus text format.
     pub fn prometheus(&self) -> String {
-        let counters: [(&str, &str, &AtomicU64); 15] = [
+        let counters: [(&str, &str, &AtomicU64); 16] = [
             (
                 "superflow_batches_total",
-                "Batches published",
+                "Batches published, lost ones included",
                 &self.batches,
+            ),
+            (
+                "superflow_lost_batches_total",
+                "Batches published lost: every sample failed to build",
+                &self.lost_batches,
             ),
             (
                 "superflow_samples_total",
@@ -159,6 +166,7 @@ impl Metrics {
 pub(super) fn log_counters(metrics: &Metrics) {
     tracing::info!(
         batches = metrics.batches.load(Ordering::Relaxed),
+        lost_batches = metrics.lost_batches.load(Ordering::Relaxed),
         samples = metrics.samples.load(Ordering::Relaxed),
         backpressure_secs = metrics.backpressure_nanos.load(Ordering::Relaxed) as f64 / 1e9,
         wait_for_build_secs = metrics.wait_for_build_nanos.load(Ordering::Relaxed) as f64 / 1e9,

@@ -13,6 +13,9 @@
 //!   publisher loop (`serve.rs`, the calling thread) writes each one in place into a
 //!   loaned iceoryx2 slice, sends it and wakes subscribers through the ready event
 //!   (`ports.rs`).
+//! * A batch whose samples all failed to build is still published, as a lost batch
+//!   (`BATCH_LOST`, nothing in it) at its place in the stream: subscribers count it and
+//!   see their epochs end. A batch of which some samples failed goes out with the rest.
 //! * Backpressure never loses a batch: the service does not overflow and the publisher
 //!   retries until a full subscriber has room. While it waits it checks, every
 //!   `dead_node_check_ms`, whether the subscriber's process has died; a dead one is
@@ -27,6 +30,7 @@
 mod config;
 mod control;
 mod metrics;
+mod plan_id;
 mod ports;
 mod producer;
 mod schedule;
@@ -34,6 +38,7 @@ mod serve;
 
 pub use config::{Mode, ServiceConfig};
 pub use metrics::Metrics;
+pub use plan_id::PlanId;
 pub use schedule::{Schedule, Slot};
 pub use serve::serve;
 /// Where the service starts: at a step of every stream (`--start-step`), or after the

@@ -29,6 +29,9 @@ pub(super) struct StreamPorts {
     _ready: names::ReadyService,
 }
 
+/// Payload bytes loaned for a lost batch: the smallest slice iceoryx2 hands out.
+const LOST_PAYLOAD_LEN: usize = 0;
+
 /// Who owns which subscriber port: subscriber port id → node id.
 type Owners = Arc<Mutex<HashMap<u128, u128>>>;
 
@@ -93,7 +96,9 @@ impl StreamPorts {
     }
 
     /// Writes `prepared` into a loaned slice, sends it (waiting on full subscribers,
-    /// see [`dead_subscriber_handler`]) and wakes the subscribers.
+    /// see [`dead_subscriber_handler`]) and wakes the subscribers. A batch without a
+    /// sample (every one failed) goes out lost: its header at its place in the stream,
+    /// flag `BATCH_LOST`, nothing in it.
     pub fn publish(
         &self,
         prepared: &Prepared,
@@ -106,7 +111,6 @@ impl StreamPorts {
             source,
         };
         let t = Instant::now();
-        let plan = BatchPlan::new(&prepared.samples, shape).map_err(batch_error)?;
         let meta = BatchMeta {
             run: stamp.run.to_string(),
             epoch: prepared.epoch,
@@ -119,19 +123,22 @@ impl StreamPorts {
             sample_count: prepared.samples.len() as u32,
             flags: 0,
         };
-        let header = plan.layout().header(&meta).map_err(batch_error)?;
-        let len = plan.layout().payload_len();
-        let sample = self
-            .publisher
-            .loan_slice_uninit(len)
-            .map_err(ServiceError::ipc(format!(
-                "{}: loaning {len} bytes",
-                self.name
-            )))?;
-        let mut sample = sample.write_from_fn(|_| 0u8);
-        *sample.user_header_mut() = header;
-        plan.write_zeroed(&prepared.samples, sample.payload_mut())
-            .map_err(batch_error)?;
+        let lost = prepared.samples.is_empty();
+        let (sample, len) = if lost {
+            let header = BatchHeader::lost(&meta).map_err(batch_error)?;
+            let mut sample = self.loan(LOST_PAYLOAD_LEN)?.write_from_fn(|_| 0u8);
+            *sample.user_header_mut() = header;
+            (sample, LOST_PAYLOAD_LEN)
+        } else {
+            let plan = BatchPlan::new(&prepared.samples, shape).map_err(batch_error)?;
+            let header = plan.layout().header(&meta).map_err(batch_error)?;
+            let len = plan.layout().payload_len();
+            let mut sample = self.loan(len)?.write_from_fn(|_| 0u8);
+            *sample.user_header_mut() = header;
+            plan.write_zeroed(&prepared.samples, sample.payload_mut())
+                .map_err(batch_error)?;
+            (sample, len)
+        };
         metrics
             .write_nanos
             .fetch_add(t.elapsed().as_nanos() as u64, Ordering::Relaxed);
@@ -151,8 +158,39 @@ impl StreamPorts {
             .samples
             .fetch_add(prepared.samples.len() as u64, Ordering::Relaxed);
         metrics.bytes.fetch_add(len as u64, Ordering::Relaxed);
-        tracing::debug!(delivered, bytes = len, "published");
+        if lost {
+            metrics.lost_batches.fetch_add(1, Ordering::Relaxed);
+            tracing::error!(
+                epoch = prepared.epoch,
+                step = prepared.step,
+                stream = %self.name,
+                failed = prepared.failed,
+                "batch lost: all {} of its samples failed to build; published empty (BATCH_LOST) so that subscribers keep their place in the epoch",
+                prepared.failed
+            );
+        }
+        tracing::debug!(delivered, bytes = len, lost, "published");
         Ok(())
+    }
+
+    /// A slice of `len` bytes of shared memory for the next batch.
+    fn loan(
+        &self,
+        len: usize,
+    ) -> Result<
+        iceoryx2::sample_mut_uninit::SampleMutUninit<
+            ipc::Service,
+            [std::mem::MaybeUninit<u8>],
+            BatchHeader,
+        >,
+        ServiceError,
+    > {
+        self.publisher
+            .loan_slice_uninit(len)
+            .map_err(ServiceError::ipc(format!(
+                "{}: loaning {len} bytes",
+                self.name
+            )))
     }
 
     /// Who owns which subscriber port, for the dead-subscriber check.
@@ -234,4 +272,87 @@ fn owner_died(iox: &iceoryx2::config::Config, owner: Option<u128>) -> bool {
         tracing::warn!(nodes = cleaned, "cleaned up dead iceoryx2 nodes");
     }
     dead_owner
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::sample::SampleConfig;
+    use superflow_schemas::batch::{BATCH_LOST, BatchView};
+
+    /// A batch whose samples all failed goes out lost: a subscriber receives its header
+    /// at its place in the stream, with nothing in it, and the reader accepts it.
+    #[test]
+    fn a_batch_without_samples_is_published_lost() {
+        let prefix = format!("sflostport{}", std::process::id());
+        let iox = names::iceoryx2_config(Some(&prefix)).unwrap_or_else(|e| panic!("{e}"));
+        let node = NodeBuilder::new()
+            .config(&iox)
+            .create::<ipc::Service>()
+            .unwrap_or_else(|e| panic!("{e}"));
+        let name = names::rank_service("lost", 1).unwrap_or_else(|e| panic!("{e}"));
+        let stop = Arc::new(AtomicBool::new(false));
+        let metrics = Arc::new(Metrics::default());
+        let config = ServiceConfig::default();
+        let ports = StreamPorts::open(&node, &name, &iox, &config, &stop, &metrics)
+            .unwrap_or_else(|e| panic!("{e}"));
+        let subscriber = names::open_batch_service(&node, &name)
+            .unwrap_or_else(|e| panic!("{e}"))
+            .subscriber_builder()
+            .create()
+            .unwrap_or_else(|e| panic!("{e}"));
+        let prepared = Prepared {
+            stream: 1,
+            generation: 0,
+            epoch: 3,
+            step: 2,
+            samples: Vec::new(),
+            failed: 4,
+        };
+        let stamp = Stamp {
+            run: "lost",
+            seed: 5,
+            sequence: 17,
+        };
+        let shape = BatchShape::of(&SampleConfig::default());
+        ports
+            .publish(&prepared, shape, &stamp, &metrics)
+            .unwrap_or_else(|e| panic!("{e}"));
+        let received = subscriber
+            .receive()
+            .unwrap_or_else(|e| panic!("{e:?}"))
+            .unwrap_or_else(|| panic!("the lost batch arrives"));
+        let header = received.user_header();
+        assert_eq!(
+            (
+                header.flags,
+                header.section_count,
+                header.sample_count,
+                header.payload_len
+            ),
+            (BATCH_LOST, 0, 0, 0)
+        );
+        assert_eq!(received.payload().len(), LOST_PAYLOAD_LEN);
+        let view = BatchView::new(header, received.payload()).unwrap_or_else(|e| panic!("{e}"));
+        assert!(view.is_lost());
+        let meta = view.meta();
+        assert_eq!(
+            (
+                meta.epoch,
+                meta.step,
+                meta.seed,
+                meta.sequence,
+                meta.run.as_str()
+            ),
+            (3, 2, 5, 17, "lost")
+        );
+        assert_eq!(metrics.lost_batches.load(Ordering::Relaxed), 1);
+        assert_eq!(metrics.batches.load(Ordering::Relaxed), 1);
+        assert_eq!(metrics.samples.load(Ordering::Relaxed), 0);
+        assert!(
+            metrics
+                .prometheus()
+                .contains("superflow_lost_batches_total 1\n")
+        );
+    }
 }

@@ -20,8 +20,11 @@ pub(super) struct Prepared {
     pub epoch: u64,
     /// Its step in the epoch.
     pub step: u64,
-    /// The samples built (failed ones left out).
+    /// The samples built (failed ones left out). Empty when every one failed: the
+    /// batch is published lost, so that subscribers still see it and their epoch end.
     pub samples: Vec<Sample>,
+    /// Samples of the batch that failed to build.
+    pub failed: usize,
 }
 
 /// What the producer thread works with.
@@ -78,14 +81,17 @@ impl Producer<'_> {
                 continue;
             };
             let samples = self.build(&slots, stream, epoch, step);
-            // Advance this stream unless a resume moved it meanwhile.
+            // Advance this stream unless a resume moved it meanwhile. A batch whose
+            // samples all failed goes too: left out, its subscribers would wait forever
+            // for the step that ends their epoch.
             let current = self.cursors.advance(stream, generation, (epoch, step + 1));
-            if current && !samples.is_empty() {
+            if current {
                 let prepared = Prepared {
                     stream: stream as u32,
                     generation,
                     epoch,
                     step,
+                    failed: slots.len() - samples.len(),
                     samples,
                 };
                 if tx.send(prepared).is_err() {

@@ -4,6 +4,7 @@
 
 use super::control::{ControlAnswers, ResumeContext, ScheduleAnswers};
 use super::metrics::log_counters;
+use super::plan_id::PlanId;
 use super::ports::{Stamp, StreamPorts};
 use super::producer::{Prepared, Producer};
 use super::{
@@ -49,11 +50,13 @@ pub fn serve(
         streams.push(StreamPorts::open(&node, &name, iox, config, stop, metrics)?);
     }
     let publisher_ids: Vec<u128> = streams.iter().map(StreamPorts::publisher_id).collect();
+    let plan = PlanId::of(builder);
     let schedule_answers = ScheduleAnswers {
         iox,
         run,
         config,
         schedule: &schedule,
+        plan,
         publishers: publisher_ids.clone(),
     };
     tracing::info!(
@@ -65,6 +68,9 @@ pub fn serve(
         batch_size = config.batch_size,
         start_epoch = start.0,
         start_sample = schedule.consumed(start.0, start.1),
+        seed = plan.seed,
+        keyframes = plan.keyframes,
+        plan_digest = format_args!("{:016x}", plan.digest),
         "publishing"
     );
     let cursors = Cursors::new(streams.len(), start);

@@ -96,6 +96,11 @@ impl<'d> SampleBuilder<'d> {
         })
     }
 
+    /// The dataset the samples come from.
+    pub fn dataset(&self) -> &'d Dataset {
+        self.dataset
+    }
+
     /// The plan.
     pub fn plan(&self) -> &Plan {
         &self.plan

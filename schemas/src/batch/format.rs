@@ -8,6 +8,11 @@ use iceoryx2::prelude::ZeroCopySend;
 pub const BATCH_MAGIC: u32 = u32::from_le_bytes(*b"SFLB");
 /// Version of the layout described in `BATCH_FORMAT.md`; bumped on any change.
 pub const BATCH_FORMAT_VERSION: u32 = 2;
+/// [`BatchHeader::flags`] bit 0: a lost batch. Every sample of the batch failed to build
+/// in the pipeline; the batch still goes out at its place in the stream (epoch, step,
+/// sequence) so that subscribers count it and see their epochs end, but it holds
+/// nothing: no section, no sample, `payload_len` 0. The only flag version 2 defines.
+pub const BATCH_LOST: u32 = 1;
 /// Capacity of the section table.
 pub const MAX_SECTIONS: usize = 128;
 /// Maximum number of dimensions of a section.
@@ -150,8 +155,16 @@ pub struct BatchMeta {
     pub created_unix_nanos: u64,
     /// Samples in the batch.
     pub sample_count: u32,
-    /// Reserved for flags; 0 (no version defines one yet).
+    /// 0, or [`BATCH_LOST`]: every sample failed, the batch holds nothing.
     pub flags: u32,
+}
+
+impl BatchMeta {
+    /// Whether the batch is lost ([`BATCH_LOST`]): at its place in the stream, with no
+    /// sample to train on.
+    pub fn lost(&self) -> bool {
+        self.flags & BATCH_LOST != 0
+    }
 }
 
 /// The iceoryx2 user header of every batch: identification, stream position and the

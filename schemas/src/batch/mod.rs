@@ -18,8 +18,9 @@ pub mod sections;
 mod write;
 
 pub use format::{
-    BATCH_FORMAT_VERSION, BATCH_MAGIC, BatchHeader, BatchMeta, DType, Element, MAX_DIMS,
-    MAX_SECTIONS, RUN_NAME_LEN, SECTION_ALIGN, SECTION_NAME_LEN, SectionDesc, validate_run_name,
+    BATCH_FORMAT_VERSION, BATCH_LOST, BATCH_MAGIC, BatchHeader, BatchMeta, DType, Element,
+    MAX_DIMS, MAX_SECTIONS, RUN_NAME_LEN, SECTION_ALIGN, SECTION_NAME_LEN, SectionDesc,
+    validate_run_name,
 };
 pub use read::{BatchView, TensorView};
 pub use sections::{Dims, LevelDims, Section, SectionSpec};
@@ -49,10 +50,24 @@ pub enum BatchError {
         expected: u32,
     },
     /// Flags set that this version does not define.
-    #[error("flags {found:#x} set; version {BATCH_FORMAT_VERSION} defines none")]
+    #[error(
+        "flags {found:#x} set; version {BATCH_FORMAT_VERSION} defines only BATCH_LOST ({BATCH_LOST:#x})"
+    )]
     Flags {
         /// The flags found.
         found: u32,
+    },
+    /// A lost batch ([`BATCH_LOST`]) that claims to hold something.
+    #[error(
+        "a lost batch (flag BATCH_LOST) holds nothing, but this one declares {sections} sections, {samples} samples and a payload of {payload_len} bytes"
+    )]
+    LostWithContent {
+        /// `section_count`.
+        sections: u32,
+        /// `sample_count`.
+        samples: u32,
+        /// `payload_len`.
+        payload_len: u64,
     },
     /// More sections than the table holds.
     #[error("{count} sections, at most {MAX_SECTIONS} fit in the header")]

@@ -2,8 +2,8 @@
 
 use super::BatchError;
 use super::format::{
-    BATCH_FORMAT_VERSION, BATCH_MAGIC, BatchHeader, BatchMeta, DType, Element, MAX_DIMS,
-    MAX_SECTIONS, SECTION_ALIGN, SectionDesc, nul_padded_str, validate_run_name,
+    BATCH_FORMAT_VERSION, BATCH_LOST, BATCH_MAGIC, BatchHeader, BatchMeta, DType, Element,
+    MAX_DIMS, MAX_SECTIONS, SECTION_ALIGN, SectionDesc, nul_padded_str, validate_run_name,
 };
 use super::sections::Section;
 
@@ -36,8 +36,9 @@ struct Entry<'a> {
 }
 
 /// A received batch whose header and payload were checked: magic, version, header size,
-/// section names, dtypes, shapes against lengths, bounds, alignment and overlaps. After
-/// [`BatchView::new`] succeeds, reading a section of the right dtype cannot fail.
+/// flags, section names, dtypes, shapes against lengths, bounds, alignment and overlaps.
+/// After [`BatchView::new`] succeeds, reading a section of the right dtype cannot fail
+/// (a lost batch, [`BatchView::is_lost`], has no section to read).
 #[derive(Debug, Clone)]
 pub struct BatchView<'a> {
     meta: BatchMeta,
@@ -72,6 +73,13 @@ impl<'a> BatchView<'a> {
     /// Run, epoch, step, seed and the other stream fields of the header.
     pub fn meta(&self) -> &BatchMeta {
         &self.meta
+    }
+
+    /// Whether the batch is lost ([`BATCH_LOST`]): every sample failed in the pipeline.
+    /// It counts as the batch at its position (its epoch still ends after it) but has no
+    /// section and no sample.
+    pub fn is_lost(&self) -> bool {
+        self.meta.lost()
     }
 
     /// Section names in table order.
@@ -133,8 +141,9 @@ impl<'a> BatchView<'a> {
     }
 }
 
-/// Rule 1 and the header fields: magic, version, header size, section count, flags, run
-/// name and zero unused table entries. Returns the section count.
+/// Rule 1 and the header fields: magic, version, header size, section count, flags (a
+/// lost batch: nothing in it), run name and zero unused table entries. Returns the
+/// section count.
 fn check_header(header: &BatchHeader) -> Result<usize, BatchError> {
     if header.magic != BATCH_MAGIC {
         return Err(BatchError::BadMagic {
@@ -156,10 +165,19 @@ fn check_header(header: &BatchHeader) -> Result<usize, BatchError> {
     if count > MAX_SECTIONS {
         return Err(BatchError::TooManySections { count });
     }
-    if header.flags != 0 {
-        return Err(BatchError::Flags {
-            found: header.flags,
-        });
+    match header.flags {
+        0 => {}
+        // A lost batch holds nothing: what it declares otherwise would be read as data.
+        BATCH_LOST => {
+            if header.section_count != 0 || header.sample_count != 0 || header.payload_len != 0 {
+                return Err(BatchError::LostWithContent {
+                    sections: header.section_count,
+                    samples: header.sample_count,
+                    payload_len: header.payload_len,
+                });
+            }
+        }
+        found => return Err(BatchError::Flags { found }),
     }
     let run = nul_padded_str(&header.run).ok_or_else(|| BatchError::BadRunName {
         name: String::from_utf8_lossy(&header.run).into_owned(),

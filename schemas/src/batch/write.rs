@@ -2,8 +2,9 @@
 
 use super::BatchError;
 use super::format::{
-    BATCH_FORMAT_VERSION, BATCH_MAGIC, BatchHeader, BatchMeta, DType, Element, MAX_DIMS,
-    MAX_SECTIONS, SECTION_ALIGN, SectionDesc, nul_padded_str, validate_run_name, write_nul_padded,
+    BATCH_FORMAT_VERSION, BATCH_LOST, BATCH_MAGIC, BatchHeader, BatchMeta, DType, Element,
+    MAX_DIMS, MAX_SECTIONS, SECTION_ALIGN, SectionDesc, nul_padded_str, validate_run_name,
+    write_nul_padded,
 };
 use super::sections::Section;
 use bytemuck::Zeroable;
@@ -140,11 +141,22 @@ impl BatchLayout {
         &self.sections
     }
 
-    /// The header describing this layout, stamped with `meta`.
+    /// The header describing this layout, stamped with `meta`. `meta.flags` is 0, or
+    /// [`BATCH_LOST`] for an empty layout and no sample (see [`BatchHeader::lost`]).
     pub fn header(&self, meta: &BatchMeta) -> Result<BatchHeader, BatchError> {
         validate_run_name(&meta.run)?;
-        if meta.flags != 0 {
-            return Err(BatchError::Flags { found: meta.flags });
+        match meta.flags {
+            0 => {}
+            BATCH_LOST => {
+                if !self.sections.is_empty() || meta.sample_count != 0 || self.payload_len != 0 {
+                    return Err(BatchError::LostWithContent {
+                        sections: self.sections.len() as u32,
+                        samples: meta.sample_count,
+                        payload_len: self.payload_len as u64,
+                    });
+                }
+            }
+            found => return Err(BatchError::Flags { found }),
         }
         let mut header = BatchHeader::zeroed();
         header.magic = BATCH_MAGIC;
@@ -169,6 +181,19 @@ impl BatchLayout {
             .get(id.0)
             .and_then(|s| nul_padded_str(&s.name))
             .unwrap_or("?")
+    }
+}
+
+impl BatchHeader {
+    /// The header of a lost batch at `meta`'s place in the stream (run, epoch, step,
+    /// seed, sequence, time): [`BATCH_LOST`], no section, no sample, `payload_len` 0.
+    /// `meta`'s `sample_count` and `flags` are not used.
+    pub fn lost(meta: &BatchMeta) -> Result<Self, BatchError> {
+        BatchLayout::new().header(&BatchMeta {
+            sample_count: 0,
+            flags: BATCH_LOST,
+            ..meta.clone()
+        })
     }
 }
 

@@ -1,8 +1,9 @@
 //! `superflow-subscriber`: a test subscriber. Reads batches of a run and prints one JSON line
 //! per batch (sequence, epoch, step, sample ids, each sample's camera count, a hash of the
-//! payload) so end-to-end
-//! tests can account for every sample; can stall (stop reading) or resume at a position
-//! (a step of its stream, or a sample count of the whole job).
+//! payload; `"lost":true` and no sample for a lost batch) so end-to-end tests can account
+//! for every sample; can stall (stop reading) or resume at a position (a step of its
+//! stream, or a sample count of the whole job). At the end it says on stderr how many
+//! batches it read and how many of them were lost.
 
 use clap::Parser;
 use std::io::Write as _;
@@ -113,6 +114,7 @@ fn main() -> anyhow::Result<()> {
             global_batch: UNKNOWN,
         })?;
     }
+    let mut lost = 0usize;
     for n in 0..args.count {
         if args.stall_after == Some(n) {
             if args.stall_secs == 0 {
@@ -136,6 +138,19 @@ fn main() -> anyhow::Result<()> {
         };
         let view = batch.view()?;
         let meta = view.meta();
+        if view.is_lost() {
+            lost += 1;
+            writeln!(
+                out.lock(),
+                "{{\"sequence\":{},\"epoch\":{},\"step\":{},\"lost\":true,\"samples\":[],\"cameras\":[],\"hash\":{},\"origin\":\"{:x}\"}}",
+                meta.sequence,
+                meta.epoch,
+                meta.step,
+                fnv(&[]),
+                batch.origin()
+            )?;
+            continue;
+        }
         let ids = view.section::<u64>(Section::SampleIds)?;
         let samples: Vec<String> = ids
             .data
@@ -178,5 +193,9 @@ fn main() -> anyhow::Result<()> {
             batch.origin()
         )?;
     }
+    eprintln!(
+        "superflow-subscriber: {} batches read, {lost} of them lost",
+        args.count
+    );
     Ok(())
 }

@@ -1,7 +1,10 @@
 """How fast Python receives a superflow stream: batches/s and MB/s over `--count` batches
 (after the first, which waits for the pipeline to start), and the median cost of turning a
 received sample into a checked `Batch` (validating the header and section table, mapping
-every section) and of `batch.torch()` when torch is installed.
+every section), of reading every byte of it once (the first touch of its pages), of
+`batch.torch()` when torch is installed, and of writing its `images` section: in place
+(`images.sub_(1)`, which copies the pages written into this process) against
+`images.clone()` (a copy of the section, written afterwards at no further cost).
 
     superflow-pipeline --mcap DRIVES --run rate --subscribers 2 --batch-size 4 &
     python trainer/python/examples/receive_rate.py --run rate --count 40 &
@@ -15,8 +18,10 @@ import statistics
 import sys
 import time
 
+import numpy as np
+
 import superflow
-from superflow.stream import Batch
+from superflow import Batch
 
 
 def main() -> int:
@@ -28,7 +33,8 @@ def main() -> int:
     stream = superflow.Stream(args.run, prefix=args.prefix, timeout_s=300)
     next(stream).release()  # the first batch waits for the pipeline to come up
     started = time.perf_counter()
-    nbytes, checks, tensors = 0, [], []
+    image_mb = 0.0
+    nbytes, checks, reads, tensors, in_place, clones = 0, [], [], [], [], []
     for _ in range(args.count):
         batch = next(stream)
         sample = batch._sample
@@ -36,19 +42,36 @@ def main() -> int:
         t = time.perf_counter()
         Batch(sample, stream.run, stream.service)  # the same sample, checked and mapped again
         checks.append(time.perf_counter() - t)
+        t = time.perf_counter()
+        for name in batch.names():
+            batch[name].view(np.uint8).sum(dtype=np.uint64)
+        reads.append(time.perf_counter() - t)
         try:
             t = time.perf_counter()
-            batch.torch()
+            images = batch.torch()["images"]
             tensors.append(time.perf_counter() - t)
+            t = time.perf_counter()
+            images.clone()
+            clones.append(time.perf_counter() - t)
+            t = time.perf_counter()
+            images.sub_(1)
+            in_place.append(time.perf_counter() - t)
+            image_mb = images.numel() / 1e6
+            del images
         except ImportError:
             pass
     elapsed = time.perf_counter() - started
     stream.close()
-    print("| batches | s | batches/s | MB/s | check + map ms | torch() ms |")
-    print("|---:|---:|---:|---:|---:|---:|")
-    torch_ms = f"{1e3 * statistics.median(tensors):.2f}" if tensors else "-"
+
+    def ms(values: list[float]) -> str:
+        return f"{1e3 * statistics.median(values):.2f}" if values else "-"
+
+    print("| batches | s | batches/s | MB/s | check + map ms | read all ms | torch() ms | "
+          "images MB | images.clone() ms | images.sub_(1) ms |")
+    print("|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     print(f"| {args.count} | {elapsed:.2f} | {args.count / elapsed:.1f} | "
-          f"{nbytes / elapsed / 1e6:.0f} | {1e3 * statistics.median(checks):.2f} | {torch_ms} |")
+          f"{nbytes / elapsed / 1e6:.0f} | {ms(checks)} | {ms(reads)} | {ms(tensors)} | "
+          f"{image_mb if tensors else 0:.1f} | {ms(clones)} | {ms(in_place)} |")
     return 0
 
 

@@ -7,9 +7,15 @@ spatial, temporal and dense-to-sparse contrastive losses, from trainer/reference
     torchrun --standalone --nproc-per-node 2 -- trainer/python/examples/train_torch.py --run exp1 --epochs 2
 
 (the `--` keeps torchrun from taking `--run` for an abbreviation of its `--run-path`).
+On two nodes, each runs its own pipeline on the same drives (node 1: `--host-rank 1`,
+`--node-rank 1`):
 
-Each rank reads its own shard (``RANK``/``WORLD_SIZE`` from torchrun) epoch by epoch
-(``stream.epoch(drop_uneven=True)``: every rank stops an epoch at the same batch count,
+    superflow-pipeline --mcap /data/drives --run exp1 --world-size 4 --host-rank 0 --host-count 2 &
+    torchrun --nnodes 2 --nproc-per-node 4 --node-rank 0 --master-addr node0 --master-port 29500 \
+        -- trainer/python/examples/train_torch.py --run exp1
+
+Each rank reads its own shard (the stream ``LOCAL_RANK`` of its node's pipeline) epoch
+by epoch (``stream.epoch(drop_uneven=True)``: every rank stops an epoch at the same batch count,
 so the ranks stay in step and end together when the pipeline's last epoch is done, or
 after ``--epochs`` / ``--steps``); gradients are averaged by DDP (gloo on CPU, nccl on
 GPU). One process without torchrun reads the
@@ -120,22 +126,41 @@ def main() -> int:
     std = torch.tensor(ref.STD).view(1, 3, 1, 1)
 
     stream = superflow.Stream(args.run, prefix=args.prefix, timeout_s=args.timeout)
+    if world > 1:
+        stream.check_plan()  # every node's pipeline serves the same drives, seed and hosts
     started = time.perf_counter()
     step = -1
+    last = None  # the last batch trained on: a lost batch's stand-in
     for step, batch in enumerate(batches(stream, args.epochs, args.steps)):
         with batch:
-            arrays = {name: np.asarray(batch[name]) for name in batch.names()}
-            inputs = ref.prepare(arrays, args.pixel_stride)  # copies out of the shared memory
             position = (batch.epoch, batch.step, batch.sample_ids)
+            lost = batch.lost
+            if not lost:
+                arrays = {name: np.asarray(batch[name]) for name in batch.names()}
+                last = ref.prepare(arrays, args.pixel_stride)  # copies out of the shared memory
+        # A lost batch (every sample failed in the pipeline) is still a step of every
+        # rank, so DDP's collectives stay in step: this rank adds a zero gradient (the
+        # last batch's loss times 0); with nothing to stand in, every rank skips it.
+        if world > 1:
+            stuck = torch.tensor([float(lost and last is None)])
+            dist.all_reduce(stuck)
+            if stuck.item() > 0:
+                emit({"rank": rank, "step": step, "epoch": position[0],
+                      "stream_step": position[1], "skipped": "lost batch"})
+                continue
+        elif lost:
+            emit({"rank": rank, "step": step, "epoch": position[0],
+                  "stream_step": position[1], "skipped": "lost batch"})
+            continue
         with torch.no_grad():
-            x = inputs["images"].permute(0, 3, 1, 2).float() / 255.0
+            x = last["images"].permute(0, 3, 1, 2).float() / 255.0
             tokens = vit((x - mean) / std).to(device)
-        losses = model(tokens, inputs)
+        losses = model(tokens, last)
         opt.zero_grad(set_to_none=True)
-        losses["total"].backward()
+        (losses["total"] * (0.0 if lost else 1.0)).backward()
         opt.step()
         emit({"rank": rank, "step": step, "epoch": position[0],
-              "stream_step": position[1], "sample_ids": position[2],
+              "stream_step": position[1], "sample_ids": position[2], "lost": lost,
               **{k: losses[k].item() for k in ("total", "l_sc", "l_tc", "l_d2s")}})
     elapsed = time.perf_counter() - started
     steps = step + 1

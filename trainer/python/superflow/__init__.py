@@ -14,20 +14,23 @@ The sections and their meaning: schemas/BATCH_FORMAT.md in the superflow reposit
 
 from .format import BatchFormatError, FormatVersionError, read_batch
 from .sections import BATCH_SECTIONS, LEVEL_SECTIONS, section_dtype
-from .stream import (
-    Batch,
+from .batch import Batch, SectionArray
+from .errors import (
     BatchReleased,
-    Epoch,
     FormatVersionMismatch,
     MalformedBatch,
     PipelineTimeout,
+    PlanMismatch,
     ResumeRefused,
-    Schedule,
-    SectionArray,
-    Stream,
+    RunComplete,
+    ScheduleUnavailable,
+    StreamNotPicklable,
     SuperflowError,
     TooManyBatchesHeld,
+    WorkersUnsupported,
 )
+from .stream import Epoch, Stream
+from .wire import Schedule
 
 __version__ = "0.1.0"
 
@@ -56,12 +59,17 @@ __all__ = [
     "FormatVersionMismatch",
     "MalformedBatch",
     "PipelineTimeout",
+    "PlanMismatch",
     "ResumeRefused",
+    "RunComplete",
     "Schedule",
+    "ScheduleUnavailable",
     "SectionArray",
     "Stream",
+    "StreamNotPicklable",
     "SuperflowError",
     "TooManyBatchesHeld",
+    "WorkersUnsupported",
     "TorchIterable",
     "read_batch",
     "section_dtype",

@@ -26,6 +26,9 @@ SECTION_NAME_LEN = 32
 RUN_NAME_LEN = 64
 SECTION_ALIGN = 64
 RUN_CHARS = frozenset(b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789-_.")
+# `flags` bit 0: every sample of the batch failed in the pipeline; the batch is announced
+# all the same (no sections, no samples) so that every reader counts it.
+LOST = 1
 
 SECTION = np.dtype({
     "names": ["name", "dtype", "ndim", "shape", "offset", "len_bytes"],
@@ -105,9 +108,13 @@ def read_batch(header_bytes: Any, payload: Any) -> tuple[np.void, dict[str, np.n
     if payload_len > body.size:
         _fail("rule 1", f"payload_len {payload_len} exceeds the {body.size}-byte payload received")
 
-    # Header fields with fixed values: no version defines a flag yet.
-    if int(h["flags"]) != 0:
-        _fail("header", f"flags {int(h['flags']):#x}, must be 0 in version {VERSION}")
+    # Header fields with fixed values; the one flag is LOST, on a batch with nothing in it.
+    flags = int(h["flags"])
+    if flags & ~LOST:
+        _fail("header", f"flags {flags:#x}: version {VERSION} defines only LOST ({LOST:#x})")
+    if flags & LOST and (count or payload_len or int(h["sample_count"])):
+        _fail("header", f"a lost batch (flags {flags:#x}) has {count} sections, payload_len "
+              f"{payload_len} and sample_count {int(h['sample_count'])}: all must be 0")
     run = _nul_padded(bytes(raw_header[72:72 + RUN_NAME_LEN]), "header", "run name")
     if not run or not set(run) <= RUN_CHARS:
         _fail("header", f"run name {run!r} must be 1 to 63 characters of A-Z a-z 0-9 - _ .")

@@ -1,7 +1,7 @@
 """Receiving batches from a running ``superflow-pipeline`` over iceoryx2 shared memory.
 
 A :class:`Stream` subscribes to one run's batches (broadcast, or one rank's shard) and
-yields :class:`Batch` objects whose sections are numpy arrays *inside* the shared memory:
+yields :class:`Batch` objects whose sections are numpy arrays over the batch's memory:
 nothing is copied. The lifetime rule: a batch's shared memory goes back to the pipeline
 only when the batch is released (``batch.release()``, the end of a ``with batch:``
 block, or the next iteration) *and* no view of it is alive (its numpy sections, the
@@ -16,454 +16,44 @@ from __future__ import annotations
 import ctypes
 import gc
 import os
+import socket
 import time
 import warnings
-import weakref
-from typing import Any, Iterator, NamedTuple
+from typing import Any, Iterator
 
 import iceoryx2 as iox2
-import numpy as np
 
-from .format import (HEADER, HEADER_SIZE, RUN_CHARS, BatchFormatError, FormatVersionError,
-                     batch_meta, read_batch)
-from .sections import section_dtype
+from . import ranks
+from .batch import Batch, SectionArray, header_record, position_of
+from .errors import (PipelineTimeout, PlanMismatch, ResumeRefused, RunComplete,
+                     ScheduleUnavailable, StreamNotPicklable, SuperflowError, TooManyBatchesHeld)
+from .format import RUN_CHARS
+from .memory import Memory
+from .wire import (MAX_BORROWED, MAX_BUFFER, MAX_NODES, MAX_PUBLISHERS, MAX_SUBSCRIBERS,
+                   REFUSALS, RUN_COMPLETE, UNKNOWN, BatchHeaderWords, ResumeReply,
+                   ResumeRequest, Schedule, ScheduleReply, ScheduleRequest)
 
-# The service settings every superflow process uses (schemas/src/service.rs, `qos`):
-# iceoryx2 refuses to open a service with other ones. MAX_BORROWED bounds the batches a
-# subscriber holds at once, so `max_held` too.
-MAX_SUBSCRIBERS, MAX_BUFFER, MAX_BORROWED, MAX_PUBLISHERS, MAX_NODES = 8, 4, 2, 2, 16
+__all__ = ["Batch", "Epoch", "SectionArray", "Stream"]
 
 # How long one wait on the ready event lasts before the queue is looked at again (a
 # wake-up sent before the listener existed is not lost).
 _WAIT_SLICE_MS = 100
 
-
-class SuperflowError(Exception):
-    """An error of a stream; ``run`` and ``service`` name where it happened."""
-
-    def __init__(self, message: str, run: str = "", service: str = ""):
-        super().__init__(message)
-        self.run = run
-        self.service = service
-
-
-class PipelineTimeout(SuperflowError, TimeoutError):
-    """No batch arrived within the stream's ``timeout_s``."""
-
-
-class MalformedBatch(SuperflowError, ValueError):
-    """A received batch breaks the batch format (the message names the rule and section)."""
-
-
-class FormatVersionMismatch(MalformedBatch):
-    """A received batch was written in another version of the batch format."""
-
-    def __init__(self, message: str, run: str, service: str, version: int):
-        super().__init__(message, run, service)
-        self.version = version
-
-
-class BatchReleased(SuperflowError, RuntimeError):
-    """A released batch was asked for a section (``batch[name]``, ``batch.torch()``).
-    Views taken before the release stay valid."""
-
-
-class TooManyBatchesHeld(SuperflowError, RuntimeError):
-    """Receiving another batch would hold more than the stream's ``max_held``: released
-    batches whose views are still alive keep their shared memory. ``held`` lists their
-    ``(epoch, step)``."""
-
-    def __init__(self, message: str, run: str, service: str, held: list[tuple[int, int]]):
-        super().__init__(message, run, service)
-        self.held = held
-
-
-class ResumeRefused(SuperflowError):
-    """The pipeline refused to move the stream (no such stream, or past the last epoch)."""
-
-
-class _BatchHeader(ctypes.Structure):
-    """The 11 400-byte user header, as opaque 8-byte words (the format module parses it)."""
-
-    _fields_ = [("words", ctypes.c_uint64 * (HEADER_SIZE // 8))]
-
-    @staticmethod
-    def type_name() -> str:
-        return "superflow::BatchHeader"
-
-
-# A field of a resume request that is not known (schemas/src/service.rs `UNKNOWN`).
-_UNKNOWN = (1 << 64) - 1
-
-
-class _ResumeRequest(ctypes.Structure):
-    """`superflow::ResumeRequest` (schemas/src/service.rs)."""
-
-    _fields_ = [("rank", ctypes.c_uint32), ("broadcast", ctypes.c_uint32),
-                ("epoch", ctypes.c_uint64), ("step", ctypes.c_uint64),
-                ("sample", ctypes.c_uint64), ("global_batch", ctypes.c_uint64)]
-
-    @staticmethod
-    def type_name() -> str:
-        return "superflow::ResumeRequest"
-
-
-class _ResumeReply(ctypes.Structure):
-    """`superflow::ResumeReply` (schemas/src/service.rs)."""
-
-    _fields_ = [("accepted", ctypes.c_uint32), ("reason", ctypes.c_uint32),
-                ("next_sequence", ctypes.c_uint64), ("publisher_lo", ctypes.c_uint64),
-                ("publisher_hi", ctypes.c_uint64), ("epoch", ctypes.c_uint64),
-                ("step", ctypes.c_uint64)]
-
-    @staticmethod
-    def type_name() -> str:
-        return "superflow::ResumeReply"
-
-
-class _ScheduleRequest(ctypes.Structure):
-    """`superflow::ScheduleRequest` (schemas/src/service.rs)."""
-
-    _fields_ = [("rank", ctypes.c_uint32), ("broadcast", ctypes.c_uint32)]
-
-    @staticmethod
-    def type_name() -> str:
-        return "superflow::ScheduleRequest"
-
-
-class _ScheduleReply(ctypes.Structure):
-    """`superflow::ScheduleReply` (schemas/src/service.rs)."""
-
-    _fields_ = [("known", ctypes.c_uint32), ("reserved", ctypes.c_uint32),
-                ("steps", ctypes.c_uint64), ("min_steps", ctypes.c_uint64),
-                ("epochs", ctypes.c_uint64), ("publisher_lo", ctypes.c_uint64),
-                ("publisher_hi", ctypes.c_uint64), ("samples", ctypes.c_uint64),
-                ("global_batch", ctypes.c_uint64), ("start_epoch", ctypes.c_uint64),
-                ("start_sample", ctypes.c_uint64), ("start_steps", ctypes.c_uint64),
-                ("start_min_steps", ctypes.c_uint64)]
-
-    @staticmethod
-    def type_name() -> str:
-        return "superflow::ScheduleReply"
-
-
-class Schedule(NamedTuple):
-    """How the pipeline schedules this stream: ``steps`` batches per epoch (this rank's),
-    ``min_steps`` the fewest of any rank, ``epochs`` served (0: endless), the
-    ``publisher`` (pipeline process) that said so; ``samples`` per epoch and
-    ``global_batch`` samples per step of the whole job (every rank and host); epoch
-    ``start_epoch`` starts at sample ``start_sample`` (a job resumed on another size),
-    with ``start_steps`` / ``start_min_steps`` batches."""
-
-    steps: int
-    min_steps: int
-    epochs: int
-    publisher: int
-    samples: int = 0
-    global_batch: int = 0
-    start_epoch: int = 0
-    start_sample: int = 0
-    start_steps: int = 0
-    start_min_steps: int = 0
-
-    def _part_way(self, epoch: int) -> bool:
-        return epoch == self.start_epoch and self.start_sample > 0
-
-    def steps_in(self, epoch: int) -> int:
-        """This rank's batches in ``epoch``."""
-        return self.start_steps if self._part_way(epoch) else self.steps
-
-    def min_steps_in(self, epoch: int) -> int:
-        """The fewest batches of any rank in ``epoch``."""
-        return self.start_min_steps if self._part_way(epoch) else self.min_steps
-
-    def consumed(self, epoch: int, steps: int) -> int:
-        """Samples of ``epoch`` the whole job has consumed once every rank took its first
-        ``steps`` batches of it (data-parallel ranks step together): what a checkpoint
-        keeps to resume on any number of ranks."""
-        first = min(self.start_sample, self.samples) if self._part_way(epoch) else 0
-        return first + min(steps * self.global_batch, self.samples - first)
-
-
-# How long a stream waits for the schedule of a pipeline that just sent it a batch (it
-# answers from a thread of its own); without an answer the stream does not know where
-# epochs end and goes on without ending.
+# How long a stream waits for the schedule of a pipeline that publishes (it answers from
+# a thread of its own, within milliseconds); one that does not answer by then has no
+# schedule service (an older pipeline, or one whose service failed to start).
 _SCHEDULE_WAIT_S = 5.0
-
-_REFUSALS = {1: "no such stream (rank out of range, or the pipeline runs in the other mode)",
-             2: "the position is past the end of the configured epochs",
-             3: "the step was saved by a job of another size: resume by sample "
-                "(stream.resume(epoch, sample=...), or load_state_dict of a state_dict)"}
-
-
-class SectionArray(np.ndarray):
-    """A read-only numpy view into a batch's shared memory. While it (or any array or
-    tensor made from it without a copy) is alive, the memory stays this process's: the
-    batch's release hands it back to the pipeline only once the last view is gone."""
-
-
-class _Buffer:
-    """The payload of one received sample as a numpy-readable buffer. Every view of the
-    batch refers to it (through numpy's ``base`` chain, and torch's storage for
-    ``torch.from_numpy``), so its finalizer runs when the last view is gone."""
-
-    __slots__ = ("__array_interface__", "__weakref__")
-
-    def __init__(self, address: int, length: int):
-        self.__array_interface__ = {"shape": (length,), "typestr": "|u1",
-                                    "data": (address, True), "version": 3}
-
-
-class _Memory:
-    """A received sample's shared memory: handed back to the pipeline (``sample.delete()``)
-    when the batch is released and its views are gone, whichever comes last."""
-
-    __slots__ = ("sample", "released", "views_alive", "position", "held", "port")
-
-    def __init__(self, sample: Any, position: tuple[int, int], held: set[_Memory], port: Any):
-        self.sample = sample
-        self.port = port  # the subscriber it came from, kept open until the hand-back
-        self.released = False
-        self.views_alive = True
-        self.position = position
-        self.held = held
-        held.add(self)
-
-    def release(self) -> None:
-        self.released = True
-        if not self.views_alive:
-            self._hand_back()
-
-    def views_gone(self) -> None:
-        self.views_alive = False
-        if self.released:
-            self._hand_back()
-
-    def _hand_back(self) -> None:
-        sample, self.sample = self.sample, None
-        self.held.discard(self)
-        if sample is not None:
-            sample.delete()
-        self.port = None
-
-
-def _header_bytes(sample: Any) -> np.ndarray:
-    """The user header of a received sample, as bytes (a view, no copy)."""
-    return np.ctypeslib.as_array(sample.user_header().contents.words).view(np.uint8)
-
-
-def _header(sample: Any) -> np.void:
-    """The header record of a received sample, unchecked (for its position fields)."""
-    return np.frombuffer(_header_bytes(sample), dtype=HEADER, count=1)[0]
-
-
-def _position(sample: Any) -> tuple[int, int]:
-    """(epoch, step) of a received sample."""
-    h = _header(sample)
-    return int(h["epoch"]), int(h["step"])
-
-
-def _step_at(schedule: Schedule, epoch: int, sample: int) -> int:
-    """The step at which a resume after ``sample`` samples of ``epoch`` continues: a step
-    boundary of ``schedule``, or 0 when the pipeline will start the epoch there."""
-    first = schedule.start_sample if schedule._part_way(epoch) else 0
-    taken = sample - first
-    if schedule.global_batch <= 0 or taken < 0:
-        return 0
-    if taken % schedule.global_batch == 0:
-        return taken // schedule.global_batch
-    if sample == schedule.samples:
-        return -(-taken // schedule.global_batch)
-    return 0
-
-
-def _read(sample: Any, payload: np.ndarray, run: str,
-          service: str) -> tuple[np.void, dict[str, np.ndarray]]:
-    """The header and sections of a received sample (``payload``: its payload bytes),
-    checked against the format and the section table; :class:`MalformedBatch` names the
-    run and service otherwise."""
-    header = _header_bytes(sample)
-    where = f"run {run!r}, service {service!r}"
-    try:
-        h, arrays = read_batch(header, payload)
-    except FormatVersionError as e:
-        raise FormatVersionMismatch(f"{where}: {e}", run, service, e.version) from None
-    except BatchFormatError as e:
-        raise MalformedBatch(f"{where}: {e}", run, service) from None
-    for name, array in arrays.items():
-        want = section_dtype(name)
-        if want is None:
-            raise MalformedBatch(f"{where}: section `{name}` is not a section of the SuperFlow "
-                                 "batch format", run, service)
-        if array.dtype != want:
-            raise MalformedBatch(f"{where}: section `{name}` is {array.dtype.str}, the format "
-                                 f"says {want.str}", run, service)
-    return h, arrays
-
-
-class Batch:
-    """One batch of SuperFlow samples, its sections zero-copy numpy arrays.
-
-    ``epoch``, ``step``, ``sequence`` (publisher-wide counter), ``seed``, ``run``;
-    ``sample_ids``: each sample's index in its epoch; ``keyframes``: each sample's
-    keyframe index in the drive (the full rows are ``batch["sample_ids"]``: epoch,
-    index in epoch, keyframe, drive, sweep); ``cameras``: each sample's camera count
-    (samples of different rigs have different counts, and only their own images).
-    ``batch[name]`` is a section (see ``names()``); ``batch.torch()`` the same as
-    ``torch.Tensor``s sharing the memory; ``batch.sample_images(b)`` sample ``b``'s
-    images as ``F×K_b×H×W×3``.
-    """
-
-    def __init__(self, sample: Any, run: str, service: str, held: set[_Memory] | None = None,
-                 port: Any = None):
-        self.run_service = (run, service)
-        payload = sample.payload()
-        buffer = _Buffer(payload.as_ptr(), payload.len())
-        try:
-            h, arrays = _read(sample, np.asarray(buffer), run, service)
-        except MalformedBatch:
-            # Hand the memory back: the stream goes on with the next batch.
-            sample.delete()
-            raise
-        meta = batch_meta(h)
-        self.epoch: int = meta["epoch"]
-        self.step: int = meta["step"]
-        self.sequence: int = meta["sequence"]
-        self.seed: int = meta["seed"]
-        self.run: str = meta["run"]
-        self.publisher: int = sample.header.publisher_id.value
-        # Set by the stream from the pipeline's schedule (None while it is unknown).
-        self.last_in_epoch: bool | None = None
-        self.last_in_stream: bool | None = None
-        self._memory = _Memory(sample, (self.epoch, self.step),
-                              set() if held is None else held, port)
-        # Runs when the last view of the payload is gone (at once if the batch has none);
-        # not at interpreter exit, when iceoryx2 may already be torn down (the process's
-        # ports go with it then).
-        weakref.finalize(buffer, self._memory.views_gone).atexit = False
-        self._arrays: dict[str, SectionArray] = {
-            name: array.view(SectionArray) for name, array in arrays.items()}
-        del buffer, arrays
-        ids = self._arrays.get("sample_ids", np.zeros((0, 5), np.uint64))
-        self.sample_ids: list[int] = [int(i) for i in ids[:, 1]]
-        self.keyframes: list[int] = [int(k) for k in ids[:, 2]]
-        del ids
-        slots = self._arrays.get("sample_cameras", np.zeros(1, np.uint32))
-        self.cameras: list[int] = [int(k) for k in np.diff(slots.astype(np.int64))]
-        self._first_slot: list[int] = [int(s) for s in slots]
-        del slots
-
-    @property
-    def _sample(self) -> Any:
-        """The iceoryx2 sample while this process holds its memory, else None."""
-        return self._memory.sample
-
-    @property
-    def released(self) -> bool:
-        """Whether the batch was released (its views taken before stay valid)."""
-        return self._memory.released
-
-    @property
-    def returned(self) -> bool:
-        """Whether the batch's shared memory went back to the pipeline (released, and no
-        view of it alive)."""
-        return self._memory.sample is None
-
-    def names(self) -> list[str]:
-        """Every section name, in payload order."""
-        return list(self._arrays)
-
-    def __contains__(self, name: str) -> bool:
-        return name in self._arrays
-
-    def _check(self) -> None:
-        if self._memory.released:
-            raise BatchReleased(
-                f"batch (epoch {self.epoch}, step {self.step}) of run {self.run_service[0]!r} "
-                "was released: take sections before releasing it (views taken before stay valid)",
-                *self.run_service)
-
-    def __getitem__(self, name: str) -> SectionArray:
-        self._check()
-        try:
-            return self._arrays[name]
-        except KeyError:
-            raise KeyError(f"no section `{name}` in this batch (sections: {', '.join(self._arrays)})")
-
-    def image_index(self, sample: int, frame: int, camera: int) -> int:
-        """The row of ``images`` (and ``superpixels``, ``image_stamps``, the number in
-        ``pairing_image``) of camera slot ``camera`` of ``frame`` of ``sample``:
-        ``F · sample_cameras[b] + f · K_b + k``."""
-        frames = len(self["frame_offsets"])
-        if not (0 <= sample < len(self.cameras) and 0 <= frame < frames
-                and 0 <= camera < self.cameras[sample]):
-            raise IndexError(f"no image (sample {sample}, frame {frame}, camera {camera}): the "
-                             f"batch has {len(self.cameras)} samples of {frames} frames, with "
-                             f"{self.cameras} cameras")
-        return frames * self._first_slot[sample] + frame * self.cameras[sample] + camera
-
-    def sample_images(self, sample: int, name: str = "images") -> SectionArray:
-        """Sample ``sample``'s rows of an image section (``images``, ``superpixels``,
-        ``image_stamps``, ``image_flipped``) as ``F × K_b × ...``: a view, no copy."""
-        first = self.image_index(sample, 0, 0)
-        frames = len(self["frame_offsets"])
-        rows = self[name][first:first + frames * self.cameras[sample]]
-        return rows.reshape((frames, self.cameras[sample]) + rows.shape[1:])
-
-    def torch(self) -> dict[str, Any]:
-        """Every section as a ``torch.Tensor`` sharing the shared memory (``torch.from_numpy``,
-        no copy). The memory is the pipeline's: read it, do not write it. A tensor kept past
-        the release keeps the memory from going back to the pipeline until it is gone
-        (``max_held`` bounds how many batches a stream holds that way): copy what you keep
-        for long (``.clone()``, or ``.to(device)``)."""
-        self._check()
-        import torch  # optional dependency: pip install superflow[torch]
-
-        with warnings.catch_warnings():
-            # The views are read-only; torch warns that its tensors would not be.
-            warnings.simplefilter("ignore", UserWarning)
-            return {name: torch.from_numpy(np.asarray(a)) for name, a in self._arrays.items()}
-
-    def release(self) -> None:
-        """Hands the batch's memory back to the pipeline, at once or, while views of it are
-        alive, when the last one is garbage-collected."""
-        if self._memory.released:
-            return
-        self._arrays = {}
-        self._memory.release()
-
-    def __enter__(self) -> Batch:
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        self.release()
-
-    def __repr__(self) -> str:
-        if not self.released:
-            state = f"{len(self._arrays)} sections"
-        else:
-            state = "released" if self.returned else "released, views alive"
-        return f"Batch(run={self.run!r}, epoch={self.epoch}, step={self.step}, {state})"
-
-
-def _env_int(name: str) -> int | None:
-    value = os.environ.get(name)
-    if value is None or value == "":
-        return None
-    try:
-        return int(value)
-    except ValueError:
-        raise ValueError(f"environment variable {name}={value!r} is not an integer") from None
 
 
 class Stream:
     """The batches of run ``run`` from a ``superflow-pipeline``.
 
-    ``rank`` / ``world_size`` select the shard stream ``superflow/<run>/rank/<rank>`` of a
-    pipeline started with ``--world-size W``; by default they are the ``RANK`` /
-    ``WORLD_SIZE`` environment variables that torchrun sets, when ``WORLD_SIZE`` is above 1
-    (a single process reads the broadcast stream ``superflow/<run>/batches``, as it does
-    without them). ``prefix`` is the iceoryx2 prefix of the deployment
+    ``rank`` / ``world_size`` select the shard stream ``superflow/<run>/rank/<rank>`` of
+    the pipeline of this host, started with ``--world-size W``; by default they come from
+    the launcher: torchrun's ``LOCAL_RANK`` / ``LOCAL_WORLD_SIZE`` (the rank on this
+    node: every node runs its own pipeline), else ``RANK`` / ``WORLD_SIZE``, else Slurm's
+    (``superflow.ranks`` says which wins). A single process reads the broadcast stream
+    ``superflow/<run>/batches``. ``prefix`` is the iceoryx2 prefix of the deployment
     (default ``SUPERFLOW_IOX_PREFIX``). ``timeout_s``: how long to wait for a batch
     before raising :class:`PipelineTimeout` (None: wait as long as it takes). Waiting
     blocks on the pipeline's ready event; nothing spins.
@@ -486,20 +76,17 @@ class Stream:
                              "subscriber_max_borrowed_samples)")
         if not (1 <= len(run) <= 63 and set(run.encode()) <= RUN_CHARS):
             raise ValueError(f"run name {run!r} must be 1 to 63 characters of A-Z a-z 0-9 - _ .")
-        world_size = _env_int("WORLD_SIZE") if world_size is None else world_size
-        if rank is None and world_size is not None and world_size > 1:
-            rank = _env_int("RANK")
-            if rank is None:
-                raise ValueError(f"world size {world_size} without a rank (set RANK or pass rank=)")
-        if rank is not None and (rank < 0 or (world_size is not None and rank >= world_size)):
-            raise ValueError(f"rank {rank} is outside world size {world_size}")
+        shard = ranks.resolve(rank, world_size)
         self.run = run
-        self.rank = rank
-        self.world_size = world_size
+        self.rank = shard.rank
+        self.world_size = shard.world_size
+        self.shard = shard
+        rank = shard.rank
         self.timeout_s = timeout_s
         self.auto_resume = auto_resume
         self.service = f"superflow/{run}/batches" if rank is None else f"superflow/{run}/rank/{rank}"
         prefix = os.environ.get("SUPERFLOW_IOX_PREFIX") if prefix is None else prefix
+        self.prefix = prefix or ""
         config = iox2.config.default()
         if prefix:
             config.global_cfg.prefix = iox2.FileName.new(prefix + "_")
@@ -508,7 +95,7 @@ class Stream:
             self._batches = (
                 self._node.service_builder(iox2.ServiceName.new(self.service))
                 .publish_subscribe(iox2.Slice[ctypes.c_uint8])
-                .user_header(_BatchHeader)
+                .user_header(BatchHeaderWords)
                 .enable_safe_overflow(False)
                 .history_size(0)
                 .subscriber_max_buffer_size(MAX_BUFFER)
@@ -532,7 +119,7 @@ class Stream:
         except Exception as e:
             raise SuperflowError(f"run {run!r}: opening {self.service!r}: {e}", run, self.service) from e
         self.max_held = max_held
-        self._held: set[_Memory] = set()
+        self._held: set[Memory] = set()
         self._current: Batch | None = None
         self._pending: Batch | None = None  # received, handed out by the next next()
         self._stash: Any = None
@@ -549,6 +136,9 @@ class Stream:
     # -- receiving -------------------------------------------------------------------
 
     def _receive_sample(self) -> Any:
+        if self.closed:
+            raise SuperflowError(f"run {self.run!r}: the stream of {self.service!r} was closed",
+                                 self.run, self.service)
         try:
             return self._subscriber.receive()
         except Exception as e:
@@ -582,7 +172,7 @@ class Stream:
         """Whether ``sample`` is a batch of the position a resume left."""
         return (self._floor is not None
                 and sample.header.publisher_id.value == self._floor[0]
-                and int(_header(sample)["sequence"]) < self._floor[1])
+                and int(header_record(sample)["sequence"]) < self._floor[1])
 
     def pipeline_attached(self) -> bool:
         """Whether a pipeline publishes on this stream (dead ones are cleaned up first)."""
@@ -698,28 +288,43 @@ class Stream:
         return Epoch(self, drop_uneven)
 
     def schedule(self, timeout_s: float | None = None) -> Schedule:
-        """The pipeline's schedule of this stream, asked on ``superflow/<run>/schedule``
-        (waiting ``timeout_s``, default the stream's, for a pipeline to answer)."""
-        timeout_s = self.timeout_s if timeout_s is None else timeout_s
+        """The pipeline's schedule of this stream, asked on ``superflow/<run>/schedule``.
+        While no pipeline publishes on the stream it waits for one like a receive does
+        (``timeout_s``, default the stream's; :class:`PipelineTimeout` after it); a
+        pipeline that publishes but does not answer within 5 s raises
+        :class:`ScheduleUnavailable` (it has no schedule service: the stream cannot know
+        where epochs end)."""
         if self._schedule is not None:
             return self._schedule
+        timeout_s = self.timeout_s if timeout_s is None else timeout_s
         deadline = None if timeout_s is None else time.monotonic() + timeout_s
-        schedule = self._ask_schedule(deadline)
-        if schedule is None:
-            raise PipelineTimeout(f"run {self.run!r}: no pipeline answered the schedule request "
-                                  f"of {self.service!r} within {timeout_s} s",
-                                  self.run, self.service)
-        return schedule
+        schedule = self._ask_schedule(deadline, _SCHEDULE_WAIT_S)
+        if schedule is not None:
+            return schedule
+        if self.pipeline_attached():
+            raise ScheduleUnavailable(
+                f"run {self.run!r}: the pipeline publishing {self.service!r} did not answer "
+                f"the schedule request on 'superflow/{self.run}/schedule' within "
+                f"{_SCHEDULE_WAIT_S:.0f} s (an older pipeline, or its schedule service failed "
+                "to start: see its log), so the stream cannot know where epochs end; iterate "
+                "the stream itself (`for batch in stream`) and count steps instead",
+                self.run, self.service)
+        raise PipelineTimeout(f"run {self.run!r}: no pipeline answered the schedule request "
+                              f"of {self.service!r} within {timeout_s} s (no pipeline publishes "
+                              "on it)", self.run, self.service)
 
-    def _ask_schedule(self, deadline: float | None) -> Schedule | None:
+    def _ask_schedule(self, deadline: float | None,
+                      patience_s: float | None = None) -> Schedule | None:
         """Asks the pipeline for this stream's schedule; None when none answers by
-        ``deadline``. The answer is kept (it belongs to the publisher named in it)."""
+        ``deadline``, or (``patience_s``) when a pipeline has been publishing for that
+        long without answering. The answer is kept (it belongs to the publisher named in
+        it)."""
         try:
             if self._schedule_client is None:
                 service = (
                     self._node.service_builder(
                         iox2.ServiceName.new(f"superflow/{self.run}/schedule"))
-                    .request_response(_ScheduleRequest, _ScheduleReply)
+                    .request_response(ScheduleRequest, ScheduleReply)
                     .max_clients(MAX_SUBSCRIBERS * 4)
                     .max_servers(MAX_PUBLISHERS)
                     .max_nodes(MAX_NODES * 2)
@@ -727,10 +332,12 @@ class Stream:
                 )
                 self._schedule_client = (service, service.client_builder().create())
         except Exception as e:
-            raise SuperflowError(f"run {self.run!r}: opening its schedule service: {e}",
-                                 self.run, self.service) from e
+            raise SuperflowError(f"run {self.run!r}: opening its schedule service "
+                                 f"'superflow/{self.run}/schedule' (a pipeline of another "
+                                 f"superflow version?): {e}", self.run, self.service) from e
         client = self._schedule_client[1]
-        request = _ScheduleRequest(rank=self.rank or 0, broadcast=int(self.rank is None))
+        request = ScheduleRequest(rank=self.rank or 0, broadcast=int(self.rank is None))
+        attached_since = None
         while True:
             # A fresh client may not be connected to the server yet: resend until one
             # answers.
@@ -739,21 +346,23 @@ class Stream:
             while time.monotonic() - attempt < 0.5:
                 response = pending.receive()
                 if response is not None:
-                    reply = _ScheduleReply.from_buffer_copy(response.payload().contents)
+                    reply = ScheduleReply.from_buffer_copy(response.payload().contents)
                     response.delete()
                     if not reply.known:
                         raise SuperflowError(
                             f"run {self.run!r}: the pipeline has no stream {self.service!r} "
-                            f"({_REFUSALS[1]})", self.run, self.service)
-                    self._schedule = Schedule(
-                        reply.steps, reply.min_steps, reply.epochs,
-                        (reply.publisher_hi << 64) | reply.publisher_lo, reply.samples,
-                        reply.global_batch, reply.start_epoch, reply.start_sample,
-                        reply.start_steps, reply.start_min_steps)
+                            f"({REFUSALS[1]})", self.run, self.service)
+                    self._schedule = Schedule.of(reply)
                     return self._schedule
                 if deadline is not None and time.monotonic() >= deadline:
                     return None
                 time.sleep(0.005)
+            if patience_s is not None:
+                now = time.monotonic()
+                if attached_since is None and self.pipeline_attached():
+                    attached_since = attempt
+                if attached_since is not None and now - attached_since >= patience_s:
+                    return None
 
     def release_current(self) -> None:
         """Releases the batch handed out last, if it is still held."""
@@ -785,7 +394,7 @@ class Stream:
         try:
             control = (
                 self._node.service_builder(iox2.ServiceName.new(f"superflow/{self.run}/control"))
-                .request_response(_ResumeRequest, _ResumeReply)
+                .request_response(ResumeRequest, ResumeReply)
                 .max_clients(MAX_SUBSCRIBERS * 4)
                 .max_servers(MAX_PUBLISHERS)
                 .max_nodes(MAX_NODES * 2)
@@ -797,17 +406,17 @@ class Stream:
                                  self.run, self.service) from e
         if sample is None:
             expected = step
-            request = _ResumeRequest(rank=self.rank or 0, broadcast=int(self.rank is None),
-                                     epoch=epoch, step=step, sample=_UNKNOWN,
-                                     global_batch=_UNKNOWN)
+            request = ResumeRequest(rank=self.rank or 0, broadcast=int(self.rank is None),
+                                     epoch=epoch, step=step, sample=UNKNOWN,
+                                     global_batch=UNKNOWN)
         else:
             # The step the answer will name: a step boundary of the pipeline's schedule, or
             # step 0 of an epoch made to start at `sample`.
             schedule = self._ask_schedule(time.monotonic() + 2.0)
-            expected = 0 if schedule is None else _step_at(schedule, epoch, sample)
-            request = _ResumeRequest(rank=self.rank or 0, broadcast=int(self.rank is None),
-                                     epoch=epoch, step=_UNKNOWN, sample=sample,
-                                     global_batch=_UNKNOWN if global_batch is None
+            expected = 0 if schedule is None else schedule.step_at(epoch, sample)
+            request = ResumeRequest(rank=self.rank or 0, broadcast=int(self.rank is None),
+                                     epoch=epoch, step=UNKNOWN, sample=sample,
+                                     global_batch=UNKNOWN if global_batch is None
                                      else global_batch)
         if self._stash is not None:
             self._stash.delete()
@@ -821,7 +430,7 @@ class Stream:
             while time.monotonic() - attempt < 0.5 and time.monotonic() - started < timeout_s:
                 response = pending.receive()
                 if response is not None:
-                    reply = _ResumeReply.from_buffer_copy(response.payload().contents)
+                    reply = ResumeReply.from_buffer_copy(response.payload().contents)
                     response.delete()
                     return self._accept(reply, epoch, step if sample is None else None, sample)
                 # No answer yet: keep the queue moving (a pipeline blocked on this full
@@ -829,7 +438,7 @@ class Stream:
                 sample = self._receive_sample()
                 if sample is None:
                     time.sleep(0.002)
-                elif self._stash is None and _position(sample) == (epoch, expected):
+                elif self._stash is None and position_of(sample) == (epoch, expected):
                     self._stash = sample
                 else:
                     sample.delete()
@@ -838,20 +447,25 @@ class Stream:
                               f"{self.service!r} at {where} within {timeout_s} s",
                               self.run, self.service)
 
-    def _accept(self, reply: _ResumeReply, epoch: int, step: int | None,
+    def _accept(self, reply: ResumeReply, epoch: int, step: int | None,
                 sample: int | None) -> None:
         if not reply.accepted:
             where = f"({epoch}, {step})" if sample is None else f"epoch {epoch} sample {sample}"
+            if reply.reason == RUN_COMPLETE:
+                raise RunComplete(
+                    f"run {self.run!r}: the run is complete ({reply.epoch} epochs): nothing is "
+                    f"left to serve on {self.service!r} at {where}", self.run, self.service,
+                    int(reply.epoch))
             raise ResumeRefused(
                 f"run {self.run!r}: the pipeline refused to resume {self.service!r} at "
-                f"{where}: {_REFUSALS.get(reply.reason, f'reason {reply.reason}')}",
+                f"{where}: {REFUSALS.get(reply.reason, f'reason {reply.reason}')}",
                 self.run, self.service)
         publisher = (reply.publisher_hi << 64) | reply.publisher_lo
         self._floor = (publisher, int(reply.next_sequence))
 
         def new(sample: Any) -> bool:
             return (sample.header.publisher_id.value == publisher
-                    and int(_header(sample)["sequence"]) >= reply.next_sequence)
+                    and int(header_record(sample)["sequence"]) >= reply.next_sequence)
 
         if self._stash is not None and not new(self._stash):
             self._stash.delete()
@@ -888,11 +502,36 @@ class Stream:
         self.resume(int(state["epoch"]), sample=int(state["samples"]),
                     global_batch=state.get("global_batch"))
 
+    # -- the plan of a job ------------------------------------------------------------
+
+    def check_plan(self, group: Any = None) -> dict[str, int]:
+        """Checks that every rank of a ``torch.distributed`` job (``group``, default the
+        world) is served the same plan: the same drives, keyframes, seed and configuration
+        on every host's pipeline (``plan_digest``), one pipeline per ``--host-rank`` and
+        as many as ``--host-count`` says. Raises :class:`PlanMismatch` naming the ranks
+        and what differs; returns this rank's plan. A collective: every rank calls it
+        (``TorchIterable`` does at its first ``iter()``). Without an initialized process
+        group there is nothing to compare: returns the plan."""
+        schedule = self.schedule()
+        # A pipeline is told apart by its machine and iceoryx2 prefix (each stream has a
+        # publisher of its own).
+        mine = {"rank": self.shard.job_rank, "host_rank": schedule.host_rank,
+                "pipeline": f"{socket.gethostname()}/{self.prefix}", "plan": schedule.plan()}
+        import torch.distributed as dist
+
+        if not (dist.is_available() and dist.is_initialized()):
+            return schedule.plan()
+        everyone: list[Any] = [None] * dist.get_world_size(group)
+        dist.all_gather_object(everyone, mine, group=group)
+        check_plans(self.run, self.service, everyone)
+        return schedule.plan()
+
     # -- lifetime --------------------------------------------------------------------
 
     def close(self) -> None:
-        """Releases the current batch and leaves the service (the port stays open, unseen,
-        while views of held batches are alive: their memory is its to hand back)."""
+        """Releases the current batch and leaves the service at once: the pipeline stops
+        counting this subscriber. Views of held batches stay valid (their pages not yet
+        copied are copied into this process first)."""
         if self._pending is not None:
             self._pending.release()
             self._pending = None
@@ -900,15 +539,29 @@ class Stream:
         if self._stash is not None:
             self._stash.delete()
             self._stash = None
+        for memory in list(self._held):
+            memory.detach()
         if self._schedule_client is not None:
             self._schedule_client[1].delete()
             self._schedule_client = None
-        ports = ("_listener",) if self._held else ("_subscriber", "_listener")
-        for port in ports:
+        for port in ("_subscriber", "_listener"):
             obj = getattr(self, port, None)
             if obj is not None:
                 obj.delete()
                 setattr(self, port, None)
+
+    @property
+    def closed(self) -> bool:
+        """Whether ``close()`` left the service."""
+        return getattr(self, "_subscriber", None) is None
+
+    def __reduce__(self) -> Any:
+        raise StreamNotPicklable(
+            f"a superflow.Stream (run {self.run!r}) cannot be pickled: its shared-memory ports "
+            "belong to this process (spawn/forkserver DataLoader workers and multiprocessing "
+            "pickle what they get). Open a Stream in the process that reads it, and keep "
+            "DataLoader(num_workers=0): the pipeline is the worker pool",
+            self.run, self.service)
 
     def __enter__(self) -> Stream:
         return self
@@ -918,6 +571,35 @@ class Stream:
 
     def __repr__(self) -> str:
         return f"Stream(run={self.run!r}, service={self.service!r})"
+
+
+def check_plans(run: str, service: str, everyone: list[dict[str, Any]]) -> None:
+    """Raises :class:`PlanMismatch` unless every rank's ``{"rank", "host_rank",
+    "pipeline", "plan"}`` agrees: one plan, one pipeline per host rank, ``host_count``
+    pipelines."""
+    first = everyone[0]
+    for other in everyone[1:]:
+        if other["plan"] != first["plan"]:
+            fields = [f"{k} {other['plan'][k]} vs {first['plan'][k]}" for k in first["plan"]
+                      if other["plan"].get(k) != first["plan"][k]]
+            raise PlanMismatch(
+                f"run {run!r}: rank {other['rank']}'s pipeline serves another plan than rank "
+                f"{first['rank']}'s ({', '.join(fields)} on rank {first['rank']}): every host's "
+                "pipeline needs the same drives, seed and configuration", run, service)
+    hosts: dict[int, dict[str, Any]] = {}
+    for entry in everyone:
+        seen = hosts.setdefault(entry["host_rank"], entry)
+        if seen["pipeline"] != entry["pipeline"]:
+            raise PlanMismatch(
+                f"run {run!r}: ranks {seen['rank']} and {entry['rank']} read two pipelines that "
+                f"both run --host-rank {entry['host_rank']}: give each host its own "
+                f"--host-rank (0 to {first['plan']['host_count'] - 1})", run, service)
+    count = first["plan"]["host_count"]
+    if len(hosts) != count:
+        raise PlanMismatch(
+            f"run {run!r}: the pipelines run with --host-count {count}, but the job's ranks read "
+            f"{len(hosts)} (host ranks {sorted(hosts)}): the other hosts' share of every epoch "
+            "would never be trained", run, service)
 
 
 class Epoch:

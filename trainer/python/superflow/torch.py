@@ -11,7 +11,6 @@ the pairings and ``l{l}_nbr`` / ``l{l}_down`` still index it.
 
 from __future__ import annotations
 
-import warnings
 from typing import Any
 
 import numpy as np
@@ -53,10 +52,7 @@ def spconv_tensor(batch: Batch, level: int = 0, features: Any = None, device: An
     if features is None:
         if level != 0:
             raise ValueError(f"level {level} has no voxel features in the batch: pass features=")
-        with warnings.catch_warnings():
-            # The view is read-only; torch warns that its tensor would not be.
-            warnings.simplefilter("ignore", UserWarning)
-            features = torch.from_numpy(np.asarray(batch["voxel_features"]))
+        features = torch.from_numpy(np.asarray(batch["voxel_features"]))
     if features.shape[0] != len(indices):
         raise ValueError(f"{features.shape[0]} feature rows for the {len(indices)} voxels of "
                          f"level {level}")

@@ -14,6 +14,13 @@ non-zero when a check fails.
     check_stream.py malformed --run R                        # bad batches: typed errors
     check_stream.py fleet --run R                            # an epoch of mixed rigs
     check_stream.py elastic --run R --count N [--state JSON] # state_dict / load_state_dict
+    check_stream.py in_place --run R                         # in-place ops on batch tensors
+    check_stream.py workers --run R                          # DataLoader workers: clear errors
+    check_stream.py hosts --run R --count N                  # a rank of a multi-node job
+    check_stream.py lost --run R --signal FILE               # lost batches keep epochs whole
+    check_stream.py close_live --run R [--keep]              # close() with live views
+    check_stream.py no_schedule --run R                      # no schedule service: typed error
+    check_stream.py past_end --run R                         # resume past the end: RunComplete
 
 `--prefix` defaults to SUPERFLOW_IOX_PREFIX; RANK / WORLD_SIZE select a shard.
 """
@@ -22,10 +29,12 @@ from __future__ import annotations
 
 import argparse
 import ctypes
+import gc
 import json
 import sys
 import threading
 import time
+import warnings
 
 import numpy as np
 
@@ -53,16 +62,27 @@ def describe(batch: superflow.Batch, payload_range: tuple[int, int]) -> dict:
         "step": batch.step,
         "sample_ids": batch.sample_ids,
         "keyframes": batch.keyframes,
-        "zero_copy": inside,
+        "zero_copy": inside and mapped_file(start).startswith("/dev/shm/"),
         "sections": {name: {"dtype": a.dtype.str.replace("|", "<"), "shape": list(a.shape),
                             "checksum": checksum(a)} for name, a in arrays.items()},
     }
 
 
 def payload_range(batch: superflow.Batch) -> tuple[int, int]:
-    sample = batch._sample  # the iceoryx2 sample: where its shared memory lies
-    start = sample.payload().as_ptr()
-    return start, start + sample.payload().len()
+    """Where the batch's memory lies: its copy-on-write mapping of the shared memory
+    (``mapped_file`` checks that it maps the pipeline's shared-memory file)."""
+    return batch._mapped
+
+
+def mapped_file(address: int) -> str:
+    """The file this process maps at ``address`` ("" for anonymous memory)."""
+    with open("/proc/self/maps") as maps:
+        for line in maps:
+            parts = line.split(maxsplit=5)
+            low, high = (int(v, 16) for v in parts[0].split("-"))
+            if low <= address < high:
+                return parts[5].strip() if len(parts) > 5 else ""
+    return ""
 
 
 def emit(record: dict) -> None:
@@ -427,16 +447,258 @@ def elastic(args: argparse.Namespace) -> int:
     return 0
 
 
+def _smaps_private_dirty(low: int) -> int:
+    """Private_Dirty bytes of this process's mapping that starts at or holds ``low``."""
+    inside = False
+    with open("/proc/self/smaps") as smaps:
+        for line in smaps:
+            head = line.split()
+            if head and "-" in head[0] and len(head) >= 5 and ":" in head[3]:
+                a, b = (int(v, 16) for v in head[0].split("-"))
+                inside = a <= low < b
+            elif inside and line.startswith("Private_Dirty:"):
+                return int(head[1]) * 1024
+    return -1
+
+
+def in_place(args: argparse.Namespace) -> int:
+    """The in-place habits on a batch's tensors and arrays: they work, change only this
+    process's pages (the checksums of the untouched bytes, printed, equal another
+    reader's), and copy about the bytes written, no more."""
+    import torch
+
+    stream = superflow.Stream(args.run, prefix=args.prefix, timeout_s=args.timeout)
+    batch = next(stream)
+    pristine = {name: checksum(np.asarray(batch[name])) for name in batch.names()}
+    dirty_before = _smaps_private_dirty(batch._mapped[0])
+    tensors = batch.torch()
+    images, points = tensors["images"], tensors["points"]
+    expected_images = images.clone().sub_(3)
+    expected_points = points.clone()
+    expected_points.mul_(2.0)
+    expected_points[:, :3] -= 1.0
+    expected_points[:, 1].neg_()
+    # The habits: normalise / shift in place, and a flip augmentation in place.
+    images.sub_(3)
+    points.mul_(2.0)
+    points[:, :3] -= 1.0
+    points[:, 1].neg_()
+    # numpy in place on another section.
+    depth = batch["pairing_depth"]
+    expected_depth = np.array(depth) * 0.5
+    depth *= 0.5
+    written = images.numel() + points.numel() * 4 + depth.nbytes
+    dirty = _smaps_private_dirty(batch._mapped[0])
+    checks = {
+        "images": bool(torch.equal(images, expected_images)),
+        "points": bool(torch.equal(points, expected_points)),
+        "numpy": bool(np.array_equal(depth, expected_depth)),
+        "same memory": images.data_ptr() == np.asarray(batch["images"]).__array_interface__["data"][0],
+        "nothing copied before writing": dirty_before == 0,
+        # Whole pages around each section, at most a page more per section edge.
+        "copied about what was written": written <= dirty <= written + 6 * 4096,
+    }
+    del tensors, images, points, depth
+    second = next(stream)  # the first goes back to the pipeline (its pages drop)
+    emit({"checks": checks, "pristine": pristine, "written": written, "dirty": dirty,
+          "sequence": batch.sequence, "next": [second.epoch, second.step],
+          "returned": batch.returned})
+    stream.close()
+    return 0 if all(checks.values()) else 1
+
+
+def workers(args: argparse.Namespace) -> int:
+    """DataLoader workers: 2 and 4 forked workers raise WorkersUnsupported in the main
+    process, spawn and forkserver StreamNotPicklable; then num_workers=0 (pin_memory=True)
+    reads the whole epoch, every batch once, from the same stream."""
+    import multiprocessing
+    import pickle
+
+    import torch
+
+    stream = superflow.Stream(args.run, prefix=args.prefix, timeout_s=args.timeout)
+    dataset = superflow.TorchIterable(stream)
+    outcomes = {}
+    cases = [(2, "fork"), (4, "fork"), (2, "spawn"), (2, "forkserver")]
+    for workers, method in cases:
+        loader = torch.utils.data.DataLoader(
+            dataset, batch_size=None, num_workers=workers,
+            multiprocessing_context=multiprocessing.get_context(method))
+        try:
+            for _ in loader:
+                pass
+            outcomes[f"{workers} {method}"] = "iterated"
+        except (superflow.WorkersUnsupported, superflow.StreamNotPicklable) as e:
+            outcomes[f"{workers} {method}"] = [type(e).__name__, "num_workers=0" in str(e)]
+        del loader
+        gc.collect()  # the failed iterator, before the next fork copies it
+    try:
+        pickle.dumps(stream)
+        outcomes["pickle"] = "pickled"
+    except superflow.StreamNotPicklable as e:
+        outcomes["pickle"] = [type(e).__name__, isinstance(e, TypeError), args.run in str(e)]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # pin_memory without an accelerator
+        loader = torch.utils.data.DataLoader(dataset, batch_size=None, num_workers=0,
+                                             pin_memory=True)
+        length = len(loader)
+        ids = [[int(i) for i in item["sample_ids"][:, 1]] for item in loader]
+    emit({"outcomes": outcomes, "len": length, "batches": len(ids),
+          "samples": sorted(i for b in ids for i in b)})
+    stream.close()
+    return 0
+
+
+def hosts(args: argparse.Namespace) -> int:
+    """A rank of a torchrun job over several nodes (RANK, LOCAL_RANK, WORLD_SIZE,
+    LOCAL_WORLD_SIZE in the environment; this node's pipeline under its own prefix): the
+    stream it finds, the plan check across ranks (torch.distributed, gloo, with
+    MASTER_ADDR / MASTER_PORT), and its samples of one epoch."""
+    import torch.distributed as dist
+
+    stream = superflow.Stream(args.run, prefix=args.prefix, timeout_s=args.timeout)
+    dist.init_process_group("gloo")
+    record = {"rank": dist.get_rank(), "service": stream.service, "source": stream.shard.source}
+    try:
+        record["plan"] = stream.check_plan()
+        samples = [[int(i[0]), int(i[1])] for b in stream.epoch() for i in b["sample_ids"]]
+        record["samples"] = samples
+    except superflow.PlanMismatch as e:
+        record["mismatch"] = str(e)
+    emit(record)
+    dist.barrier()
+    dist.destroy_process_group()
+    stream.close()
+    return 0
+
+
+def lost(args: argparse.Namespace) -> int:
+    """Reads one batch, waits for --signal (the drives are replaced meanwhile, so later
+    samples fail), then the rest of the stream: every epoch ends, lost batches included,
+    and each epoch yields len() batches."""
+    import os
+
+    stream = superflow.Stream(args.run, prefix=args.prefix, timeout_s=args.timeout)
+    length = len(stream.epoch())
+    epochs = []
+    first = True
+    while not stream.ended:
+        epoch = []
+        for batch in stream.epoch():
+            epoch.append({"step": batch.step, "lost": batch.lost, "samples": len(batch),
+                          "tensors": len(batch.torch())})
+            if first:
+                first = False
+                emit({"paused": True})
+                while not os.path.exists(args.signal):
+                    time.sleep(0.05)
+        epochs.append(epoch)
+    emit({"len": length, "epochs": epochs, "ended": stream.ended})
+    stream.close()
+    return 0
+
+
+def close_live(args: argparse.Namespace) -> int:
+    """With --keep: reads a batch, keeps a tensor and an array of it, closes the stream
+    and sleeps while the views stay alive; they keep their bytes. Without: reads every
+    batch of the epoch (another subscriber closed with live views must not stall it)."""
+    stream = superflow.Stream(args.run, prefix=args.prefix, timeout_s=args.timeout)
+    if not args.keep:
+        steps = [b.step for b in stream.epoch()]
+        emit({"steps": steps})
+        stream.close()
+        return 0
+    batch = next(stream)
+    tensor = batch.torch()["points"]
+    array = batch["images"][0]
+    copies = (tensor.clone(), np.array(array))
+    stream.close()
+    checks = {"closed": stream.closed, "returned at close": batch.returned}
+    time.sleep(args.count)
+    checks["tensor kept"] = bool((tensor == copies[0]).all())
+    checks["array kept"] = bool(np.array_equal(array, copies[1]))
+    tensor.add_(1)  # still this process's memory
+    try:
+        next(stream)
+        checks["receive after close raises"] = False
+    except superflow.SuperflowError:
+        checks["receive after close raises"] = True
+    emit({"checks": checks})
+    return 0 if all(checks.values()) else 1
+
+
+def no_schedule(args: argparse.Namespace) -> int:
+    """A publisher without a schedule service (this process's own, as in `malformed`):
+    len(stream.epoch()) and iterating stream.epoch() raise ScheduleUnavailable within a
+    few seconds, naming the run and service; the batch itself is still read."""
+    stream = superflow.Stream(args.run, prefix=args.prefix, timeout_s=args.timeout)
+    publisher = stream._batches.publisher_builder().initial_max_slice_len(64).create()
+    notifier = stream._ready.notifier_builder().create()
+    points = np.arange(8, dtype="<f4").tobytes()
+    header = _header([("points", 7, (2, 4), 0, 32)], 64, run=args.run)
+    results = {}
+    for what in ("len", "epoch"):
+        started = time.monotonic()
+        try:
+            if what == "len":
+                len(stream.epoch())
+            else:
+                sample = publisher.loan_slice_uninit(64)
+                ctypes.memmove(ctypes.addressof(sample.user_header().contents), header, len(header))
+                ctypes.memmove(sample.payload_ptr, points + bytes(32), 64)
+                sample.assume_init().send()
+                notifier.notify()
+                for _ in stream.epoch():
+                    pass
+            results[what] = "no error"
+        except superflow.ScheduleUnavailable as e:
+            results[what] = {"error": type(e).__name__, "named": args.run in str(e)
+                             and e.service == stream.service,
+                             "seconds": round(time.monotonic() - started, 1)}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # "the stream will not end by itself"
+        batch = next(stream)  # the stream itself goes on without ends
+    results["batch"] = np.asarray(batch["points"]).reshape(-1).tolist()
+    emit(results)
+    stream.close()
+    return 0
+
+
+def past_end(args: argparse.Namespace) -> int:
+    """On a one-epoch run: read it all, then resume at its end (the position after the
+    last batch, the next epoch, and a final state_dict): RunComplete, saying so."""
+    stream = superflow.Stream(args.run, prefix=args.prefix, timeout_s=args.timeout)
+    steps = [b.step for b in stream.epoch()]
+    state = stream.state_dict()
+    results = {"steps": steps, "state": state}
+    for what, call in (("step", lambda: stream.resume(0, len(steps))),
+                       ("epoch", lambda: stream.resume(1, 0)),
+                       ("state", lambda: stream.load_state_dict(state))):
+        try:
+            call()
+            results[what] = "accepted"
+        except superflow.RunComplete as e:
+            results[what] = {"epochs": e.epochs, "message": str(e)}
+    stream.resume(0, len(steps) - 1)  # the last batch itself is still there
+    results["last again"] = next(stream).step
+    emit(results)
+    stream.close()
+    return 0
+
+
 def main() -> int:
     parser = argparse.ArgumentParser()
     parser.add_argument("scenario", choices=["read", "resume", "kept", "epochs", "uneven", "spconv", "torch_views", "timeout",
-                                             "malformed", "fleet", "elastic"])
+                                             "malformed", "fleet", "elastic", "in_place", "workers",
+                                             "hosts", "lost", "close_live", "no_schedule",
+                                             "past_end"])
     parser.add_argument("--state", help="elastic: a state_dict (JSON) to resume from")
     parser.add_argument("--run", required=True)
     parser.add_argument("--prefix")
     parser.add_argument("--count", type=int, default=1)
     parser.add_argument("--timeout", type=float, default=120.0)
     parser.add_argument("--keep", action="store_true")
+    parser.add_argument("--signal", help="lost: a file whose existence lets it go on")
     args = parser.parse_args()
     return globals()[args.scenario](args)
 

@@ -28,13 +28,14 @@ use job::{Ddp, join_job};
 use paths::RunPaths;
 use session::{Session, progress_bar};
 use signals::watch_signals;
-use start::{resume, start_fresh, start_ranks};
+use start::{resume, run_complete, start_fresh, start_ranks};
 use std::time::Instant;
 
 pub use options::RunOptions;
 
 /// Trains with `config`; `Some(code)` when stopped early by a signal (after a
-/// checkpoint).
+/// checkpoint). Resuming a run whose pipeline has served all its epochs (a requeued job
+/// of a finished run) is not a failure: it says so and returns `Ok(None)` at once.
 pub fn train(options: &RunOptions, config: TrainerConfig) -> anyhow::Result<Option<i32>> {
     options.check_rank()?;
     let ddp = join_job(options)?;
@@ -52,13 +53,18 @@ pub fn train(options: &RunOptions, config: TrainerConfig) -> anyhow::Result<Opti
     let device = device::select(&options.backend, options.device_index)?;
     tracing::info!(backend = %options.backend, ?device, "compute device");
     let mut trainer = Trainer::new(config, &device)?;
-    let resumed_at = match &ddp {
-        Some(ddp) => start_ranks(options, &mut trainer, &subscription, &paths, ddp)?,
-        None if options.resume => resume(options, &mut trainer, &subscription, &paths)?,
-        None => {
-            start_fresh(&paths, true)?;
-            None
+    let started = match &ddp {
+        Some(ddp) => start_ranks(options, &mut trainer, &subscription, &paths, ddp),
+        None if options.resume => resume(options, &mut trainer, &subscription, &paths),
+        None => start_fresh(&paths, true).map(|()| None),
+    };
+    let resumed_at = match started {
+        Ok(at) => at,
+        Err(e) if run_complete(&e).is_some() => {
+            tracing::info!(run = %options.run, step = trainer.step_count(), "{e:#}");
+            return Ok(None);
         }
+        Err(e) => return Err(e),
     };
     let metrics = MetricsWriter::open(&paths.metrics)?;
     let bar = progress_bar(steps, trainer.step_count());

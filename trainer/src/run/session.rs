@@ -4,11 +4,11 @@
 use super::job::Ddp;
 use super::options::RunOptions;
 use super::paths::RunPaths;
-use super::start::ask_resume;
+use super::start::{ask_resume, run_complete};
 use crate::checkpoint::JobPosition;
 use crate::loss::LossValues;
 use crate::metrics::{self, DdpRecord, MetricsWriter, StepRecord};
-use crate::stream::{self, Action, RankState, StreamPosition, StreamTracker};
+use crate::stream::{self, Action, PlanView, RankState, StreamPosition, StreamTracker};
 use crate::subscribe::{Received, ResumeAt, Subscription};
 use crate::train::{StepOutcome, Trainer};
 use anyhow::Context as _;
@@ -17,7 +17,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicI32, Ordering};
 use std::time::{Duration, Instant};
-use superflow_schemas::batch::BatchMeta;
+use superflow_schemas::batch::{BatchMeta, BatchView};
 use superflow_schemas::service::ScheduleReply;
 
 /// How long to wait for the schedule of a pipeline that just sent a batch (it answers
@@ -112,6 +112,11 @@ fn position_of(batch: &Received) -> StreamPosition {
     StreamPosition::new(batch.header().epoch, batch.header().step)
 }
 
+/// Words per rank of the agreement before a step: the position of its batch, its state
+/// (0 a batch, 1 stopping, 2 stream ended, 3 a lost batch), then the plan its pipeline
+/// serves ([`PlanView::to_words`]).
+const AGREEMENT_WORDS: usize = 3 + PlanView::WORDS;
+
 impl Session<'_> {
     fn timeout(&self) -> Duration {
         Duration::from_secs(self.options.timeout_secs)
@@ -136,33 +141,55 @@ impl Session<'_> {
                 }
                 continue;
             };
-            // Data-parallel: every rank says where its batch lies and whether it stops
-            // (1: a signal, 2: its stream ended); the step trains the earliest position
-            // (a rank whose shard already began the next epoch keeps its batch for later
-            // and adds no gradient).
+            // Data-parallel: every rank says where its batch lies, whether it is lost and
+            // whether it stops (1: a signal, 2: its stream ended), and which plan its
+            // pipeline serves; the step trains the earliest position (a rank whose shard
+            // already began the next epoch keeps its batch for later and adds no
+            // gradient, nor does a rank whose batch there is lost).
             let mine = batch.as_ref().map(position_of);
-            let stop = if self.stop.load(Ordering::SeqCst) != 0 {
+            let lost = match &batch {
+                Some(b) => b.view().context("invalid batch")?.is_lost(),
+                None => false,
+            };
+            let state = if self.stop.load(Ordering::SeqCst) != 0 {
                 1
+            } else if batch.is_none() {
+                2
+            } else if lost {
+                3
             } else {
-                u64::from(batch.is_none()) * 2
+                0
             };
             let what = format!("agreement before step {}", self.trainer.step_count() + 1);
-            let ranks = ddp.all_gather(
-                &[
-                    mine.map_or(u64::MAX, |p| p.epoch),
-                    mine.map_or(u64::MAX, |p| p.batch),
-                    stop,
-                ],
-                &what,
-            );
+            let plan = self
+                .schedule
+                .filter(|s| s.known == 1)
+                .map(|s| PlanView::of(&s));
+            let mut words = vec![
+                mine.map_or(u64::MAX, |p| p.epoch),
+                mine.map_or(u64::MAX, |p| p.batch),
+                state,
+            ];
+            words.extend(PlanView::to_words(plan.as_ref()));
+            let ranks = ddp.all_gather(&words, &what);
             let states: Vec<RankState> = ranks
-                .chunks(3)
-                .map(|r| match r[2] {
-                    1 => RankState::Stopping,
-                    2 => RankState::Ended,
-                    _ => RankState::At(StreamPosition::new(r[0], r[1])),
+                .chunks(AGREEMENT_WORDS)
+                .map(|r| {
+                    let at = StreamPosition::new(r[0], r[1]);
+                    match r[2] {
+                        1 => RankState::Stopping,
+                        2 => RankState::Ended,
+                        3 => RankState::Lost(at),
+                        _ => RankState::At(at),
+                    }
                 })
                 .collect();
+            // Every rank sees the same words, so all of them stop here together.
+            let plans: Vec<Option<PlanView>> = ranks
+                .chunks(AGREEMENT_WORDS)
+                .map(|r| PlanView::from_words(&r[3..]))
+                .collect();
+            stream::check_plans(&plans)?;
             let Some(at) = stream::agree(&states) else {
                 self.held = batch;
                 if states.contains(&RankState::Stopping) {
@@ -180,9 +207,43 @@ impl Session<'_> {
                     None
                 }
             };
+            if !stream::trains_at(&states, at) {
+                // Every batch at this position is lost: no rank has a gradient, no rank
+                // steps; the ranks holding one count it and move on.
+                self.waiting += wait;
+                if batch.is_some() {
+                    self.pass_lost(at);
+                }
+                continue;
+            }
             self.step(batch, at, wait)?;
         }
         Ok(())
+    }
+
+    /// Says that the batch at `at` is lost (once per batch).
+    fn warn_lost(at: StreamPosition) {
+        tracing::warn!(
+            epoch = at.epoch,
+            batch = at.batch,
+            "batch lost: every sample failed in the pipeline"
+        );
+    }
+
+    /// Counts the lost batch at `at` without a step: the stream moves past it, and its
+    /// epoch (or the stream) ends after it as after any batch.
+    fn pass_lost(&mut self, at: StreamPosition) {
+        Self::warn_lost(at);
+        self.passed(at);
+    }
+
+    /// The batch at `at` is behind this trainer (trained on, or lost): the next one is
+    /// expected, and the stream ends when it was the pipeline's last.
+    fn passed(&mut self, at: StreamPosition) {
+        self.stream.trained(at);
+        self.ended |= self
+            .schedule
+            .is_some_and(|s| s.ends_stream(at.epoch, at.batch));
     }
 
     /// The next batch to train on, past batches trained already and streams asked to
@@ -214,7 +275,17 @@ impl Session<'_> {
                 }
                 Action::Resume { at, restarted } => {
                     drop(batch);
-                    self.continue_at(position, at, restarted)?;
+                    match self.continue_at(position, at, restarted) {
+                        Ok(()) => {}
+                        // A restarted pipeline that has already served every epoch: the
+                        // stream ended.
+                        Err(e) if run_complete(&e).is_some() => {
+                            tracing::info!(run = %self.options.run, "{e:#}");
+                            self.ended = true;
+                            return Ok(None);
+                        }
+                        Err(e) => return Err(e),
+                    }
                 }
             }
         }
@@ -304,8 +375,10 @@ impl Session<'_> {
 
     /// One step at stream position `at` on `batch` (waited for `wait` seconds; `None`: a
     /// data-parallel rank without a batch at this step): metrics, log, progress and the
-    /// periodic checkpoint. `true` when a stop signal was caught: a lone trainer ends
-    /// here (data-parallel ranks agree on stopping before the next step).
+    /// periodic checkpoint. A lost batch is counted without a step on a lone trainer; a
+    /// data-parallel rank takes part in the step without a gradient of its own. `true`
+    /// when a stop signal was caught: a lone trainer ends here (data-parallel ranks agree
+    /// on stopping before the next step).
     fn step(
         &mut self,
         batch: Option<Received>,
@@ -317,6 +390,17 @@ impl Session<'_> {
             .map(Received::view)
             .transpose()
             .context("invalid batch")?;
+        let had_batch = view.is_some();
+        if view.as_ref().is_some_and(BatchView::is_lost) {
+            if self.ddp.is_none() {
+                drop(view);
+                self.waiting += wait;
+                self.pass_lost(at);
+                return Ok(self.stop.load(Ordering::SeqCst) != 0);
+            }
+            Self::warn_lost(at);
+        }
+        let view = view.filter(|v| !v.is_lost());
         let meta = view.as_ref().map(|v| v.meta().clone());
         let number = self.trainer.step_count() + 1;
         let outcome = match (&self.ddp, &view) {
@@ -333,11 +417,8 @@ impl Session<'_> {
         drop(batch);
         self.waiting += wait;
         self.computing += outcome.seconds;
-        if meta.is_some() {
-            self.stream.trained(at);
-            self.ended |= self
-                .schedule
-                .is_some_and(|s| s.ends_stream(at.epoch, at.batch));
+        if had_batch {
+            self.passed(at);
         }
         let mut record = step_record(number, at, meta.as_ref(), &outcome, wait);
         record.params_hash = self.trainer.params_hash();

@@ -12,9 +12,82 @@ use crate::train::Trainer;
 use anyhow::Context as _;
 use std::path::PathBuf;
 use std::time::Duration;
+use superflow_schemas::service::ResumeReply;
+
+/// Why the pipeline did not continue a stream where a trainer asked.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum ResumeRefused {
+    /// The position is at or past the end of the pipeline's epochs: a finished run (a
+    /// requeued job, a `--resume` after the last step). Nothing is wrong; there is
+    /// nothing to do.
+    #[error("the run is complete ({epochs} epochs): nothing left to train")]
+    RunComplete {
+        /// The epochs the pipeline serves.
+        epochs: u64,
+    },
+    /// Any other refusal: the position or stream does not fit this pipeline.
+    #[error("the pipeline refused to resume run {run} at {position}: {why}")]
+    Refused {
+        /// The run.
+        run: String,
+        /// The position asked for, in words.
+        position: String,
+        /// `ResumeReply::reason`.
+        reason: u32,
+        /// What the reason means and what to check.
+        why: String,
+    },
+}
+
+impl ResumeRefused {
+    /// The refusal `reply` of a request to continue `run` at `at`.
+    pub fn of(run: &str, at: ResumeAt, reply: &ResumeReply) -> Self {
+        if reply.reason == ResumeReply::RUN_COMPLETE {
+            return Self::RunComplete {
+                epochs: reply.epoch,
+            };
+        }
+        let position = match at {
+            ResumeAt::Step { epoch, step } => format!("epoch {epoch} batch {step}"),
+            ResumeAt::Sample { epoch, sample, .. } => {
+                format!("epoch {epoch} after {sample} samples")
+            }
+        };
+        let why = match reply.reason {
+            ResumeReply::NO_SUCH_STREAM => {
+                "no such stream: another --world-size or --mode?".to_string()
+            }
+            ResumeReply::OUT_OF_RANGE => {
+                "no such position in its epochs: is it the same recording and configuration?"
+                    .to_string()
+            }
+            ResumeReply::OTHER_JOB_SIZE => "the position was saved by a job of another size: \
+                resume by sample (start the pipeline with --start-sample, from a checkpoint \
+                that counts samples)"
+                .to_string(),
+            other => format!("reason {other}"),
+        };
+        Self::Refused {
+            run: run.to_string(),
+            position,
+            reason: reply.reason,
+            why,
+        }
+    }
+}
+
+/// The epochs of a finished run, when `error` says the pipeline found the run complete
+/// ([`ResumeRefused::RunComplete`], however much context was added to it).
+pub fn run_complete(error: &anyhow::Error) -> Option<u64> {
+    match error.downcast_ref::<ResumeRefused>() {
+        Some(ResumeRefused::RunComplete { epochs }) => Some(*epochs),
+        _ => None,
+    }
+}
 
 /// Asks the pipeline to continue this trainer's stream at `at`; the publisher that
-/// answered, and the position its next batch has there.
+/// answered, and the position its next batch has there. A refusal is a
+/// [`ResumeRefused`] ([`run_complete`] tells a finished run).
 pub fn ask_resume(
     subscription: &Subscription,
     run: &str,
@@ -25,27 +98,45 @@ pub fn ask_resume(
         .resume(at, timeout)
         .with_context(|| format!("asking run {run} to resume"))?;
     if reply.accepted != 1 {
-        let position = match at {
-            ResumeAt::Step { epoch, step } => format!("epoch {epoch} batch {step}"),
-            ResumeAt::Sample { epoch, sample, .. } => {
-                format!("epoch {epoch} after {sample} samples")
-            }
-        };
-        let why = match reply.reason {
-            1 => "no such stream: another --world-size or --mode?".to_string(),
-            2 => "past the end of its epochs: is it the same recording and configuration?"
-                .to_string(),
-            3 => "the position was saved by a job of another size: resume by sample (start the \
-                  pipeline with --start-sample, from a checkpoint that counts samples)"
-                .to_string(),
-            other => format!("reason {other}"),
-        };
-        anyhow::bail!("the pipeline refused to resume run {run} at {position}: {why}");
+        return Err(ResumeRefused::of(run, at, &reply).into());
     }
     Ok((
         reply.publisher(),
         StreamPosition::new(reply.epoch, reply.step),
     ))
+}
+
+/// `--ddp`: whether every rank resumed (`Ok` with this rank's position), from what each
+/// rank's request gave (`asked`, this rank's): a run complete on every rank stays
+/// [`ResumeRefused::RunComplete`] (the job ends successfully on all of them), a rank's
+/// own failure is its error, and the ranks that succeeded fail too, naming the ranks
+/// that did not, rather than wait for them in the next collective.
+fn agree_on_resume(
+    asked: anyhow::Result<(u128, StreamPosition)>,
+    ddp: &Ddp,
+) -> anyhow::Result<StreamPosition> {
+    let outcome = match &asked {
+        Ok(_) => 0,
+        Err(e) if run_complete(e).is_some() => 1,
+        Err(_) => 2,
+    };
+    let all = ddp.all_gather(&[outcome], "every rank's resume outcome");
+    let ranks =
+        |wanted: u64| -> Vec<usize> { (0..all.len()).filter(|&r| all[r] == wanted).collect() };
+    match asked {
+        Err(e) if outcome == 2 => Err(e),
+        _ if all.contains(&2) => anyhow::bail!(
+            "rank(s) {:?} could not resume (their logs say why): this rank stops with them",
+            ranks(2)
+        ),
+        Err(e) if all.iter().all(|&o| o == 1) => Err(e),
+        Ok((_, position)) if all.iter().all(|&o| o == 0) => Ok(position),
+        _ => anyhow::bail!(
+            "the pipelines of rank(s) {:?} found the run complete and those of rank(s) {:?} did not: every host's pipeline needs the same --epochs, drives and configuration",
+            ranks(1),
+            ranks(0)
+        ),
+    }
 }
 
 /// How rank 0 starts a data-parallel job; every rank receives it.
@@ -129,12 +220,13 @@ pub fn start_ranks(
             state.ranks.len().max(1)
         ),
     };
-    let (_, position) = ask_resume(
+    let asked = ask_resume(
         subscription,
         &options.run,
         at,
         Duration::from_secs(options.timeout_secs),
-    )?;
+    );
+    let position = agree_on_resume(asked, ddp)?;
     tracing::info!(
         rank,
         step,
@@ -298,6 +390,42 @@ mod tests {
             .save_checkpoint(&paths.checkpoints, &state)
             .expect("saved");
         state
+    }
+
+    /// The pipeline's refusals in words; a finished run is told apart whatever context
+    /// the error picked up on its way.
+    #[test]
+    fn refusals_name_the_reason_and_a_finished_run_is_its_own() {
+        let at = ResumeAt::Sample {
+            epoch: 2,
+            sample: 36,
+            global_batch: 6,
+        };
+        let reply = |reason, epoch| ResumeReply {
+            reason,
+            epoch,
+            ..ResumeReply::default()
+        };
+        let done = ResumeRefused::of("r", at, &reply(ResumeReply::RUN_COMPLETE, 3));
+        assert_eq!(done, ResumeRefused::RunComplete { epochs: 3 });
+        assert_eq!(
+            done.to_string(),
+            "the run is complete (3 epochs): nothing left to train"
+        );
+        let error = anyhow::Error::from(done).context("resuming");
+        assert_eq!(run_complete(&error), Some(3));
+        let other = ResumeRefused::of("r", at, &reply(ResumeReply::OUT_OF_RANGE, 0));
+        assert_eq!(
+            other.to_string(),
+            "the pipeline refused to resume run r at epoch 2 after 36 samples: no such position in its epochs: is it the same recording and configuration?"
+        );
+        assert_eq!(run_complete(&anyhow::Error::from(other)), None);
+        let step = ResumeAt::Step { epoch: 1, step: 4 };
+        let text = ResumeRefused::of("r", step, &reply(ResumeReply::OTHER_JOB_SIZE, 0)).to_string();
+        assert!(
+            text.contains("at epoch 1 batch 4: the position was saved by a job of another size"),
+            "{text}"
+        );
     }
 
     #[test]
