@@ -234,31 +234,21 @@ impl Trainer {
             None => (grads, None, None),
         };
         let lr = self.schedule.lr(self.step);
-        if global.as_ref().is_some_and(|g| g.samples == 0) {
-            // AdamW would still move the weights (decay, momentum) and the schedule
-            // would advance: no update from nothing.
-            return Ok(StepOutcome {
-                losses: local.losses,
-                sc_frames: local.sc_frames,
-                lr,
-                seconds: started.elapsed().as_secs_f64(),
-                phases,
-                counts: local.counts,
-                sample_ids: local.sample_ids,
-                global,
-            });
+        // With no sample on any rank AdamW would still move the weights (decay,
+        // momentum) and the schedule would advance: no update from nothing.
+        if global.as_ref().is_none_or(|g| g.samples > 0) {
+            let model = self
+                .model
+                .take()
+                .expect("the model is present between steps");
+            let mut model = self.optim.step(lr, model, grads);
+            if let Some(buffer) = averaged {
+                model = buffer.average_buffers(model);
+            }
+            self.model = Some(model);
+            self.step += 1;
+            lap.mark(&mut phases.update);
         }
-        let model = self
-            .model
-            .take()
-            .expect("the model is present between steps");
-        let mut model = self.optim.step(lr, model, grads);
-        if let Some(buffer) = averaged {
-            model = buffer.average_buffers(model);
-        }
-        self.model = Some(model);
-        self.step += 1;
-        lap.mark(&mut phases.update);
         Ok(StepOutcome {
             losses: local.losses,
             sc_frames: local.sc_frames,

@@ -143,6 +143,10 @@ class Batch:
         """The samples of the batch (0 for a lost batch)."""
         return len(self.sample_ids)
 
+    def __bool__(self) -> bool:
+        # A lost batch has no samples but is still a batch (`if batch:` stays true).
+        return True
+
     def names(self) -> list[str]:
         """Every section name, in payload order."""
         return list(self._arrays)

@@ -17,7 +17,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicI32, Ordering};
 use std::time::{Duration, Instant};
-use superflow_schemas::batch::{BatchMeta, BatchView};
+use superflow_schemas::batch::{BATCH_LOST, BatchMeta, BatchView};
 use superflow_schemas::service::ScheduleReply;
 
 /// How long to wait for the schedule of a pipeline that just sent a batch (it answers
@@ -147,10 +147,9 @@ impl Session<'_> {
             // already began the next epoch keeps its batch for later and adds no
             // gradient, nor does a rank whose batch there is lost).
             let mine = batch.as_ref().map(position_of);
-            let lost = match &batch {
-                Some(b) => b.view().context("invalid batch")?.is_lost(),
-                None => false,
-            };
+            let lost = batch
+                .as_ref()
+                .is_some_and(|b| b.header().flags & BATCH_LOST != 0);
             let state = if self.stop.load(Ordering::SeqCst) != 0 {
                 1
             } else if batch.is_none() {
