@@ -166,6 +166,31 @@ impl PipelineConfig {
                 "must be at least 1",
             ));
         }
+        if let Some(mode) = self.ingest.index_cache_mode
+            && (mode > 0o7777 || mode & 0o700 != 0o700 || mode & 0o002 != 0)
+        {
+            return Err(InvalidSetting::new(
+                "ingest.index_cache_mode",
+                format!("0o{mode:o}"),
+                "must give its owner rwx and others no write (e.g. 0o700, 0o2750, 0o2770)",
+            ));
+        }
+        if let Some(owner) = &self.ingest.index_cache_owner
+            && crate::drive::index_cache::uid_of(owner).is_none()
+        {
+            return Err(InvalidSetting::new(
+                "ingest.index_cache_owner",
+                owner,
+                "names no user",
+            ));
+        }
+        if self.ingest.index_cache_max_mb == Some(0) {
+            return Err(InvalidSetting::new(
+                "ingest.index_cache_max_mb",
+                0,
+                "must be at least 1",
+            ));
+        }
         self.sample.validate()?;
         self.service.validate()?;
         self.labels.validate()?;

@@ -206,6 +206,18 @@ pub fn replaceable_drives(dir: &std::path::Path) -> anyhow::Result<(Vec<PathBuf>
     Ok((drives, config))
 }
 
+/// Replaces each drive by an identical copy, written aside and renamed over it (a new
+/// inode and new times, as `rsync` or a dataset re-sync writes files whose content did
+/// not change).
+pub fn resync_drives(drives: &[PathBuf]) -> anyhow::Result<()> {
+    for drive in drives {
+        let fresh = drive.with_extension("resync");
+        std::fs::copy(drive, &fresh)?;
+        std::fs::rename(&fresh, drive)?;
+    }
+    Ok(())
+}
+
 /// Replaces each drive by a copy of its first half, written aside and renamed over it (a
 /// new inode, as a dataset re-sync writes files): samples read from them from then on
 /// fail, unless the pipeline still holds their data.

@@ -345,3 +345,279 @@ fn two_processes_filling_one_cache_at_once_both_succeed() {
     assert_eq!(indexes, files - hit.indexed.uncacheable);
     std::fs::remove_dir_all(dir).unwrap();
 }
+
+/// `index` of `inputs` into `cache`, through `wrap` (e.g. `unshare …`) when given, killed
+/// after `secs`: `None` then.
+fn index_within(wrap: &[&str], inputs: &[PathBuf], cache: &Path, secs: u64) -> Option<Output> {
+    let binary = pipeline_binary(env!("CARGO_BIN_EXE_superflow-subscriber"));
+    let mut command = match wrap.split_first() {
+        Some((program, args)) => {
+            let mut c = Command::new(program);
+            c.args(args).arg(binary);
+            c
+        }
+        None => Command::new(binary),
+    };
+    let child = command
+        .arg("index")
+        .arg("--mcap")
+        .args(inputs)
+        .arg("--index-cache")
+        .arg(cache)
+        .env("RUST_LOG", "info")
+        .env("NO_COLOR", "1")
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let id = child.id();
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let _ = tx.send(child.wait_with_output());
+    });
+    match rx.recv_timeout(std::time::Duration::from_secs(secs)) {
+        Ok(output) => Some(output.unwrap()),
+        Err(_) => {
+            let _ = Command::new("kill").arg("-9").arg(id.to_string()).status();
+            None
+        }
+    }
+}
+
+/// The `.sfidx` entries of `cache`, sorted.
+fn file_entries(cache: &Path) -> Vec<PathBuf> {
+    let mut entries: Vec<PathBuf> = std::fs::read_dir(cache)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|x| x == "sfidx"))
+        .collect();
+    entries.sort();
+    entries
+}
+
+/// Whether `unshare` with these flags works here (user namespaces may be off): a test
+/// that needs it says so and passes without it.
+fn unshare_works(flags: &str) -> bool {
+    let works = Command::new("unshare")
+        .args([flags, "true"])
+        .status()
+        .is_ok_and(|s| s.success());
+    if !works {
+        eprintln!("SKIPPED: `unshare {flags}` is not permitted on this machine");
+    }
+    works
+}
+
+/// What stands at an entry's name may be anything a writer of the directory put there:
+/// a FIFO (a plain open blocks forever), a symbolic link to `/dev/zero` (a plain read
+/// never ends), an entry renamed under another file's name, or an entry whose chunk
+/// record is shorter than a record head. Each is skipped with a WARN line saying what it
+/// is, the files are scanned again, and their entries are then whole again.
+#[test]
+fn fifos_links_and_forged_entries_are_skipped_without_hanging() {
+    let dir = scratch("hostile");
+    let cache = dir.join("cache");
+    let inputs = inputs(&dir)[..2].to_vec();
+    let filled = index_within(&[], &inputs, &cache, 120).unwrap();
+    assert!(filled.status.success(), "{:?}", text(&filled));
+    let entries = file_entries(&cache);
+    assert_eq!(entries.len(), 3);
+    std::fs::remove_file(&entries[0]).unwrap();
+    let made = Command::new("mkfifo").arg(&entries[0]).status().unwrap();
+    assert!(made.success());
+    std::fs::remove_file(&entries[1]).unwrap();
+    std::os::unix::fs::symlink("/dev/zero", &entries[1]).unwrap();
+    // The third file's entry under the second's name, as a rename would leave it.
+    let third = std::fs::read(&entries[2]).unwrap();
+    let moved = dir.join("moved");
+    std::fs::write(&moved, &third).unwrap();
+    let started = std::time::Instant::now();
+    let again = index_within(&[], &inputs, &cache, 60)
+        .expect("`index` hung on a FIFO or a link to /dev/zero in the cache");
+    let (out, err) = text(&again);
+    assert!(again.status.success(), "{out}\n{err}");
+    assert!(out.contains("cache hits      1 of 3"), "{out}");
+    assert!(started.elapsed().as_secs() < 60);
+    for reason in [
+        "not a regular file but a FIFO",
+        "a symbolic link (not followed)",
+    ] {
+        let line = err
+            .lines()
+            .find(|l| l.contains(reason))
+            .unwrap_or_else(|| panic!("no line with `{reason}`:\n{err}"));
+        assert!(
+            line.contains("WARN") && line.contains("indexing the file again"),
+            "{line}"
+        );
+    }
+    // Renamed entries and a forged chunk length.
+    let entries = file_entries(&cache);
+    assert!(entries.iter().all(|e| e.is_file() && !e.is_symlink()));
+    std::fs::copy(&moved, &entries[0]).unwrap();
+    let forged = index_within(&[], &inputs, &cache, 60).unwrap();
+    let (out, err) = text(&forged);
+    assert!(forged.status.success(), "{out}\n{err}");
+    assert!(err.contains("it is the entry of another key"), "{err}");
+    assert!(out.contains("cache hits      2 of 3"), "{out}");
+    std::fs::remove_dir_all(dir).unwrap();
+}
+
+/// Two Kubernetes pods on one cache: each pipeline is PID 1 of its own PID namespace,
+/// with the same thread ids. Both index the same files into one cache at once: both
+/// succeed without a warning, the entries are whole, and no temporary file is left.
+#[test]
+fn two_pods_with_pid_1_index_into_one_cache_at_once() {
+    if !unshare_works("-Urpf") {
+        return;
+    }
+    let dir = scratch("pods");
+    let cache = dir.join("cache");
+    let inputs = inputs(&dir);
+    // Several copies, so that the pods write many entries at the same moments.
+    let more = dir.join("more");
+    std::fs::create_dir_all(&more).unwrap();
+    let drives = workspace_root().join("recordings/drives");
+    for i in 0..6 {
+        std::fs::copy(
+            drives.join("street_foxglove.mcap"),
+            more.join(format!("copy{i}.mcap")),
+        )
+        .unwrap();
+    }
+    let mut all = inputs.clone();
+    all.push(more);
+    let wrap = ["unshare", "-Urpf", "--mount-proc"];
+    let (a, b) = std::thread::scope(|s| {
+        let a = s.spawn(|| index_within(&wrap, &all, &cache, 300));
+        let b = s.spawn(|| index_within(&wrap, &all, &cache, 300));
+        (a.join().unwrap().unwrap(), b.join().unwrap().unwrap())
+    });
+    for output in [&a, &b] {
+        let (out, err) = text(output);
+        assert!(output.status.success(), "{out}\n{err}");
+        for trouble in ["cannot be written", "index cache entry ignored"] {
+            assert!(!err.contains(trouble), "{err}");
+        }
+    }
+    let names: Vec<String> = std::fs::read_dir(&cache)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    assert!(
+        names
+            .iter()
+            .all(|n| n.ends_with(".sfidx") || n.ends_with(".sfscan")),
+        "{names:?}"
+    );
+    let hit = Dataset::open(&all, &config(Some(&cache))).unwrap().indexed;
+    assert_eq!(hit.scanned, 0, "{hit:?}");
+    assert_eq!(hit.from_cache + hit.uncacheable, hit.files(), "{hit:?}");
+    std::fs::remove_dir_all(dir).unwrap();
+}
+
+/// A cache that cannot be written (a read-only bind mount; root ignores permissions, a
+/// mount does not): `index` says how many entries it could not store and fails, so that
+/// an index step does not pass while every node then scans everything again.
+#[test]
+fn index_fails_when_it_cannot_store_what_it_indexed() {
+    if !unshare_works("-Urm") {
+        return;
+    }
+    let dir = scratch("readonly");
+    let cache = dir.join("cache");
+    std::fs::create_dir_all(&cache).unwrap();
+    let inputs = inputs(&dir)[..2].to_vec();
+    let binary = pipeline_binary(env!("CARGO_BIN_EXE_superflow-subscriber"));
+    let script = format!(
+        "mount --bind '{c}' '{c}' && mount -o remount,bind,ro '{c}' && exec '{b}' index --mcap '{i0}' '{i1}' --index-cache '{c}'",
+        c = cache.display(),
+        b = binary.display(),
+        i0 = inputs[0].display(),
+        i1 = inputs[1].display(),
+    );
+    let output = Command::new("unshare")
+        .args(["-Urm", "sh", "-c", &script])
+        .env("NO_COLOR", "1")
+        .output()
+        .unwrap();
+    let (out, err) = text(&output);
+    assert_eq!(output.status.code(), Some(2), "{out}\n{err}");
+    assert!(out.contains("cache hits      0 of 3"), "{out}");
+    assert!(
+        err.contains("index cache entries could not be stored"),
+        "{err}"
+    );
+    assert!(err.contains("Read-only file system"), "{err}");
+    // Writable again, the same command succeeds.
+    let ok = index_within(&[], &inputs, &cache, 120).unwrap();
+    assert!(ok.status.success(), "{:?}", text(&ok));
+    std::fs::remove_dir_all(dir).unwrap();
+}
+
+/// A cache directory its group or every user may write is refused at start with what to
+/// do; entries of another build are indexed again; `index --prune` removes what this
+/// build cannot use and temporary files of writers that died.
+#[test]
+fn a_cache_others_may_write_is_refused_and_prune_tidies_it() {
+    use std::os::unix::fs::PermissionsExt;
+    let dir = scratch("tidy");
+    let cache = dir.join("cache");
+    let inputs = inputs(&dir)[..2].to_vec();
+    let filled = index_within(&[], &inputs, &cache, 120).unwrap();
+    assert!(filled.status.success(), "{:?}", text(&filled));
+    let mode = std::fs::metadata(&cache).unwrap().permissions().mode() & 0o777;
+    assert_eq!(mode, 0o700, "made private whatever the umask");
+    for (mode, who) in [(0o770, "its group"), (0o777, "every user")] {
+        std::fs::set_permissions(&cache, std::fs::Permissions::from_mode(mode)).unwrap();
+        let refused = index_within(&[], &inputs, &cache, 60).unwrap();
+        let (out, err) = text(&refused);
+        assert_eq!(refused.status.code(), Some(2), "{out}\n{err}");
+        assert!(err.contains(&format!("writable by {who}")), "{err}");
+        assert!(err.contains(&cache.display().to_string()), "{err}");
+    }
+    std::fs::set_permissions(&cache, std::fs::Permissions::from_mode(0o700)).unwrap();
+    // An entry of another build: same format, another writer identity.
+    let entries = file_entries(&cache);
+    let bytes = std::fs::read(&entries[0]).unwrap();
+    let writer_len = usize::from(u16::from_le_bytes([bytes[12], bytes[13]]));
+    let mut other = bytes[..12].to_vec();
+    other.extend_from_slice(&(5u16).to_le_bytes());
+    other.extend_from_slice(b"0.0.1");
+    other.extend_from_slice(&bytes[14 + writer_len..]);
+    std::fs::write(&entries[0], &other).unwrap();
+    let again = index_within(&[], &inputs, &cache, 120).unwrap();
+    let (out, err) = text(&again);
+    assert!(out.contains("cache hits      2 of 3"), "{out}");
+    assert!(
+        err.contains("written by superflow-pipeline 0.0.1, this is"),
+        "{err}"
+    );
+    // Prune: an entry of another build, a damaged one, a dead writer's temporary file.
+    std::fs::write(&entries[0], &other).unwrap();
+    std::fs::write(&entries[1], b"SFINDEX\0 damaged").unwrap();
+    let stale = cache.join(format!(".{:032x}.sfidx.0123456789abcdef.tmp", 7));
+    std::fs::write(&stale, b"half an entry").unwrap();
+    let day_ago = std::time::SystemTime::now() - std::time::Duration::from_secs(86_400);
+    std::fs::File::options()
+        .write(true)
+        .open(&stale)
+        .unwrap()
+        .set_modified(day_ago)
+        .unwrap();
+    let pruned = Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-subscriber")))
+        .args(["index", "--prune", "--index-cache"])
+        .arg(&cache)
+        .output()
+        .unwrap();
+    let (out, err) = text(&pruned);
+    assert!(pruned.status.success(), "{out}\n{err}");
+    assert!(
+        out.contains("pruned          2 unusable entries, 0 evicted"),
+        "{out}"
+    );
+    assert!(out.contains("1 stale temporary files"), "{out}");
+    assert!(!stale.exists() && !entries[0].exists() && !entries[1].exists());
+    assert!(entries[2].exists());
+    std::fs::remove_dir_all(dir).unwrap();
+}

@@ -411,6 +411,102 @@ fn lost_batches_are_counted_without_a_step_and_the_stream_still_ends() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// Both sample drives served by a pipeline that reopens its files for every read; after
+/// its first batch, the first drive is replaced by an identical copy (a re-sync: new
+/// inode, new times) and the second is deleted. Every sample of the first drive still
+/// trains, in both epochs; the second drive's samples that no longer build are counted
+/// (lost batches, the pipeline's `failed_samples`) and its missing file is one ERROR
+/// line, not one per sample.
+#[test]
+fn a_resynced_drive_loses_nothing_and_a_deleted_one_is_one_counted_error() {
+    let p = prefix("resync");
+    let out = temp_dir("train-resync");
+    let dir = temp_dir("train-resync-drives");
+    let (drives, config) = superflow_tests::replaceable_drives(&dir).unwrap();
+    let mut pipe = spawn(
+        Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-subscriber")))
+            .arg("--mcap")
+            .arg(&drives[0])
+            .arg("--mcap")
+            .arg(&drives[1])
+            .arg("--config")
+            .arg(&config)
+            .args(["--run", "resync", "--batch-size", "1", "--epochs", "2"])
+            .env("SUPERFLOW_IOX_PREFIX", &p)
+            .env("RUST_LOG", "info")
+            .env("NO_COLOR", "1")
+            .current_dir(workspace_root())
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped()),
+    );
+    let rx = lines_of(pipe.stderr.take().unwrap());
+    let mut pipe_log = String::new();
+    while !pipe_log.contains("waiting for subscribers") {
+        let line = rx
+            .recv_timeout(LIMIT)
+            .unwrap_or_else(|_| panic!("the pipeline starts:\n{pipe_log}"));
+        pipe_log.push_str(&line);
+        pipe_log.push('\n');
+    }
+    superflow_tests::resync_drives(&drives[..1]).unwrap();
+    std::fs::remove_file(&drives[1]).unwrap();
+    let (ok, _, err) = finish(trainer(&p, "resync", &out, &[]), LIMIT);
+    assert!(ok, "{err}");
+    let lost = err
+        .matches("batch lost: every sample failed in the pipeline")
+        .count();
+    let trained = metrics::read(&out.join("metrics.jsonl")).unwrap();
+    assert_eq!(trained.len() + lost, 24, "{err}");
+    let (ok, _, _) = finish(pipe, LIMIT);
+    while let Ok(line) = rx.recv_timeout(Duration::from_secs(2)) {
+        pipe_log.push_str(&line);
+        pipe_log.push('\n');
+    }
+    assert!(ok, "{pipe_log}");
+    assert!(
+        pipe_log.contains("replaced by a copy of the same content; reading the copy"),
+        "{pipe_log}"
+    );
+    // The first drive's 6 keyframes train in both epochs: only the deleted drive's fail.
+    let first = drives[0].display().to_string();
+    let second = drives[1].display().to_string();
+    let errors: Vec<&str> = pipe_log
+        .lines()
+        .filter(|l| l.contains("ERROR") && l.contains("sample lost"))
+        .collect();
+    assert!(
+        errors.iter().all(|l| !l.contains(&first)),
+        "a sample of the re-synced drive failed: {errors:#?}"
+    );
+    assert!(
+        trained.len() >= 12,
+        "{} trained:\n{pipe_log}",
+        trained.len()
+    );
+    if lost > 0 {
+        assert_eq!(
+            errors.len(),
+            1,
+            "one line for the missing file: {errors:#?}"
+        );
+        assert!(errors[0].contains(&second), "{}", errors[0]);
+        let failed = pipe_log
+            .lines()
+            .find(|l| l.contains("counters"))
+            .and_then(|l| l.split("failed_samples=").nth(1))
+            .and_then(|v| v.split_whitespace().next())
+            .and_then(|v| v.parse::<usize>().ok());
+        assert_eq!(failed, Some(lost), "every lost sample counted: {pipe_log}");
+    }
+    eprintln!(
+        "{} trained, {lost} lost to the deleted drive",
+        trained.len()
+    );
+    no_shared_memory_left(&p);
+    let _ = std::fs::remove_dir_all(&out);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// `dir/batch.bin`: a batch of `samples` samples of the sample drive, written by
 /// `superflow-pipeline batch`.
 fn write_batch(dir: &Path, samples: usize) -> PathBuf {

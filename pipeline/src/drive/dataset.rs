@@ -120,6 +120,9 @@ impl Dataset {
         }
         crate::source::HandlePool::global().set_limit(config.max_open_files());
         let cache = config.index_cache();
+        if let Some(cache) = &cache {
+            cache.prepare()?;
+        }
         let files: Vec<&PathBuf> = groups.iter().flatten().collect();
         let bytes_total: u64 = files
             .par_iter()
@@ -221,6 +224,9 @@ impl Dataset {
                 }
             }
             drives.push(*drive);
+        }
+        if let Some(cache) = &cache {
+            cache.upkeep_if_grown();
         }
         Ok(Dataset {
             drives,

@@ -7,6 +7,7 @@
 //! [`Dialect`](crate::decode::Dialect)) lives in [`crate::decode::schema`], below both the decoders and this
 //! module.
 
+use super::index_cache::{CacheAccess, uid_of};
 use crate::decode::{SchemaKind, schema_kind};
 use crate::source::ChannelInfo;
 use serde::{Deserialize, Serialize};
@@ -37,15 +38,41 @@ pub struct IngestConfig {
     /// ([`IndexCache`](super::IndexCache)); `"off"` keeps none. By default the per-user
     /// cache directory (`$XDG_CACHE_HOME/superflow/index`, else `~/.cache/...`).
     pub index_cache: Option<PathBuf>,
+    /// The permission bits of the index cache directory when the pipeline makes it, and
+    /// the most it may grant: `0o700` by default. A cache shared by a group sets e.g.
+    /// `0o2750` (the owner indexes, the group reads) or `0o2770`; a directory writable
+    /// by every user is always refused.
+    pub index_cache_mode: Option<u32>,
+    /// The user (name or uid) whose entries are read besides this user's: the owner of
+    /// a shared cache. By default only this user's entries are read.
+    pub index_cache_owner: Option<String>,
+    /// The most megabytes of entries the index cache keeps; the least recently used are
+    /// evicted beyond it (default 8192).
+    pub index_cache_max_mb: Option<u64>,
 }
 
 impl IngestConfig {
     /// The index cache [`index_cache`](Self::index_cache) names, `None` when off.
     pub fn index_cache(&self) -> Option<super::IndexCache> {
+        let access = self.index_cache_access();
         match &self.index_cache {
             Some(dir) if dir.as_os_str() == "off" => None,
-            Some(dir) => Some(super::IndexCache::new(dir)),
-            None => super::IndexCache::user_default(),
+            Some(dir) => Some(super::IndexCache::with_access(dir, access)),
+            None => super::IndexCache::user_default(access),
+        }
+    }
+
+    /// How the index cache is written and bounded (`index_cache_mode`, `_owner`,
+    /// `_max_mb`); an owner that names no user trusts nobody more (the configuration's
+    /// validation refuses it first).
+    pub fn index_cache_access(&self) -> CacheAccess {
+        let default = CacheAccess::default();
+        CacheAccess {
+            mode: self.index_cache_mode.unwrap_or(default.mode),
+            owner: self.index_cache_owner.as_deref().and_then(uid_of),
+            max_bytes: self
+                .index_cache_max_mb
+                .map_or(default.max_bytes, |mb| mb.saturating_mul(1 << 20)),
         }
     }
 
@@ -66,6 +93,9 @@ impl Default for IngestConfig {
             tf_tolerance_ms: 60.0,
             max_open_files: None,
             index_cache: None,
+            index_cache_mode: None,
+            index_cache_owner: None,
+            index_cache_max_mb: None,
         }
     }
 }

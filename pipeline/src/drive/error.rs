@@ -1,5 +1,6 @@
 //! Why a dataset cannot be used for training ([`IngestError`]).
 
+use super::index_cache::CacheError;
 use crate::source::SourceError;
 use std::path::PathBuf;
 
@@ -18,6 +19,9 @@ pub enum IngestError {
     /// A file could not be opened or is not MCAP.
     #[error(transparent)]
     Source(#[from] SourceError),
+    /// The index cache is refused (others may write it).
+    #[error(transparent)]
+    Cache(#[from] CacheError),
     /// Listing a directory failed.
     #[error("{path}: {source}")]
     Io {

@@ -87,6 +87,34 @@ impl FileIndex {
         Ok((file, index))
     }
 
+    /// Checks an index read back from storage against the file it is said to be of (of
+    /// `len` bytes): its scan facts ([`ScannedFile::fits`]) and every frame's location.
+    pub fn fits(&self, len: u64) -> Result<(), String> {
+        self.scanned.fits(len)?;
+        let chunks = self.scanned.chunk_count();
+        for (name, topic) in &self.topics {
+            if topic.frame_logs.len() != topic.frames.len() {
+                return Err(format!(
+                    "topic {name}: frames and their log times differ in number"
+                ));
+            }
+            for (_, loc) in &topic.frames {
+                let inside = match *loc {
+                    MessageLoc::Chunk { chunk, .. } => (chunk as usize) < chunks,
+                    MessageLoc::Direct { offset } => {
+                        offset >= 8 && offset.checked_add(9).is_some_and(|end| end <= len)
+                    }
+                };
+                if !inside {
+                    return Err(format!(
+                        "topic {name}: a frame at {loc:?} is outside the file"
+                    ));
+                }
+            }
+        }
+        Ok(())
+    }
+
     /// This index for the same file found at `path`: its skip reports name `path`.
     pub fn moved_to(mut self, path: &Path) -> FileIndex {
         if self.path != path {

@@ -233,6 +233,8 @@ pub(super) fn index_file(
         fingerprint,
     };
     let Some(cache) = cache else {
+        // Taken now, so that a copy replacing the file later is known for one.
+        file.content_digest()?;
         return Ok(indexed(
             FileIndex::scan(file, progress)?,
             IndexedBy::Scan,
@@ -286,6 +288,9 @@ impl Drive {
         }
         crate::source::HandlePool::global().set_limit(config.max_open_files());
         let cache = config.index_cache();
+        if let Some(cache) = &cache {
+            cache.prepare()?;
+        }
         let total_bytes: u64 = files
             .iter()
             .map(|f| std::fs::metadata(f).map_or(0, |m| m.len()))
@@ -298,6 +303,9 @@ impl Drive {
             })?;
             before += file.file.len();
             indexed.push(file);
+        }
+        if let Some(cache) = &cache {
+            cache.upkeep_if_grown();
         }
         Ok(Drive::join(indexed, config))
     }

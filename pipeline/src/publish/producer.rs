@@ -5,9 +5,10 @@
 use super::{Cursors, MAX_LEAD_STEPS, Metrics, Schedule, ServiceConfig};
 use crate::sample::{Sample, SampleBuilder, SampleError};
 use rayon::prelude::*;
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::SyncSender;
+use std::sync::{Mutex, PoisonError};
 use std::time::Duration;
 
 /// A batch built by the producer.
@@ -38,7 +39,13 @@ pub(super) struct Producer<'a> {
     /// sent): the publisher reads it to tell "done" from "slow".
     pub idle: &'a AtomicBool,
     pub metrics: &'a Metrics,
+    /// The failures already logged at ERROR: a file gone or replaced fails every sample
+    /// that reads it the same way, said once (each sample is still counted).
+    pub said: Mutex<HashSet<String>>,
 }
+
+/// The most distinct failures remembered in [`Producer::said`].
+const SAID_FAILURES: usize = 4096;
 
 impl Producer<'_> {
     /// Builds batches until `stop` or until the publisher hangs up.
@@ -137,7 +144,20 @@ impl Producer<'_> {
                 }
                 Err(e) => {
                     self.metrics.failed_samples.fetch_add(1, Ordering::Relaxed);
-                    tracing::error!(keyframe, epoch, "sample lost: {e}");
+                    let message = e.to_string();
+                    let mut said = self.said.lock().unwrap_or_else(PoisonError::into_inner);
+                    if said.contains(&message) {
+                        tracing::debug!(keyframe, epoch, "sample lost: {message}");
+                    } else {
+                        tracing::error!(
+                            keyframe,
+                            epoch,
+                            "sample lost: {message} (the same failure of other samples is counted in superflow_failed_samples_total, logged at DEBUG)"
+                        );
+                        if said.len() < SAID_FAILURES {
+                            said.insert(message);
+                        }
+                    }
                 }
             }
         }

@@ -14,9 +14,9 @@ use crate::batch::BatchShape;
 use crate::sample::SampleBuilder;
 use iceoryx2::prelude::*;
 use std::collections::VecDeque;
-use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, sync_channel};
+use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 use superflow_schemas::service::{self as names, ServiceSetupError};
 
@@ -83,6 +83,7 @@ pub fn serve(
         stop,
         idle: &idle,
         metrics,
+        said: Mutex::default(),
     };
     let publisher = Publisher {
         run,

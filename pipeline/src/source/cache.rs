@@ -258,7 +258,7 @@ impl McapFile {
                     return Err(LoadError::Missing);
                 }
                 let body = self
-                    .read_exact_at(offset + 9, body_len)
+                    .read_exact_at(offset.saturating_add(9), body_len)
                     .map_err(LoadError::Source)?;
                 match mcap::parse_record(op::MESSAGE, &body) {
                     Ok(records::Record::Message { header, .. }) => {
@@ -276,8 +276,12 @@ impl McapFile {
                         source,
                     })
                 };
+                let body_len = loc
+                    .record_len
+                    .checked_sub(9)
+                    .ok_or_else(|| chunk_error(ChunkError::NotAChunk))?;
                 let held = self
-                    .with_bytes_at(loc.offset + 9, loc.record_len - 9, |body| {
+                    .with_bytes_at(loc.offset.saturating_add(9), body_len, |body| {
                         let Ok(records::Record::Chunk { header, data }) =
                             mcap::parse_record(op::CHUNK, body)
                         else {

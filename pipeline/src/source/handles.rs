@@ -25,7 +25,11 @@ const HEADROOM: u64 = 64;
 const MIN_DEFAULT: usize = 16;
 
 /// What a file was when it was first opened: a file replaced on disk (another inode) or
-/// rewritten in place (another size or modification time) is not read as the old one.
+/// rewritten in place (another size, modification or status-change time) is not taken
+/// for the old one unawares. The status-change time is what a rewrite that restores the
+/// modification time (`touch -r`, `rsync --inplace`) cannot set back, on file systems
+/// that keep it (ext4, XFS, Btrfs, NFS); on vfat, exFAT and many FUSE object stores it is
+/// settable or absent, and a same-size rewrite with its times restored goes unseen.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct FileIdentity {
     /// Device.
@@ -36,6 +40,8 @@ pub struct FileIdentity {
     pub len: u64,
     /// Modification time, seconds and nanoseconds since the epoch.
     pub mtime: (i64, i64),
+    /// Status-change time, seconds and nanoseconds since the epoch.
+    pub ctime: (i64, i64),
 }
 
 impl FileIdentity {
@@ -45,6 +51,7 @@ impl FileIdentity {
             ino: meta.ino(),
             len: meta.len(),
             mtime: (meta.mtime(), meta.mtime_nsec()),
+            ctime: (meta.ctime(), meta.ctime_nsec()),
         }
     }
 }
@@ -152,13 +159,13 @@ impl HandlePool {
         Ok((self.insert(key, file), identity))
     }
 
-    /// The handle of `key`, reopening `path` if the pool closed it; a reopened file must
-    /// still be `identity`.
+    /// The handle of `key`, reopening `path` if the pool closed it; `check` says whether
+    /// the file reopened (and what it is now) may be read as the one first opened.
     pub fn get(
         &self,
         key: u64,
         path: &Path,
-        identity: &FileIdentity,
+        check: impl FnOnce(&File, &FileIdentity) -> Result<(), SourceError>,
     ) -> Result<Arc<File>, SourceError> {
         {
             let mut pool = self.lock();
@@ -171,11 +178,7 @@ impl HandlePool {
         }
         // Opened outside the lock: other threads go on reading meanwhile.
         let (file, found) = self.open_file(path)?;
-        if found != *identity {
-            return Err(SourceError::Replaced {
-                path: path.to_path_buf(),
-            });
-        }
+        check(&file, &found)?;
         tracing::trace!(file = %path.display(), "reopened");
         Ok(self.insert(key, file))
     }
@@ -255,6 +258,21 @@ mod tests {
         (dir, paths)
     }
 
+    /// A reopening check that takes only the very file first opened.
+    fn must_be(
+        identity: FileIdentity,
+        path: &std::path::Path,
+    ) -> impl FnOnce(&File, &FileIdentity) -> Result<(), SourceError> {
+        let path = path.to_path_buf();
+        move |_, found| {
+            if *found == identity {
+                Ok(())
+            } else {
+                Err(SourceError::Replaced { path })
+            }
+        }
+    }
+
     #[test]
     fn closes_the_least_recently_used_first() {
         let (dir, paths) = files(4);
@@ -266,7 +284,7 @@ mod tests {
             .map(|(i, p)| pool.open_new(i as u64, p).unwrap().1)
             .collect();
         // 0 used again: 1 is now the least recently used.
-        let zero = pool.get(0, &paths[0], &ids[0]).unwrap();
+        let zero = pool.get(0, &paths[0], must_be(ids[0], &paths[0])).unwrap();
         drop(zero);
         pool.open_new(3, &paths[3]).unwrap();
         assert_eq!(pool.open_count(), 3);
@@ -277,7 +295,7 @@ mod tests {
         };
         assert_eq!(open, [0, 2, 3]);
         // 1 reopens (same file), closing 2, now the least recently used.
-        pool.get(1, &paths[1], &ids[1]).unwrap();
+        pool.get(1, &paths[1], must_be(ids[1], &paths[1])).unwrap();
         let mut keys: Vec<u64> = pool.lock().open.keys().copied().collect();
         keys.sort_unstable();
         assert_eq!(keys, [0, 1, 3]);
@@ -310,14 +328,18 @@ mod tests {
         let other = dir.join("other.bin");
         std::fs::write(&other, [7u8; 16]).unwrap();
         std::fs::rename(&other, &paths[0]).unwrap();
-        let err = pool.get(0, &paths[0], &identity).unwrap_err();
+        let err = pool
+            .get(0, &paths[0], must_be(identity, &paths[0]))
+            .unwrap_err();
         assert!(matches!(err, SourceError::Replaced { .. }), "{err}");
         assert!(err.to_string().contains("0.bin"), "{err}");
         // Rewritten in place with another size.
         let (_, identity) = pool.open_new(2, &paths[1]).unwrap();
         pool.open_new(3, &paths[0]).unwrap();
         std::fs::write(&paths[1], [1u8; 32]).unwrap();
-        let err = pool.get(2, &paths[1], &identity).unwrap_err();
+        let err = pool
+            .get(2, &paths[1], must_be(identity, &paths[1]))
+            .unwrap_err();
         assert!(matches!(err, SourceError::Replaced { .. }), "{err}");
         std::fs::remove_dir_all(dir).unwrap();
     }

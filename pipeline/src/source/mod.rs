@@ -38,7 +38,7 @@ use std::collections::{BTreeMap, HashMap};
 use std::fs::File;
 use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex, OnceLock, PoisonError};
 
 /// The 8 magic bytes at both ends of an MCAP file.
 pub const MAGIC: &[u8; 8] = b"\x89MCAP0\r\n";
@@ -80,9 +80,13 @@ pub enum SourceError {
         /// What failed.
         source: ChunkError,
     },
-    /// The file at this path is no longer the one scanned (another inode, size or
-    /// modification time): its index would point at the wrong bytes.
-    #[error("{path}: the file changed on disk since it was indexed; open the dataset again")]
+    /// The file at this path is no longer the one scanned, nor a copy of it (its size,
+    /// header, summary or chunks differ, or it has no summary to compare): its index
+    /// would point at the wrong bytes.
+    #[error(
+        "{path}: the file was replaced on disk by one of other content since it was \
+         indexed; its samples are skipped until the dataset is opened again"
+    )]
     Replaced {
         /// The file.
         path: PathBuf,
@@ -206,9 +210,12 @@ pub struct McapFile {
     /// Unique to this opening of the file: what chunk caches key on (a file rewritten at
     /// the same path and opened again never gets the old one's chunks).
     id: u64,
-    /// What the file was when scanned; it is read through [`HandlePool::global`], which
-    /// may close it between reads and checks this on reopening.
-    identity: FileIdentity,
+    /// What the file on disk is: it is read through [`HandlePool::global`], which may
+    /// close it between reads and checks this on reopening. A file found replaced by a
+    /// copy of the same content ([`McapFile::same_content`]) becomes the new identity.
+    identity: Mutex<FileIdentity>,
+    /// The file's content digest once computed ([`McapFile::content_digest`]).
+    content: OnceLock<Option<u128>>,
     /// The handle a scan holds while it reads the file through; `None` afterwards.
     scanning: Option<Arc<File>>,
     len: u64,
@@ -259,8 +266,28 @@ impl McapFile {
     fn handle(&self) -> Result<Arc<File>, SourceError> {
         match &self.scanning {
             Some(file) => Ok(Arc::clone(file)),
-            None => HandlePool::global().get(self.id, &self.path, &self.identity),
+            None => HandlePool::global().get(self.id, &self.path, |file, found| {
+                self.check_reopened(file, found)
+            }),
         }
+    }
+
+    /// Whether the file reopened at this path (`found`) may be read as this one: the same
+    /// file, or a copy of it with the same content (a re-sync writes new inodes). A file
+    /// whose content changed is [`SourceError::Replaced`].
+    fn check_reopened(&self, file: &File, found: &FileIdentity) -> Result<(), SourceError> {
+        let mut identity = self.identity.lock().unwrap_or_else(PoisonError::into_inner);
+        if *found == *identity {
+            return Ok(());
+        }
+        if self.same_content(file, found.len) {
+            tracing::info!(file = %self.path.display(), "the file was replaced by a copy of the same content; reading the copy");
+            *identity = *found;
+            return Ok(());
+        }
+        Err(SourceError::Replaced {
+            path: self.path.clone(),
+        })
     }
 
     fn io(&self, source: std::io::Error) -> SourceError {

@@ -92,7 +92,8 @@ impl McapFile {
         Ok(McapFile {
             path: path.to_path_buf(),
             id,
-            identity,
+            identity: std::sync::Mutex::new(identity),
+            content: std::sync::OnceLock::new(),
             scanning: Some(file),
             len,
             profile: String::new(),

@@ -615,3 +615,30 @@ fn a_file_replaced_after_its_scan_is_not_read_as_the_old_one() {
     assert!(matches!(err, SourceError::Replaced { .. }), "{err}");
     assert!(err.to_string().contains("replaced.mcap"), "{err}");
 }
+
+#[test]
+fn a_file_replaced_by_an_identical_copy_is_read_on_and_a_rewrite_is_not() {
+    let bytes = sample_file(true, 20);
+    let (file, seen) = scan_bytes("copied.mcap", &bytes);
+    assert!(file.content_digest().unwrap().is_some());
+    // A re-sync: the same bytes under a new inode, the old file closed by the pool.
+    HandlePool::global().forget(file.id);
+    let copy = file.path().with_extension("copy");
+    std::fs::write(&copy, &bytes).unwrap();
+    std::fs::rename(&copy, file.path()).unwrap();
+    for i in [3, 15] {
+        let mut cache = ChunkCache::new(2);
+        let got = file.read_message(seen[i].3, &mut cache).unwrap();
+        assert_eq!(got.data, seen[i].2);
+    }
+    // Then rewritten with other content, same size: refused, not misread.
+    HandlePool::global().forget(file.id);
+    let other = sample_file_saying(true, 20, "messagf");
+    let rewrite = file.path().with_extension("other");
+    std::fs::write(&rewrite, &other).unwrap();
+    std::fs::rename(&rewrite, file.path()).unwrap();
+    let err = file
+        .read_message(seen[7].3, &mut ChunkCache::new(2))
+        .unwrap_err();
+    assert!(matches!(err, SourceError::Replaced { .. }), "{err}");
+}

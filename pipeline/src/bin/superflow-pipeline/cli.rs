@@ -85,7 +85,15 @@ pub enum Command {
     /// Indexes the drives into the index cache ahead of training (a Slurm step or a
     /// Kubernetes init job before the pipelines start) and prints what they hold:
     /// drives, files, keyframes, skipped messages, damaged files, seconds, cache hits.
-    Index,
+    /// Fails when it could not store what it indexed (a read-only or full cache).
+    Index {
+        /// Also tidy the cache: remove entries this build cannot use (written by another
+        /// build, damaged, misnamed) and temporary files of dead writers, and evict the
+        /// least recently used entries beyond `[ingest] index_cache_max_mb`. Without
+        /// `--mcap`, only tidies.
+        #[arg(long)]
+        prune: bool,
+    },
     /// Lists what the drives hold: dialect, channels and roles, cameras, frame tree,
     /// time span, usable keyframes, per-point labels (`[labels]` of the configuration)
     /// and skipped messages.

@@ -3,12 +3,18 @@
 //! the dataset, `plan seconds` the plan.
 
 use crate::cli::Args;
+use anyhow::Context as _;
 use std::time::Instant;
+use superflow_pipeline::drive::{IngestConfig, index_cache};
 use superflow_pipeline::fleet::{FleetReport, keyframes_per_drive, lidar_facts_of};
 use superflow_pipeline::sample::plan::Plan;
+use superflow_pipeline::sample::timing::SCAN_ENTRY;
 
-pub fn run(args: &Args) -> anyhow::Result<()> {
+pub fn run(args: &Args, prune: bool) -> anyhow::Result<()> {
     let config = args.config()?;
+    if prune && args.mcap.is_empty() && args.dataset.is_empty() && config.dataset.is_empty() {
+        return tidy(&config.ingest);
+    }
     let started = Instant::now();
     let dataset = crate::open::dataset(args)?;
     let seconds = started.elapsed().as_secs_f64();
@@ -67,7 +73,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     );
     println!(
         "index cache     {}",
-        cache.map_or_else(|| "off".to_string(), |c| c.dir().display().to_string())
+        cache
+            .as_ref()
+            .map_or_else(|| "off".to_string(), |c| c.dir().display().to_string())
     );
     println!(
         "seconds         {seconds:.3} ({:.2} GB scanned)",
@@ -76,6 +84,43 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
     println!(
         "plan seconds    {plan_seconds:.3} (camera scans: {} from the cache, {} measured, {} at the sweep stamp)",
         scans.from_cache, scans.measured, scans.at_stamp
+    );
+    if prune {
+        tidy(&config.ingest)?;
+    } else if let Some(cache) = &cache {
+        cache.upkeep_if_grown(); // the camera scans the plan stored
+    }
+    let (failed, _) = index_cache::stores();
+    if failed > 0 {
+        anyhow::bail!(
+            "{failed} index cache entries could not be stored in {} (see the warning above): \
+             the next start indexes those files again",
+            cache.map_or_else(String::new, |c| c.dir().display().to_string())
+        );
+    }
+    Ok(())
+}
+
+/// `--prune`: the cache's upkeep, removing what this build cannot use.
+fn tidy(ingest: &IngestConfig) -> anyhow::Result<()> {
+    let Some(cache) = ingest.index_cache() else {
+        anyhow::bail!("--prune: the index cache is off");
+    };
+    cache.prepare()?;
+    let done = cache
+        .upkeep(Some(&[&index_cache::FILE_INDEX, &SCAN_ENTRY]))
+        .with_context(|| format!("pruning the index cache {}", cache.dir().display()))?;
+    println!(
+        "pruned          {} unusable entries, {} evicted (bound {} MB), {} stale temporary files",
+        done.unusable_removed,
+        done.evicted,
+        cache.access().max_bytes >> 20,
+        done.temps_removed
+    );
+    println!(
+        "cache left      {} entries, {:.1} MB",
+        done.entries,
+        done.bytes as f64 / f64::from(1 << 20)
     );
     Ok(())
 }

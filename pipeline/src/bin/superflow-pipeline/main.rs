@@ -30,7 +30,7 @@ static ALLOCATOR: superflow_common::memory::Allocator = superflow_common::memory
 
 fn run(args: &Args) -> anyhow::Result<()> {
     match &args.command {
-        Some(Command::Index) => index::run(args),
+        Some(Command::Index { prune }) => index::run(args, *prune),
         Some(Command::Inspect { json }) => inspect::run(args, *json),
         Some(Command::Superpixels { force }) => superpixels::run(args, *force),
         Some(Command::Sample {
