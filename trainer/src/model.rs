@@ -110,10 +110,14 @@ impl ImageHead {
 
     /// ViT patch features `[I, dim, gh, gw]` (frozen: no gradient flows into them) →
     /// L2-normalized 64-d features at the sampled pixels, `[pixels, 64]`.
+    ///
+    /// The convolution's bias gradient sums over every patch of every image (a batch of
+    /// 8 samples of 6 cameras × 3 frames of 512 patches: 73 728 rows), so it goes through
+    /// [`RowOps::linear`] like the 3D network's layers; on the CPU that is burn's `Linear`.
     pub fn forward(&self, patches: Tensor<4>, sampler: &PixelSampler) -> Tensor<2> {
         let [i, d, gh, gw] = patches.dims();
         let rows = patches.permute([0, 2, 3, 1]).reshape([i * gh * gw, d]);
-        l2_normalize(sampler.sample(self.conv.forward(rows)))
+        l2_normalize(sampler.sample(sampler.ops.linear(&self.conv, rows)))
     }
 }
 

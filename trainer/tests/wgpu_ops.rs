@@ -13,12 +13,14 @@
 #![cfg(feature = "wgpu")]
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
 
-use burn::module::{Module, Param};
+use burn::module::{Module, ModuleVisitor, Param};
 use burn::nn::{BatchNormConfig, LinearConfig};
-use burn::tensor::{Device, IndexingUpdateOp, Int, Tensor, TensorData};
+
+use burn::tensor::{Device, Gradients, IndexingUpdateOp, Int, Tensor, TensorData};
 use std::time::Instant;
 use superflow_trainer::device::{self, GpuInfo};
 use superflow_trainer::init::InitRng;
+use superflow_trainer::model::{ImageHead, PixelSampler};
 use superflow_trainer::rows::RowOps;
 use superflow_trainer::unet::{LevelMaps, SparseConv};
 
@@ -294,6 +296,74 @@ fn batch_norm_linear_reductions_cat_and_matmul_agree_with_the_cpu() {
         "batch norm beta gradient",
     ];
     for ((what, g), c) in names.iter().zip(&g_g).zip(&g_c) {
+        agree_within(what, g, c, TOLERANCE_LONG_SUMS);
+    }
+}
+
+/// The gradients of a module's float parameters, in the module's order, on the host.
+struct ParamGrads<'a> {
+    grads: &'a Gradients,
+    out: Vec<Vec<f32>>,
+}
+
+impl ModuleVisitor for ParamGrads<'_> {
+    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+        self.out
+            .push(host(param.grad(self.grads).expect("a trained parameter")));
+    }
+}
+
+#[test]
+fn image_head_gradients_agree_with_the_cpu_past_the_workgroup_limit() {
+    let Some((gpu, info)) = wgpu() else { return };
+    // A real batch's patch rows: 6 cameras × 3 frames × 8 samples of 16 × 32 patches
+    // (224 × 448 pixels) = 73 728 rows, past the adapter's limit, where burn's own row
+    // sums (the bias gradient of `Linear`) go wrong.
+    let (images, dim, grid, image) = (144, 32, [16, 32], [224, 448]);
+    let rows = images * grid[0] * grid[1];
+    assert!(rows > info.max_workgroups_per_dimension as usize);
+    let patches = random(rows, dim, "patches");
+    // One pixel per 2 × 2 patches of every image: every patch row gets a gradient.
+    let pixels: Vec<[u32; 3]> = (0..images as u32)
+        .flat_map(|i| {
+            (0..image[0] as u32 / 28).flat_map(move |r| {
+                (0..image[1] as u32 / 28).map(move |c| [i, r * 28 + 7, c * 28 + 21])
+            })
+        })
+        .collect();
+    let upstream = random(pixels.len(), 64, "pixel upstream");
+    let run = |device: &Device| {
+        let device = device.clone().autodiff();
+        let head = ImageHead::new(dim, 64, 3, &device);
+        let sampler = PixelSampler::new(&pixels, image, grid, &device);
+        let input = Tensor::<2>::from_data(TensorData::new(patches.clone(), [rows, dim]), &device)
+            .reshape([images, grid[0], grid[1], dim])
+            .permute([0, 3, 1, 2]);
+        let t = Instant::now();
+        let features = head.forward(input, &sampler);
+        let grads = (features * floats(&upstream, [pixels.len(), 64], &device))
+            .sum()
+            .backward();
+        let mut visitor = ParamGrads {
+            grads: &grads,
+            out: Vec::new(),
+        };
+        head.visit(&mut visitor);
+        eprintln!(
+            "image head forward + backward, {rows} patch rows, on {device:?}: {:.2} s",
+            t.elapsed().as_secs_f64()
+        );
+        visitor.out
+    };
+    let gpu_grads = run(&gpu);
+    let cpu_grads = run(&Device::flex());
+    assert_eq!(gpu_grads.len(), 2, "weight and bias");
+    // Each sums 73 728 rows' terms, in another order on each backend.
+    for ((what, g), c) in ["image head weight gradient", "image head bias gradient"]
+        .iter()
+        .zip(&gpu_grads)
+        .zip(&cpu_grads)
+    {
         agree_within(what, g, c, TOLERANCE_LONG_SUMS);
     }
 }

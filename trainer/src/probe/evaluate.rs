@@ -10,6 +10,7 @@ use crate::probe::linear::{
     self as probe, ConfusionMatrix, KeyframeTime, LinearProbe, PointCounts, ProbeReport,
     ProbeTraining, SplitCounts,
 };
+use crate::rows::RowOps;
 use crate::unet::{LevelMaps, SparseUNet};
 use crate::vit::VitConfig;
 use burn::module::Module;
@@ -196,7 +197,7 @@ impl ProbeCloud {
         let index: Vec<i64> = self.point_to_voxel.iter().map(|&i| i64::from(i)).collect();
         let n = index.len();
         let index = Tensor::from_data(TensorData::new(index, [n]), device);
-        unet.backbone(features, &levels).select(0, index)
+        RowOps::of(device).gather(unet.backbone(features, &levels), &index)
     }
 }
 
@@ -277,7 +278,8 @@ pub fn probe(
         let (unet, classifier) = finetune(unet, clouds, &train, settings, device, &mut points)?;
         let (unet, classifier) = (unet.valid(), classifier.valid());
         for &i in &split.val {
-            let logits = classifier.forward(clouds[i].point_features(&unet, &inner));
+            let features = clouds[i].point_features(&unet, &inner);
+            let logits = RowOps::of(&inner).linear(&classifier, features);
             let predicted = classes_of(logits.argmax(1));
             matrix.add(&clouds[i].labels, &predicted)?;
         }
@@ -397,9 +399,11 @@ fn finetune(
             let n = kept.len();
             let index = Tensor::<1, Int>::from_data(TensorData::new(voxel, [n]), &device);
             let target = Tensor::<1, Int>::from_data(TensorData::new(target, [n]), &device);
-            let logits = model
-                .classifier
-                .forward(model.unet.backbone(features, &levels).select(0, index));
+            // Every labelled point of the cloud is a row: the gather's backward (a
+            // scatter-add) and the classifier's bias gradient sum over all of them.
+            let ops = RowOps::of(&device);
+            let points = ops.gather(model.unet.backbone(features, &levels), &index);
+            let logits = ops.linear(&model.classifier, points);
             let l = loss.forward(logits, target);
             total += l.clone().into_scalar::<f32>() as f64;
             let grads = GradientsParams::from_grads(l.backward(), &model);

@@ -14,6 +14,7 @@
 
 use crate::error::TrainerError;
 use crate::probe::error::ProbeError;
+use crate::rows::RowOps;
 use burn::module::Module;
 use burn::nn::loss::CrossEntropyLossConfig;
 use burn::nn::{Initializer, Linear, LinearConfig};
@@ -233,6 +234,8 @@ impl LinearProbe {
             .with_weight_decay(settings.weight_decay as f32)
             .init();
         let loss = CrossEntropyLossConfig::new().init(&device);
+        // A step's rows are `settings.batch` points: the bias gradient sums over them.
+        let ops = RowOps::of(&device);
         let mut order = kept;
         let mut state = settings.seed ^ 0x9e37_79b9_7f4a_7c15;
         for _ in 0..settings.epochs {
@@ -242,7 +245,7 @@ impl LinearProbe {
                 let n = chunk.len();
                 let x = Tensor::<2>::from_data(TensorData::new(x, [n, dim]), &device);
                 let y = Tensor::<1, Int>::from_data(TensorData::new(y, [n]), &device);
-                let l = loss.forward(probe.linear.forward(x), y);
+                let l = loss.forward(ops.linear(&probe.linear, x), y);
                 let grads = GradientsParams::from_grads(l.backward(), &probe);
                 probe = optim.step(settings.lr, probe, grads);
             }
@@ -257,6 +260,7 @@ impl LinearProbe {
         // Inference: the plain device, no autodiff graph.
         let probe = self.valid();
         let device = device.clone().inner();
+        let ops = RowOps::of(&device);
         for start in (0..n).step_by(65_536) {
             let end = (start + 65_536).min(n);
             let x = Tensor::<2>::from_data(
@@ -266,7 +270,7 @@ impl LinearProbe {
                 ),
                 &device,
             );
-            let classes = probe.linear.forward(x).argmax(1).into_data();
+            let classes = ops.linear(&probe.linear, x).argmax(1).into_data();
             let classes = classes.convert::<i64>();
             out.extend(
                 classes
