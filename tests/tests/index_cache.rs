@@ -213,16 +213,23 @@ fn a_file_rewritten_in_place_with_its_size_and_time_is_indexed_again() {
 }
 
 fn index(inputs: &[PathBuf], cache: &Path) -> Output {
-    Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-subscriber")))
-        .arg("index")
-        .arg("--mcap")
-        .args(inputs)
-        .arg("--index-cache")
-        .arg(cache)
-        .env("RUST_LOG", "info")
-        .env("NO_COLOR", "1")
-        .output()
+    index_within(&[], inputs, cache, 600).expect("`index` ends")
+}
+
+/// The names in `cache`, asserting they are whole entries only: the files' and the
+/// drives' camera scans (`index` plans), no temporary file.
+fn whole_entries_only(cache: &Path) -> Vec<String> {
+    let names: Vec<String> = std::fs::read_dir(cache)
         .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    assert!(
+        names
+            .iter()
+            .all(|n| n.ends_with(".sfidx") || n.ends_with(".sfscan")),
+        "{names:?}"
+    );
+    names
 }
 
 fn text(output: &Output) -> (String, String) {
@@ -330,17 +337,7 @@ fn two_processes_filling_one_cache_at_once_both_succeed() {
     for (x, y) in alone.drives.iter().zip(&hit.drives) {
         assert_same_drive(x, y, &x.file_list());
     }
-    let names: Vec<String> = std::fs::read_dir(&cache)
-        .unwrap()
-        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
-        .collect();
-    // Whole entries only: the files' and the drives' camera scans (`index` plans).
-    assert!(
-        names
-            .iter()
-            .all(|n| n.ends_with(".sfidx") || n.ends_with(".sfscan")),
-        "{names:?}"
-    );
+    let names = whole_entries_only(&cache);
     let indexes = names.iter().filter(|n| n.ends_with(".sfidx")).count();
     assert_eq!(indexes, files - hit.indexed.uncacheable);
     std::fs::remove_dir_all(dir).unwrap();
@@ -418,7 +415,7 @@ fn fifos_links_and_forged_entries_are_skipped_without_hanging() {
     let dir = scratch("hostile");
     let cache = dir.join("cache");
     let inputs = inputs(&dir)[..2].to_vec();
-    let filled = index_within(&[], &inputs, &cache, 120).unwrap();
+    let filled = index(&inputs, &cache);
     assert!(filled.status.success(), "{:?}", text(&filled));
     let entries = file_entries(&cache);
     assert_eq!(entries.len(), 3);
@@ -455,7 +452,7 @@ fn fifos_links_and_forged_entries_are_skipped_without_hanging() {
     let entries = file_entries(&cache);
     assert!(entries.iter().all(|e| e.is_file() && !e.is_symlink()));
     std::fs::copy(&moved, &entries[0]).unwrap();
-    let forged = index_within(&[], &inputs, &cache, 60).unwrap();
+    let forged = index(&inputs, &cache);
     let (out, err) = text(&forged);
     assert!(forged.status.success(), "{out}\n{err}");
     assert!(err.contains("it is the entry of another key"), "{err}");
@@ -500,16 +497,7 @@ fn two_pods_with_pid_1_index_into_one_cache_at_once() {
             assert!(!err.contains(trouble), "{err}");
         }
     }
-    let names: Vec<String> = std::fs::read_dir(&cache)
-        .unwrap()
-        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
-        .collect();
-    assert!(
-        names
-            .iter()
-            .all(|n| n.ends_with(".sfidx") || n.ends_with(".sfscan")),
-        "{names:?}"
-    );
+    whole_entries_only(&cache);
     let hit = Dataset::open(&all, &config(Some(&cache))).unwrap().indexed;
     assert_eq!(hit.scanned, 0, "{hit:?}");
     assert_eq!(hit.from_cache + hit.uncacheable, hit.files(), "{hit:?}");
@@ -550,7 +538,7 @@ fn index_fails_when_it_cannot_store_what_it_indexed() {
     );
     assert!(err.contains("Read-only file system"), "{err}");
     // Writable again, the same command succeeds.
-    let ok = index_within(&[], &inputs, &cache, 120).unwrap();
+    let ok = index(&inputs, &cache);
     assert!(ok.status.success(), "{:?}", text(&ok));
     std::fs::remove_dir_all(dir).unwrap();
 }
@@ -564,13 +552,13 @@ fn a_cache_others_may_write_is_refused_and_prune_tidies_it() {
     let dir = scratch("tidy");
     let cache = dir.join("cache");
     let inputs = inputs(&dir)[..2].to_vec();
-    let filled = index_within(&[], &inputs, &cache, 120).unwrap();
+    let filled = index(&inputs, &cache);
     assert!(filled.status.success(), "{:?}", text(&filled));
     let mode = std::fs::metadata(&cache).unwrap().permissions().mode() & 0o777;
     assert_eq!(mode, 0o700, "made private whatever the umask");
     for (mode, who) in [(0o770, "its group"), (0o777, "every user")] {
         std::fs::set_permissions(&cache, std::fs::Permissions::from_mode(mode)).unwrap();
-        let refused = index_within(&[], &inputs, &cache, 60).unwrap();
+        let refused = index(&inputs, &cache);
         let (out, err) = text(&refused);
         assert_eq!(refused.status.code(), Some(2), "{out}\n{err}");
         assert!(err.contains(&format!("writable by {who}")), "{err}");
@@ -586,7 +574,7 @@ fn a_cache_others_may_write_is_refused_and_prune_tidies_it() {
     other.extend_from_slice(b"0.0.1");
     other.extend_from_slice(&bytes[14 + writer_len..]);
     std::fs::write(&entries[0], &other).unwrap();
-    let again = index_within(&[], &inputs, &cache, 120).unwrap();
+    let again = index(&inputs, &cache);
     let (out, err) = text(&again);
     assert!(out.contains("cache hits      2 of 3"), "{out}");
     assert!(

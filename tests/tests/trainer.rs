@@ -335,6 +335,48 @@ fn the_trainer_ends_at_the_end_of_the_stream_saying_how_many_steps_it_trained() 
     let _ = std::fs::remove_dir_all(&out);
 }
 
+/// A pipeline serving [`superflow_tests::replaceable_drives`] in `dir` (2 epochs, batches
+/// of 1) as run `run`, once it has built its first batch and waits for a subscriber: the
+/// drives, the pipeline, its stderr lines and the log read so far.
+fn serve_replaceable_drives(
+    dir: &Path,
+    p: &str,
+    run: &str,
+) -> (
+    Vec<PathBuf>,
+    Proc,
+    std::sync::mpsc::Receiver<String>,
+    String,
+) {
+    let (drives, config) = superflow_tests::replaceable_drives(dir).unwrap();
+    let mut pipe = spawn(
+        Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-subscriber")))
+            .arg("--mcap")
+            .arg(&drives[0])
+            .arg("--mcap")
+            .arg(&drives[1])
+            .arg("--config")
+            .arg(&config)
+            .args(["--run", run, "--batch-size", "1", "--epochs", "2"])
+            .env("SUPERFLOW_IOX_PREFIX", p)
+            .env("RUST_LOG", "info")
+            .env("NO_COLOR", "1")
+            .current_dir(workspace_root())
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped()),
+    );
+    let rx = lines_of(pipe.stderr.take().unwrap());
+    let mut pipe_log = String::new();
+    while !pipe_log.contains("waiting for subscribers") {
+        let line = rx
+            .recv_timeout(LIMIT)
+            .unwrap_or_else(|_| panic!("the pipeline starts:\n{pipe_log}"));
+        pipe_log.push_str(&line);
+        pipe_log.push('\n');
+    }
+    (drives, pipe, rx, pipe_log)
+}
+
 /// Both sample drives, copied into `dir`, replaced by truncated copies (a dataset re-sync
 /// gone wrong) while a pipeline serves them: the pipeline reopens its files for every
 /// read (`max_open_files = 1`, no index cache), so the samples it builds from then on
@@ -347,33 +389,9 @@ fn lost_batches_are_counted_without_a_step_and_the_stream_still_ends() {
     let p = prefix("lost");
     let out = temp_dir("train-lost");
     let dir = temp_dir("train-lost-drives");
-    let (drives, config) = superflow_tests::replaceable_drives(&dir).unwrap();
-    let mut pipe = spawn(
-        Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-subscriber")))
-            .arg("--mcap")
-            .arg(&drives[0])
-            .arg("--mcap")
-            .arg(&drives[1])
-            .arg("--config")
-            .arg(&config)
-            .args(["--run", "lost", "--batch-size", "1", "--epochs", "2"])
-            .env("SUPERFLOW_IOX_PREFIX", &p)
-            .env("RUST_LOG", "info")
-            .current_dir(workspace_root())
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped()),
-    );
-    // Its first batch is built (it waits for a subscriber to publish it): replace the
-    // drives before the trainer comes.
-    let rx = lines_of(pipe.stderr.take().unwrap());
-    let mut pipe_log = String::new();
-    while !pipe_log.contains("waiting for subscribers") {
-        let line = rx
-            .recv_timeout(LIMIT)
-            .unwrap_or_else(|_| panic!("the pipeline starts:\n{pipe_log}"));
-        pipe_log.push_str(&line);
-        pipe_log.push('\n');
-    }
+    // Its first batch is built (it waits for a subscriber to publish it): the drives are
+    // replaced before the trainer comes.
+    let (drives, pipe, rx, mut pipe_log) = serve_replaceable_drives(&dir, &p, "lost");
     superflow_tests::truncate_drives(&drives).unwrap();
     // 2 epochs of the drives' 12 keyframes: 24 batches, fewer steps.
     let (ok, _, err) = finish(trainer(&p, "lost", &out, &[]), LIMIT);
@@ -422,32 +440,7 @@ fn a_resynced_drive_loses_nothing_and_a_deleted_one_is_one_counted_error() {
     let p = prefix("resync");
     let out = temp_dir("train-resync");
     let dir = temp_dir("train-resync-drives");
-    let (drives, config) = superflow_tests::replaceable_drives(&dir).unwrap();
-    let mut pipe = spawn(
-        Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-subscriber")))
-            .arg("--mcap")
-            .arg(&drives[0])
-            .arg("--mcap")
-            .arg(&drives[1])
-            .arg("--config")
-            .arg(&config)
-            .args(["--run", "resync", "--batch-size", "1", "--epochs", "2"])
-            .env("SUPERFLOW_IOX_PREFIX", &p)
-            .env("RUST_LOG", "info")
-            .env("NO_COLOR", "1")
-            .current_dir(workspace_root())
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped()),
-    );
-    let rx = lines_of(pipe.stderr.take().unwrap());
-    let mut pipe_log = String::new();
-    while !pipe_log.contains("waiting for subscribers") {
-        let line = rx
-            .recv_timeout(LIMIT)
-            .unwrap_or_else(|_| panic!("the pipeline starts:\n{pipe_log}"));
-        pipe_log.push_str(&line);
-        pipe_log.push('\n');
-    }
+    let (drives, pipe, rx, mut pipe_log) = serve_replaceable_drives(&dir, &p, "resync");
     superflow_tests::resync_drives(&drives[..1]).unwrap();
     std::fs::remove_file(&drives[1]).unwrap();
     let (ok, _, err) = finish(trainer(&p, "resync", &out, &[]), LIMIT);
