@@ -4,7 +4,7 @@
 //! `/tf` channel never recorded, sweeps with NaN and infinite points, and wrong sensor
 //! stamps. Each is a pure function of the code, like the sample drives; next to each
 //! file, `<name>.expected.json` (written by hand, not generated) states what the pipeline
-//! must report, and `tests/tests/bad_inputs.rs` checks both.
+//! must report, and `tests/tests/e2e/bad_inputs.rs` checks both.
 //!
 //! Byte-level damage (truncation, flipped bytes) is applied to the finished file;
 //! message-level damage rewrites the file, message by message, with the writer settings

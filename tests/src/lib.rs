@@ -117,7 +117,10 @@ pub fn rig_drive(dialect: Dialect, options: &DriveOptions) -> anyhow::Result<Pat
         return Ok(path);
     }
     let drive = superflow_recordings::generate_with(dialect, options)?;
-    let tmp = root.join(format!(".{name}.{}.tmp", std::process::id()));
+    // Tests of one process may write the same rig at once: the copy's name is this call's.
+    static WRITES: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let call = WRITES.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    let tmp = root.join(format!(".{name}.{}-{call}.tmp", std::process::id()));
     let _ = std::fs::remove_dir_all(&tmp);
     std::fs::create_dir_all(&tmp).with_context(|| format!("creating {}", tmp.display()))?;
     std::fs::write(tmp.join(format!("{name}.mcap")), &drive.mcap)?;

@@ -509,7 +509,7 @@ fn presets_parse_and_serialize_by_lowercase_name() {
 }
 
 /// Forward time of the tiny and Small presets on one 224×448 image on `Device::flex()`.
-/// Run with `cargo test --release -p superflow-trainer --test vit -- --ignored --nocapture`.
+/// Run with `cargo test --release -p superflow-trainer --test integration vit:: -- --ignored --nocapture`.
 #[test]
 #[ignore = "a timing report, not a check; run in release"]
 fn forward_timing() {

@@ -56,7 +56,7 @@ fn run_workers(mode: &str, out: &Path, limit: Duration) -> (bool, String, String
             .arg(exe)
             .args([
                 "--exact",
-                "worker",
+                "ddp::worker",
                 "--ignored",
                 "--nocapture",
                 "--test-threads",

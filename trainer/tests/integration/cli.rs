@@ -35,3 +35,17 @@ fn bad_arguments_are_clear_errors() {
     assert_eq!(code, Some(1), "{err}");
     assert!(err.contains("prefix"), "{err}");
 }
+
+#[test]
+fn backends_are_named_from_a_closed_list() {
+    // clap's usage errors: exit 2, the flag and every value it takes.
+    let (code, err) = trainer(&["--run", "x", "--backend", "tpu"]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(
+        err.contains("'tpu'") && err.contains("--backend") && err.contains("flex, wgpu, cuda"),
+        "{err}"
+    );
+    let (code, err) = trainer(&["check", "--batch", "b.bin", "--backends", "flex,tpu"]);
+    assert_eq!(code, Some(2), "{err}");
+    assert!(err.contains("'tpu'") && err.contains("--backends"), "{err}");
+}
