@@ -107,7 +107,7 @@ impl BackendRun {
 
 /// `steps` training steps of a fresh trainer of `config` on `device` on `batch`.
 pub fn run_backend(
-    backend: &str,
+    backend: crate::device::Backend,
     config: &TrainerConfig,
     device: &Device,
     batch: &BatchFile,
@@ -126,7 +126,7 @@ pub fn run_backend(
     for step in 1..=steps {
         let outcome = trainer.step(&view)?;
         tracing::info!(
-            backend,
+            backend = backend.name(),
             step,
             loss = format_args!("{:.6}", outcome.losses.total),
             ms = format_args!("{:.1}", outcome.seconds * 1e3),
@@ -135,6 +135,8 @@ pub fn run_backend(
         run.losses.push(outcome.losses);
         run.step_ms.push(outcome.seconds * 1e3);
     }
+    drop(trainer);
+    crate::device::settle(device);
     Ok(run)
 }
 

@@ -2,12 +2,38 @@
 
 use burn::tensor::Device;
 
-/// A `--backend` this build cannot run.
+/// A compute backend (`--backend`, `--backends`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
+pub enum Backend {
+    /// burn's CPU backend.
+    #[default]
+    Flex,
+    /// wgpu: Vulkan, Metal or DX12 (build with `--features wgpu`).
+    Wgpu,
+    /// CUDA (build with `--features cuda`).
+    Cuda,
+}
+
+impl Backend {
+    /// Its name on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            Backend::Flex => "flex",
+            Backend::Wgpu => "wgpu",
+            Backend::Cuda => "cuda",
+        }
+    }
+}
+
+impl std::fmt::Display for Backend {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// A `--backend` this build or machine cannot run.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum BackendError {
-    /// Not one of flex, wgpu, cuda.
-    #[error("unknown backend {0:?} (flex, wgpu, cuda)")]
-    Unknown(String),
     /// A GPU backend whose cargo feature this build was made without.
     #[error("backend {0} is not compiled in: build with `--features {0}`")]
     NotCompiledIn(&'static str),
@@ -52,18 +78,33 @@ impl std::fmt::Display for GpuInfo {
 /// The device of `backend`: `flex` (CPU), `wgpu` (the best adapter; set
 /// `CUBECL_WGPU_DEFAULT_DEVICE` to choose another) or `cuda` (GPU `index`).
 #[cfg_attr(not(feature = "cuda"), allow(unused_variables))]
-pub fn select(backend: &str, index: usize) -> Result<Device, BackendError> {
+pub fn select(backend: Backend, index: usize) -> Result<Device, BackendError> {
     match backend {
-        "flex" => Ok(Device::flex()),
+        Backend::Flex => Ok(Device::flex()),
         #[cfg(feature = "wgpu")]
-        "wgpu" => wgpu::open().map(|(device, _)| device),
+        Backend::Wgpu => wgpu::open().map(|(device, _)| device),
         #[cfg(feature = "cuda")]
-        "cuda" => Ok(Device::cuda(index)),
+        Backend::Cuda => Ok(Device::cuda(index)),
         #[cfg(not(feature = "wgpu"))]
-        "wgpu" => Err(BackendError::NotCompiledIn("wgpu")),
+        Backend::Wgpu => Err(BackendError::NotCompiledIn("wgpu")),
         #[cfg(not(feature = "cuda"))]
-        "cuda" => Err(BackendError::NotCompiledIn("cuda")),
-        other => Err(BackendError::Unknown(other.to_string())),
+        Backend::Cuda => Err(BackendError::NotCompiledIn("cuda")),
+    }
+}
+
+/// Waits until the work queued on `device` has run. A GPU runtime compiles and runs
+/// kernels on threads of its own, and a step's last kernels (the optimizer's update, the
+/// frees of dropped tensors) are still queued when the host has its loss; a process that
+/// exits then tears the driver's globals down under a thread that is inside its compiler
+/// (seen with Mesa's lavapipe: SIGSEGV in LLVM after the run had succeeded). Every command
+/// settles its device before it returns. An error is logged, not returned: the work
+/// that counted has already been read back.
+pub fn settle(device: &Device) {
+    if let Err(e) = device.sync() {
+        tracing::warn!(
+            ?device,
+            "the device failed while finishing its queued work: {e}"
+        );
     }
 }
 
@@ -166,15 +207,15 @@ mod tests {
     use super::*;
 
     #[test]
-    fn flex_is_always_there_and_unknown_names_are_errors() {
-        assert!(select("flex", 0).is_ok());
-        assert_eq!(
-            select("tpu", 0).expect_err("unknown").to_string(),
-            "unknown backend \"tpu\" (flex, wgpu, cuda)"
-        );
+    fn flex_is_always_there_and_a_backend_not_built_is_an_error() {
+        use clap::ValueEnum as _;
+        assert!(select(Backend::Flex, 0).is_ok());
+        for backend in Backend::value_variants() {
+            assert_eq!(Backend::from_str(backend.name(), false), Ok(*backend));
+        }
         #[cfg(not(feature = "cuda"))]
         assert_eq!(
-            select("cuda", 0).expect_err("not built").to_string(),
+            select(Backend::Cuda, 0).expect_err("not built").to_string(),
             "backend cuda is not compiled in: build with `--features cuda`"
         );
     }

@@ -50,7 +50,7 @@ pub fn train(options: &RunOptions, config: TrainerConfig) -> anyhow::Result<Opti
         .with_context(|| format!("subscribing to run {}", options.run))?;
     let paths = RunPaths::new(options.out_dir(), &config, ddp.as_ref().map(Ddp::rank));
     let (steps, every) = (config.optim.steps, config.checkpoint.every);
-    let device = device::select(&options.backend, options.device_index)?;
+    let device = device::select(options.backend, options.device_index)?;
     tracing::info!(backend = %options.backend, ?device, "compute device");
     let mut trainer = Trainer::new(config, &device)?;
     let started = match &ddp {
@@ -90,6 +90,7 @@ pub fn train(options: &RunOptions, config: TrainerConfig) -> anyhow::Result<Opti
         paths,
     };
     tracing::info!(run = %options.run, ?target, steps, out = %session.paths.out.display(), "training");
-    session.train()?;
-    session.finish()
+    let outcome = session.train().and_then(|()| session.finish());
+    device::settle(&device);
+    outcome
 }

@@ -25,8 +25,8 @@ pub struct RunOptions {
     pub collective_timeout_secs: u64,
     /// Isolates a deployment's iceoryx2 resources.
     pub iox_prefix: Option<String>,
-    /// Compute backend: flex, wgpu, cuda.
-    pub backend: String,
+    /// Compute backend.
+    pub backend: crate::device::Backend,
     /// GPU index for cuda.
     pub device_index: usize,
 }
@@ -70,7 +70,7 @@ mod tests {
             ddp: false,
             collective_timeout_secs: 900,
             iox_prefix: None,
-            backend: "flex".into(),
+            backend: crate::device::Backend::Flex,
             device_index: 0,
         }
     }

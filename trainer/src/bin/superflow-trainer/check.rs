@@ -24,12 +24,12 @@ pub fn check(args: &Args, c: &CheckArgs) -> anyhow::Result<Option<i32>> {
     drop(view);
     let mut runs = Vec::new();
     for backend in &c.backends {
-        let device = device::select(backend, args.device_index)?;
-        tracing::info!(backend, ?device, "running");
+        let device = device::select(*backend, args.device_index)?;
+        tracing::info!(%backend, ?device, "running");
         if let Some(gpu) = device::gpu_info(&device) {
             println!("{backend} device: {gpu}");
         }
-        let run = check::run_backend(backend, &config, &device, &batch, steps)
+        let run = check::run_backend(*backend, &config, &device, &batch, steps)
             .with_context(|| format!("backend {backend}"))?;
         runs.push(run);
     }

@@ -5,6 +5,7 @@ use anyhow::Context as _;
 use clap::Parser;
 use std::path::PathBuf;
 use superflow_trainer::config::{Overrides, TrainerConfig};
+use superflow_trainer::device::Backend;
 use superflow_trainer::run::RunOptions;
 use superflow_trainer::unet::UNetPreset;
 use superflow_trainer::vit::VitPreset;
@@ -50,8 +51,8 @@ pub struct Args {
     #[arg(long, global = true)]
     pub seed: Option<u64>,
     /// Compute backend: flex (CPU), wgpu (build with --features wgpu), cuda (--features cuda).
-    #[arg(long, default_value = "flex", global = true)]
-    pub backend: String,
+    #[arg(long, value_enum, default_value_t = Backend::Flex, global = true)]
+    pub backend: Backend,
     /// GPU index for cuda (wgpu takes the best adapter; set CUBECL_WGPU_DEFAULT_DEVICE to
     /// choose another).
     #[arg(long, default_value_t = 0, global = true)]
@@ -145,7 +146,7 @@ pub struct ProbeArgs {
     #[arg(long, default_value_t = 1.0)]
     pub gap_secs: f64,
     /// One labelled sweep per this many seconds (nuScenes labels its 2 Hz keyframes).
-    #[arg(long, default_value_t = 0.5)]
+    #[arg(long, default_value_t = superflow_schemas::time::KEYFRAME_INTERVAL_SECS)]
     pub keyframe_interval_secs: f64,
     /// Most training points of the linear probe (evenly strided beyond).
     #[arg(long, default_value_t = 1_000_000)]
@@ -162,8 +163,8 @@ pub struct CheckArgs {
     #[arg(long)]
     pub batch: PathBuf,
     /// Backends to run, comma-separated; the first is the reference.
-    #[arg(long, value_delimiter = ',', default_value = "flex,wgpu")]
-    pub backends: Vec<String>,
+    #[arg(long, value_enum, value_delimiter = ',', default_values_t = [Backend::Flex, Backend::Wgpu])]
+    pub backends: Vec<Backend>,
     /// Largest relative difference of any loss term of any step from the reference.
     #[arg(long, default_value_t = 1e-3)]
     pub tolerance: f64,
@@ -206,7 +207,7 @@ impl Args {
             ddp: self.ddp,
             collective_timeout_secs: self.collective_timeout_secs,
             iox_prefix: self.iox_prefix.clone(),
-            backend: self.backend.clone(),
+            backend: self.backend,
             device_index: self.device_index,
         }
     }

@@ -11,7 +11,7 @@ pub fn probe(args: &Args, p: &ProbeArgs) -> anyhow::Result<Option<i32>> {
         Some(path) => superflow_pipeline::config::PipelineConfig::load(path)?,
         None => superflow_pipeline::config::PipelineConfig::default(),
     };
-    let device = device::select(&args.backend, args.device_index)?;
+    let device = device::select(args.backend, args.device_index)?;
     let (unet, what) = evaluate::load_backbone(&p.checkpoint, &args.config()?, &device)?;
     tracing::info!(backbone = %what, "probing");
     let dataset = superflow_pipeline::drive::Dataset::open(&p.mcap, &pipeline.ingest)
@@ -53,7 +53,9 @@ pub fn probe(args: &Args, p: &ProbeArgs) -> anyhow::Result<Option<i32>> {
         max_train_points: p.max_train_points,
         seed: args.seed.unwrap_or(0),
     };
-    let report = evaluate::probe(unet, &data.clouds, &settings, &device)?;
+    let report = evaluate::probe(unet, &data.clouds, &settings, &device);
+    device::settle(&device);
+    let report = report?;
     if p.json {
         let mut value = serde_json::to_value(&report)?;
         value["backbone"] = serde_json::Value::String(what);
