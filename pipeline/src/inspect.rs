@@ -343,9 +343,6 @@ impl LabelsReport {
     }
 }
 
-/// Keyframe spacing of the paper and the official code.
-pub const DEFAULT_KEYFRAME_INTERVAL_NANOS: i64 = 500_000_000;
-
 /// When the LiDAR scans each camera, and how far the keyframes' images are from those
 /// moments (see `sample::timing`).
 #[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
@@ -473,7 +470,9 @@ impl DriveReport {
             start_stamp_nanos: span.map(|s| s.0.nanos()),
             end_stamp_nanos: span.map(|s| s.1.nanos()),
             duration_secs: span.map(|(a, b)| b.secs_since(a)),
-            usable_keyframes: dataset.keyframes(DEFAULT_KEYFRAME_INTERVAL_NANOS).len(),
+            usable_keyframes: dataset
+                .keyframes(superflow_schemas::time::KEYFRAME_INTERVAL_NANOS)
+                .len(),
             camera_timing: CameraTimingReport::of(dataset),
             skipped: dataset.skipped.clone(),
             problems: dataset.check_sensors().err().map(|e| e.to_string()),

@@ -62,8 +62,8 @@ pub const IMAGE_SIZE: (u32, u32) = (480, 270);
 /// JPEG quality of the camera images.
 pub const JPEG_QUALITY: u8 = 80;
 
-/// The MCAP layouts the generator writes.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// The MCAP layouts the generator writes (`--dialect foxglove|ros2`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum Dialect {
     /// nuScenes converted to MCAP with Foxglove protobuf schemas (2024 upper-case topics,
     /// lz4 chunks, microsecond stamps, motion-compensated sweeps stamped at their end,

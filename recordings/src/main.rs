@@ -15,10 +15,6 @@ use superflow_recordings::{
     generate_with,
 };
 
-/// Keyframe spacing of the pipeline's default recipe: `--keyframes N` is a drive of N of
-/// them.
-const KEYFRAME_INTERVAL_SECS: f64 = 0.5;
-
 /// Drive presets.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum)]
 enum Preset {
@@ -70,9 +66,9 @@ struct Args {
     /// into.
     #[arg(long, default_value = "recordings/drives")]
     out: PathBuf,
-    /// Only this dialect (`foxglove` or `ros2`); both by default.
-    #[arg(long)]
-    dialect: Option<String>,
+    /// Only this dialect; both by default.
+    #[arg(long, value_enum)]
+    dialect: Option<Dialect>,
     /// Start from this preset; the flags below change it. A nuScenes drive is named
     /// `nuscenes_<dialect>_<W>x<H>`, never overwriting the sample drives.
     #[arg(long, value_enum, default_value = "sample")]
@@ -143,7 +139,7 @@ fn options(args: &Args) -> anyhow::Result<DriveOptions> {
     };
     let secs = args.duration_secs.or_else(|| {
         args.keyframes
-            .map(|k| f64::from(k) * KEYFRAME_INTERVAL_SECS)
+            .map(|k| f64::from(k) * superflow_schemas::time::KEYFRAME_INTERVAL_SECS)
     });
     if let Some(secs) = secs {
         anyhow::ensure!(
@@ -235,17 +231,11 @@ fn main() -> anyhow::Result<()> {
         }
         return Ok(());
     }
-    if let Some(name) = &args.dialect {
-        anyhow::ensure!(
-            Dialect::ALL.iter().any(|d| d.name() == name),
-            "--dialect must be foxglove or ros2, not {name:?}"
-        );
-    }
     let options = options(&args)?;
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
     for dialect in Dialect::ALL {
-        if args.dialect.as_deref().is_some_and(|d| d != dialect.name()) {
+        if args.dialect.is_some_and(|d| d != dialect) {
             continue;
         }
         let started = std::time::Instant::now();

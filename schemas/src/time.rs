@@ -3,6 +3,15 @@
 use serde::{Deserialize, Serialize};
 use std::fmt;
 
+/// Keyframe spacing of SuperFlow's recipe and the official code (nuScenes' 2 Hz
+/// keyframes): the pipeline's default `keyframe_interval_secs`, the spacing `inspect`
+/// counts keyframes by, the probe's labelled sweeps and the unit of the generator's
+/// `--keyframes`.
+pub const KEYFRAME_INTERVAL_NANOS: i64 = 500_000_000;
+
+/// [`KEYFRAME_INTERVAL_NANOS`] in seconds.
+pub const KEYFRAME_INTERVAL_SECS: f64 = KEYFRAME_INTERVAL_NANOS as f64 / 1e9;
+
 /// A sensor timestamp in nanoseconds since the Unix epoch (or since whatever epoch the
 /// recording uses; only differences matter inside the pipeline).
 ///

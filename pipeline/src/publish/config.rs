@@ -5,8 +5,9 @@ use serde::{Deserialize, Serialize};
 use superflow_common::InvalidSetting;
 use superflow_schemas::service::qos;
 
-/// Broadcast (every subscriber sees every batch) or shard (each rank its share).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+/// Broadcast (every subscriber sees every batch) or shard (each rank its share):
+/// `[service] mode` and `--mode`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "snake_case")]
 pub enum Mode {
     /// One stream on `superflow/<run>/batches`.

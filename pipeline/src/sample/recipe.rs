@@ -148,7 +148,7 @@ pub struct SampleConfig {
 impl Default for SampleConfig {
     fn default() -> Self {
         Self {
-            keyframe_interval_secs: 0.5,
+            keyframe_interval_secs: superflow_schemas::time::KEYFRAME_INTERVAL_SECS,
             keyframe_choice: KeyframeChoice::LeastCameraOffset,
             camera_sync: CameraSync::Scan,
             delta_t_secs: 0.5,

@@ -33,9 +33,9 @@ pub struct Args {
     /// Run name: the services are `superflow/<run>/...`.
     #[arg(long, default_value = "default")]
     pub run: String,
-    /// Stream mode (overrides `[service] mode`): `broadcast` or `shard`.
-    #[arg(long)]
-    pub mode: Option<String>,
+    /// Stream mode (overrides `[service] mode`).
+    #[arg(long, value_enum)]
+    pub mode: Option<Mode>,
     /// Ranks in shard mode (overrides `[service] world_size`).
     #[arg(long)]
     pub world_size: Option<u32>,
@@ -204,14 +204,8 @@ impl Args {
 
     /// The service's flags, to lay over the configuration ([`PipelineConfig::apply`]).
     pub fn overrides(&self) -> anyhow::Result<Overrides> {
-        let mode = match self.mode.as_deref() {
-            None => None,
-            Some("broadcast") => Some(Mode::Broadcast),
-            Some("shard") => Some(Mode::Shard),
-            Some(other) => bail!("--mode {other}: expected broadcast or shard"),
-        };
         Ok(Overrides {
-            mode,
+            mode: self.mode,
             world_size: self.world_size,
             host_rank: self.host_rank,
             host_count: self.host_count,
