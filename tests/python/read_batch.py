@@ -34,9 +34,10 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "trainer" / "python"))
+from superflow.errors import MalformedBatch  # noqa: E402
 from superflow.format import (  # noqa: E402
-    DTYPES, HEADER, HEADER_SIZE, MAGIC, SECTION_ALIGN, VERSION, BatchFormatError, _address,
-    batch_meta, dtype_string, read_batch,
+    DTYPES, HEADER, HEADER_SIZE, MAGIC, SECTION_ALIGN, VERSION, _address, batch_meta,
+    dtype_string, read_batch,
 )
 
 __all__ = ["DTYPES", "HEADER", "HEADER_SIZE", "MAGIC", "VERSION", "load_batch_file", "read_batch"]
@@ -47,7 +48,7 @@ def load_batch_file(path: str) -> tuple[np.ndarray, np.ndarray]:
     starts 64-byte aligned, as iceoryx2 payloads are at least 8-byte aligned."""
     size = os.path.getsize(path)
     if size < HEADER_SIZE:
-        raise BatchFormatError(f"rule 1: {path} has {size} bytes, less than the {HEADER_SIZE}-byte header")
+        raise MalformedBatch(f"rule 1: {path} has {size} bytes, less than the {HEADER_SIZE}-byte header")
     raw = np.empty(size + SECTION_ALIGN, dtype=np.uint8)
     shift = (-(_address(raw) + HEADER_SIZE)) % SECTION_ALIGN
     buf = raw[shift:shift + size]

@@ -12,8 +12,8 @@ The sections and their meaning: schemas/BATCH_FORMAT.md in the superflow reposit
 (``superflow.sections`` has the names and dtypes).
 """
 
-from .format import BatchFormatError, FormatVersionError, read_batch
-from .sections import BATCH_SECTIONS, LEVEL_SECTIONS, section_dtype
+from typing import Any
+
 from .batch import Batch, SectionArray
 from .errors import (
     BatchReleased,
@@ -29,13 +29,15 @@ from .errors import (
     TooManyBatchesHeld,
     WorkersUnsupported,
 )
+from .format import deprecated_name, read_batch
+from .sections import BATCH_SECTIONS, LEVEL_SECTIONS, section_dtype
 from .stream import Epoch, Stream
 from .wire import Schedule
 
 __version__ = "0.1.0"
 
 
-def __getattr__(name: str):
+def __getattr__(name: str) -> Any:
     # torch is imported only when TorchIterable is asked for: `import superflow` stays
     # quick (importing torch maps ~1.5 GB of libraries) and works without torch.
     if name == "TorchIterable":
@@ -46,16 +48,16 @@ def __getattr__(name: str):
         import importlib
 
         return importlib.import_module(".torch", __name__)
-    raise AttributeError(f"module 'superflow' has no attribute {name!r}")
+    # BatchFormatError, FormatVersionError: the old names of MalformedBatch and
+    # FormatVersionMismatch, with a DeprecationWarning.
+    return deprecated_name(__name__, name)
 
 __all__ = [
     "BATCH_SECTIONS",
     "LEVEL_SECTIONS",
     "Batch",
-    "BatchFormatError",
     "BatchReleased",
     "Epoch",
-    "FormatVersionError",
     "FormatVersionMismatch",
     "MalformedBatch",
     "PipelineTimeout",
@@ -69,8 +71,8 @@ __all__ = [
     "StreamNotPicklable",
     "SuperflowError",
     "TooManyBatchesHeld",
-    "WorkersUnsupported",
     "TorchIterable",
+    "WorkersUnsupported",
     "read_batch",
     "section_dtype",
 ]

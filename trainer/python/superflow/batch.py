@@ -5,12 +5,12 @@ torch tensors."""
 from __future__ import annotations
 
 import weakref
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 
 from .errors import BatchReleased, FormatVersionMismatch, MalformedBatch
-from .format import HEADER, LOST, BatchFormatError, FormatVersionError, batch_meta, read_batch
+from .format import HEADER, LOST, batch_meta, read_batch
 from .memory import Memory, PrivateView
 from .sections import section_dtype
 
@@ -29,7 +29,7 @@ def header_bytes(sample: Any) -> np.ndarray:
 
 def header_record(sample: Any) -> np.void:
     """The header record of a received sample, unchecked (for its position fields)."""
-    return np.frombuffer(header_bytes(sample), dtype=HEADER, count=1)[0]
+    return cast(np.void, np.frombuffer(header_bytes(sample), dtype=HEADER, count=1)[0])
 
 
 def position_of(sample: Any) -> tuple[int, int]:
@@ -46,9 +46,9 @@ def _read(sample: Any, payload: np.ndarray, run: str,
     where = f"run {run!r}, service {service!r}"
     try:
         h, arrays = read_batch(header_bytes(sample), payload)
-    except FormatVersionError as e:
+    except FormatVersionMismatch as e:
         raise FormatVersionMismatch(f"{where}: {e}", run, service, e.version) from None
-    except BatchFormatError as e:
+    except MalformedBatch as e:
         raise MalformedBatch(f"{where}: {e}", run, service) from None
     for name, array in arrays.items():
         want = section_dtype(name)
@@ -170,7 +170,7 @@ class Batch:
                 raise KeyError(f"batch (epoch {self.epoch}, step {self.step}) is lost: every "
                                "sample failed in the pipeline (its log says why), so it has no "
                                "sections; check batch.lost") from None
-            raise KeyError(f"no section `{name}` in this batch (sections: {', '.join(self._arrays)})")
+            raise KeyError(f"no section `{name}` in this batch (sections: {', '.join(self._arrays)})") from None
 
     def image_index(self, sample: int, frame: int, camera: int) -> int:
         """The row of ``images`` (and ``superpixels``, ``image_stamps``, the number in
@@ -190,7 +190,7 @@ class Batch:
         first = self.image_index(sample, 0, 0)
         frames = len(self["frame_offsets"])
         rows = self[name][first:first + frames * self.cameras[sample]]
-        return rows.reshape((frames, self.cameras[sample]) + rows.shape[1:])
+        return cast(SectionArray, rows.reshape((frames, self.cameras[sample], *rows.shape[1:])))
 
     def torch(self) -> dict[str, Any]:
         """Every section as a ``torch.Tensor`` sharing the batch's memory

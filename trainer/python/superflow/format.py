@@ -3,8 +3,8 @@ with numpy: ``read_batch(header_bytes, payload)`` validates a batch against ever
 the format (header constants, section table, dtypes, shapes and sizes, bounds, overlaps,
 alignment in memory, zeroed padding) and returns ``(header record, {name: array})``,
 each array a view into ``payload`` (no copy; read-only when the payload is). A violation
-raises :class:`BatchFormatError` naming the rule and the section; a batch of another
-format version raises :class:`FormatVersionError`.
+raises :class:`~superflow.MalformedBatch` naming the rule and the section; a batch of
+another format version raises :class:`~superflow.FormatVersionMismatch`.
 
 The arrays stay valid only while the payload buffer does: :class:`superflow.Stream`
 keeps each batch's memory until its last view is gone.
@@ -13,9 +13,12 @@ keeps each batch's memory until its last view is gone.
 from __future__ import annotations
 
 import math
+import warnings
 from typing import Any
 
 import numpy as np
+
+from .errors import FormatVersionMismatch, MalformedBatch
 
 MAGIC = 0x424C4653  # the bytes "SFLB", little-endian
 VERSION = 2
@@ -49,20 +52,28 @@ DTYPES = {1: "<u1", 2: "<u2", 3: "<i4", 4: "<u4", 5: "<i8", 6: "<u8", 7: "<f4", 
 assert HEADER.itemsize == HEADER_SIZE and SECTION.itemsize == 88
 
 
-class BatchFormatError(ValueError):
-    """A batch breaks a rule of BATCH_FORMAT.md; the message names the rule and section."""
+# The old names of two errors (one name per error now), kept for one release as the same
+# classes with a DeprecationWarning.
+DEPRECATED_NAMES = {"BatchFormatError": MalformedBatch, "FormatVersionError": FormatVersionMismatch}
 
 
-class FormatVersionError(BatchFormatError):
-    """The batch was written in a format version this reader does not know."""
+def deprecated_name(module: str, name: str) -> Any:
+    """The class an old error name stands for, with a DeprecationWarning; AttributeError
+    for any other name (a module's ``__getattr__``)."""
+    if name in DEPRECATED_NAMES:
+        new = DEPRECATED_NAMES[name]
+        warnings.warn(f"{module}.{name} is deprecated: it is {new.__name__} (superflow.{new.__name__})",
+                      DeprecationWarning, stacklevel=3)
+        return new
+    raise AttributeError(f"module {module!r} has no attribute {name!r}")
 
-    def __init__(self, message: str, version: int):
-        super().__init__(message)
-        self.version = version
+
+def __getattr__(name: str) -> Any:
+    return deprecated_name(__name__, name)
 
 
 def _fail(rule: str, message: str) -> None:
-    raise BatchFormatError(f"{rule}: {message}")
+    raise MalformedBatch(f"{rule}: {message}")
 
 
 def _address(array: np.ndarray) -> int:
@@ -82,8 +93,8 @@ def _nul_padded(field: bytes, rule: str, what: str) -> bytes:
 def read_batch(header_bytes: Any, payload: Any) -> tuple[np.void, dict[str, np.ndarray]]:
     """Validates a batch and returns ``(header record, {name: zero-copy array})``.
 
-    Raises ``BatchFormatError`` (a ``ValueError``) when any rule of BATCH_FORMAT.md is
-    broken; the batch is then rejected whole.
+    Raises :class:`~superflow.MalformedBatch` (a ``ValueError``) when any rule of
+    BATCH_FORMAT.md is broken; the batch is then rejected whole.
     """
     raw_header = np.frombuffer(header_bytes, dtype=np.uint8)
     if raw_header.size != HEADER_SIZE:
@@ -96,9 +107,9 @@ def read_batch(header_bytes: Any, payload: Any) -> tuple[np.void, dict[str, np.n
     if int(h["magic"]) != MAGIC:
         _fail("rule 1", f"magic {int(h['magic']):#010x}, expected {MAGIC:#010x} (\"SFLB\")")
     if int(h["version"]) != VERSION:
-        raise FormatVersionError(
+        raise FormatVersionMismatch(
             f"rule 1: format version {int(h['version'])}, this reader knows version {VERSION} only",
-            int(h["version"]))
+            version=int(h["version"]))
     if int(h["header_size"]) != HEADER_SIZE:
         _fail("rule 1", f"header_size {int(h['header_size'])}, this reader's BatchHeader is {HEADER_SIZE}")
     count = int(h["section_count"])
@@ -176,9 +187,9 @@ def read_batch(header_bytes: Any, payload: Any) -> tuple[np.void, dict[str, np.n
 
     # Rule 4: bytes of the payload (up to payload_len) not covered by a section are zero.
     cursor = 0
-    for start, end, name in filled + [(payload_len, payload_len, None)]:
+    for start, end, section in [*filled, (payload_len, payload_len, None)]:
         if start > cursor and body[cursor:start].any():
-            where = f"before section `{name}`" if name else "after the last section"
+            where = f"before section `{section}`" if section else "after the last section"
             first = cursor + int(np.flatnonzero(body[cursor:start])[0])
             _fail("rule 4", f"padding byte {first} ({where}) is not zero")
         cursor = max(cursor, end)

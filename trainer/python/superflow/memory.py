@@ -34,7 +34,7 @@ class _Segment:
     """A shared-memory mapping of this process: its address range and the file (path,
     file offset of its start, device and inode) it maps."""
 
-    __slots__ = ("low", "high", "path", "offset", "dev", "inode", "span")
+    __slots__ = ("dev", "high", "inode", "low", "offset", "path", "span")
 
     def __init__(self, line: str):
         parts = line.split(maxsplit=5)
@@ -106,7 +106,7 @@ class PrivateView:
     Views of a batch refer to it (numpy's ``base`` chain, torch's storage); the mapping
     goes when the last one does."""
 
-    __slots__ = ("__array_interface__", "__weakref__", "_map", "_anchor", "address", "length")
+    __slots__ = ("__array_interface__", "__weakref__", "_anchor", "_map", "address", "length")
 
     def __init__(self, address: int, length: int):
         self.length = length
@@ -173,7 +173,7 @@ class Memory:
     """A received sample's shared memory: handed back to the pipeline (``sample.delete()``)
     when the batch is released and its views are gone, whichever comes last."""
 
-    __slots__ = ("sample", "released", "views_alive", "position", "held", "port", "view")
+    __slots__ = ("held", "port", "position", "released", "sample", "view", "views_alive")
 
     def __init__(self, sample: Any, position: tuple[int, int], held: set[Memory], port: Any,
                  view: PrivateView | None):

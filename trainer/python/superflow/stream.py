@@ -19,19 +19,41 @@ import os
 import socket
 import time
 import warnings
-from typing import Any, Iterator
+from collections.abc import Iterator
+from typing import Any
 
 import iceoryx2 as iox2
 
 from . import ranks
 from .batch import Batch, SectionArray, header_record, position_of
-from .errors import (PipelineTimeout, PlanMismatch, ResumeRefused, RunComplete,
-                     ScheduleUnavailable, StreamNotPicklable, SuperflowError, TooManyBatchesHeld)
+from .errors import (
+    PipelineTimeout,
+    PlanMismatch,
+    ResumeRefused,
+    RunComplete,
+    ScheduleUnavailable,
+    StreamNotPicklable,
+    SuperflowError,
+    TooManyBatchesHeld,
+)
 from .format import RUN_CHARS
 from .memory import Memory
-from .wire import (MAX_BORROWED, MAX_BUFFER, MAX_NODES, MAX_PUBLISHERS, MAX_SUBSCRIBERS,
-                   REFUSALS, RUN_COMPLETE, UNKNOWN, BatchHeaderWords, ResumeReply,
-                   ResumeRequest, Schedule, ScheduleReply, ScheduleRequest)
+from .wire import (
+    MAX_BORROWED,
+    MAX_BUFFER,
+    MAX_NODES,
+    MAX_PUBLISHERS,
+    MAX_SUBSCRIBERS,
+    REFUSALS,
+    RUN_COMPLETE,
+    UNKNOWN,
+    BatchHeaderWords,
+    ResumeReply,
+    ResumeRequest,
+    Schedule,
+    ScheduleReply,
+    ScheduleRequest,
+)
 
 __all__ = ["Batch", "Epoch", "SectionArray", "Stream"]
 
@@ -178,9 +200,9 @@ class Stream:
         """Whether a pipeline publishes on this stream (dead ones are cleaned up first)."""
         try:
             self._node.try_cleanup_dead_nodes()
-        except Exception:  # noqa: BLE001 - best effort, as the Rust subscriber does
+        except Exception:
             pass
-        return self._batches.dynamic_config.number_of_publishers > 0
+        return bool(self._batches.dynamic_config.number_of_publishers > 0)
 
     def held(self) -> list[tuple[int, int]]:
         """``(epoch, step)`` of the batches this stream holds: the current one and released
@@ -435,13 +457,13 @@ class Stream:
                     return self._accept(reply, epoch, step if sample is None else None, sample)
                 # No answer yet: keep the queue moving (a pipeline blocked on this full
                 # queue could not answer); keep only a batch at the asked position.
-                sample = self._receive_sample()
-                if sample is None:
+                received = self._receive_sample()
+                if received is None:
                     time.sleep(0.002)
-                elif self._stash is None and position_of(sample) == (epoch, expected):
-                    self._stash = sample
+                elif self._stash is None and position_of(received) == (epoch, expected):
+                    self._stash = received
                 else:
-                    sample.delete()
+                    received.delete()
         where = f"({epoch}, {step})" if sample is None else f"epoch {epoch} sample {sample}"
         raise PipelineTimeout(f"run {self.run!r}: no pipeline answered the request to resume "
                               f"{self.service!r} at {where} within {timeout_s} s",
@@ -463,21 +485,21 @@ class Stream:
         publisher = (reply.publisher_hi << 64) | reply.publisher_lo
         self._floor = (publisher, int(reply.next_sequence))
 
-        def new(sample: Any) -> bool:
-            return (sample.header.publisher_id.value == publisher
-                    and int(header_record(sample)["sequence"]) >= reply.next_sequence)
+        def new(received: Any) -> bool:
+            return bool(received.header.publisher_id.value == publisher
+                        and int(header_record(received)["sequence"]) >= reply.next_sequence)
 
         if self._stash is not None and not new(self._stash):
             self._stash.delete()
             self._stash = None
         while self._stash is None:
-            sample = self._receive_sample()
-            if sample is None:
+            received = self._receive_sample()
+            if received is None:
                 break
-            if new(sample):
-                self._stash = sample
+            if new(received):
+                self._stash = received
             else:
-                sample.delete()
+                received.delete()
         self._last = None
         self._ended = False
         self._position = (int(reply.epoch), int(reply.step))

@@ -11,7 +11,8 @@ pickling the dataset (spawn, forkserver) raises :class:`StreamNotPicklable`. Eac
 
 from __future__ import annotations
 
-from typing import Any, Callable, Iterator
+from collections.abc import Iterator
+from typing import Any, Callable
 
 from .batch import Batch
 from .errors import StreamNotPicklable, WorkersUnsupported
@@ -30,7 +31,7 @@ _WORKERS = ("superflow.TorchIterable in a DataLoader worker (num_workers={n}): t
             "pipeline's --threads")
 
 
-class TorchIterable(_Base):  # type: ignore[valid-type,misc]
+class TorchIterable(_Base):  # type: ignore[type-arg]
     """One epoch of ``stream`` per ``iter()``: yields ``transform(batch)`` for this rank's
     batches of the current epoch (``stream.epoch()``), by default ``batch.torch()``, a
     dict of tensors sharing the batch's memory (``{}`` for a lost batch: every sample

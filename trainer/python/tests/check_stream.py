@@ -1,5 +1,5 @@
 """Scenarios of the `superflow` Python package against a real `superflow-pipeline`, run by
-`cargo test -p superflow-tests --test python_package` with the package installed in a
+`cargo test -p superflow-tests --test e2e python_package::` with the package installed in a
 fresh virtual environment (as a user installs it). Each prints JSON lines and exits
 non-zero when a check fails.
 
@@ -174,7 +174,7 @@ def kept(args: argparse.Namespace) -> int:
     except superflow.TooManyBatchesHeld as e:
         held = e.held
         checks["max_held raises"] = (len(held) == 2 and list(held[0]) == [first.epoch, first.step]
-                                     and str(list(held[0])[0]) in str(e) and "del" in str(e))
+                                     and str(next(iter(held[0]))) in str(e) and "del" in str(e))
     del tensors, points, row, images
     checks["returned after del"] = first.returned and current.returned and stream.held() == []
     for _ in range(3):
@@ -406,7 +406,7 @@ def fleet(args: argparse.Namespace) -> int:
         per_sample = frames + 1
         for b, k in enumerate(batch.cameras):
             view = batch.sample_images(b)
-            ok &= view.shape == (frames, k) + images.shape[1:]
+            ok &= view.shape == (frames, k, *images.shape[1:])
             ok &= bool(np.shares_memory(view, images))
             first = batch.image_index(b, 0, 0)
             mine = pairing_image[clouds[b * per_sample]:clouds[(b + 1) * per_sample]]
@@ -688,7 +688,8 @@ def past_end(args: argparse.Namespace) -> int:
 
 def main() -> int:
     parser = argparse.ArgumentParser()
-    parser.add_argument("scenario", choices=["read", "resume", "kept", "epochs", "uneven", "spconv", "torch_views", "timeout",
+    parser.add_argument("scenario", choices=["read", "resume", "kept", "epochs", "uneven", "spconv", "torch_views",
+                                             "timeout",
                                              "malformed", "fleet", "elastic", "in_place", "workers",
                                              "hosts", "lost", "close_live", "no_schedule",
                                              "past_end"])

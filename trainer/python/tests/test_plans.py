@@ -23,7 +23,7 @@ def test_two_hosts_of_two_ranks_agree() -> None:
 
 
 def test_another_seed_is_named() -> None:
-    with pytest.raises(PlanMismatch, match="rank 2's pipeline serves another plan.*seed 7 vs 0"):
+    with pytest.raises(PlanMismatch, match=r"rank 2's pipeline serves another plan.*seed 7 vs 0"):
         check_plans("run", "svc", [rank(0, 0, 10), rank(1, 0, 10), rank(2, 1, 11, seed=7)])
 
 
@@ -33,7 +33,7 @@ def test_two_hosts_with_the_same_host_rank() -> None:
 
 
 def test_a_host_missing() -> None:
-    with pytest.raises(PlanMismatch, match="--host-count 2.*read 1"):
+    with pytest.raises(PlanMismatch, match=r"--host-count 2.*read 1"):
         check_plans("run", "svc", [rank(0, 0, 10), rank(1, 0, 10)])
 
 
