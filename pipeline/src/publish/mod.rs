@@ -26,6 +26,8 @@
 //!   hosts continues the epoch at that sample ([`Schedule`]).
 //! * [`Metrics`] (`metrics.rs`) counts what happens, for the log and Prometheus;
 //!   [`ServiceConfig`] (`config.rs`) is `[service]` of `pipeline.toml`.
+//! * [`SideTasks`] (`side_tasks.rs`): the SIGINT/SIGTERM handlers that stop the service
+//!   and the Prometheus endpoint.
 
 mod config;
 mod control;
@@ -35,12 +37,14 @@ mod ports;
 mod producer;
 mod schedule;
 mod serve;
+mod side_tasks;
 
 pub use config::{Mode, ServiceConfig};
 pub use metrics::Metrics;
 pub use plan_id::PlanId;
 pub use schedule::{Schedule, Slot};
 pub use serve::serve;
+pub use side_tasks::{SideTaskError, SideTasks};
 /// Where the service starts: at a step of every stream (`--start-step`), or after the
 /// samples of an epoch a job of any size had consumed (`--start-sample`; its
 /// `global_batch` is not used).
