@@ -249,12 +249,7 @@ fn damaged_or_foreign_cache_entries_are_ignored_with_a_reason() {
     assert!(filled.status.success(), "{out}\n{err}");
     assert!(out.contains("cache hits      0 of 3"), "{out}");
     // The files' entries (`index` also stores each drive's camera scan, `.sfscan`).
-    let mut entries: Vec<PathBuf> = std::fs::read_dir(&cache)
-        .unwrap()
-        .map(|e| e.unwrap().path())
-        .filter(|p| p.extension().is_some_and(|x| x == "sfidx"))
-        .collect();
-    entries.sort();
+    let entries = file_entries(&cache);
     assert_eq!(entries.len(), 3);
     let hit = index(&inputs, &cache);
     assert!(
@@ -307,20 +302,11 @@ fn two_processes_filling_one_cache_at_once_both_succeed() {
     let dir = scratch("concurrent");
     let cache = dir.join("cache");
     let inputs = inputs(&dir);
-    let spawn = || {
-        Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-subscriber")))
-            .arg("index")
-            .arg("--mcap")
-            .args(&inputs)
-            .arg("--index-cache")
-            .arg(&cache)
-            .stdout(std::process::Stdio::piped())
-            .stderr(std::process::Stdio::piped())
-            .spawn()
-            .unwrap()
-    };
-    let (a, b) = (spawn(), spawn());
-    let (a, b) = (a.wait_with_output().unwrap(), b.wait_with_output().unwrap());
+    let (a, b) = std::thread::scope(|s| {
+        let a = s.spawn(|| index(&inputs, &cache));
+        let b = s.spawn(|| index(&inputs, &cache));
+        (a.join().unwrap(), b.join().unwrap())
+    });
     for output in [&a, &b] {
         let (out, err) = text(output);
         assert!(output.status.success(), "{out}\n{err}");

@@ -31,7 +31,7 @@ import superflow
 import superflow.torch as sft
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "reference"))
-import bench_torch as ref
+import bench_torch as ref  # the ViT, 2D head and losses of the Rust trainer
 
 
 def to(obj, device: torch.device):

@@ -47,7 +47,7 @@ from torch import nn
 import superflow
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "reference"))
-import bench_torch as ref
+import bench_torch as ref  # the PyTorch model and losses of the Rust trainer
 
 
 class SuperFlowNet(nn.Module):

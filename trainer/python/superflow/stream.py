@@ -200,7 +200,7 @@ class Stream:
         """Whether a pipeline publishes on this stream (dead ones are cleaned up first)."""
         try:
             self._node.try_cleanup_dead_nodes()
-        except Exception:
+        except Exception:  # best effort, as the Rust subscriber does
             pass
         return bool(self._batches.dynamic_config.number_of_publishers > 0)
 
