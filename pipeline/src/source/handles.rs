@@ -11,12 +11,20 @@
 //! drops only the pool's own reference; the descriptor closes when the last reader lets
 //! go. The limit therefore bounds the pool, not the few handles readers hold beyond it
 //! (at most one per reading thread).
+//!
+//! A file replaced on disk while it is open (a dataset re-sync writes new inodes; a
+//! rewrite renames over the path) can only be read on through the descriptor opened
+//! before: once closed, its content is gone. So the pool closes a file only when its path
+//! still leads to it; one whose path moved on is *kept* open past the limit, as long as
+//! the process has descriptors to spare ([`default_max_open_files`]), and read from there
+//! for as long as the dataset holds it. A file replaced while it was closed is checked on
+//! reopening instead (the same content is read on; other content is refused).
 
 use super::SourceError;
 use std::collections::HashMap;
 use std::fs::File;
 use std::os::unix::fs::MetadataExt;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex, OnceLock, PoisonError};
 
 /// Descriptors left to everything else (sockets, shared memory, logs, the allocator).
@@ -69,24 +77,82 @@ pub fn default_max_open_files() -> usize {
         .max(MIN_DEFAULT)
 }
 
+/// The most descriptors [`raise_open_file_limit`] asks for: room for every file of a
+/// large dataset (1 000 drives of a few files each), without a limit so high that code
+/// walking every possible descriptor (in child processes, say) slows down.
+const RAISED_LIMIT: u64 = 1 << 16;
+
+/// Raises the process's soft limit on open files towards its hard limit (at most
+/// [`RAISED_LIMIT`]), so that the pool's default holds every file of a dataset open: a
+/// file replaced on disk can then always be read on from its first descriptor. Many
+/// systems start processes at a soft limit of 1 024 under a hard limit far above it.
+/// Returns the soft limit in force afterwards; call it before the pool is first used.
+pub fn raise_open_file_limit() -> Option<u64> {
+    use rustix::process::{Resource, getrlimit, setrlimit};
+    let limits = getrlimit(Resource::Nofile);
+    let Some(soft) = limits.current else {
+        return None;
+    };
+    let target = limits.maximum.unwrap_or(u64::MAX).min(RAISED_LIMIT);
+    if target <= soft {
+        return Some(soft);
+    }
+    let raised = rustix::process::Rlimit {
+        current: Some(target),
+        maximum: limits.maximum,
+    };
+    match setrlimit(Resource::Nofile, raised) {
+        Ok(()) => {
+            tracing::debug!(from = soft, to = target, "raised the limit of open files");
+            Some(target)
+        }
+        Err(e) => {
+            tracing::debug!(soft, error = %e, "could not raise the limit of open files");
+            Some(soft)
+        }
+    }
+}
+
 /// One open file of the pool.
 #[derive(Debug)]
 struct Entry {
     file: Arc<File>,
     /// When it was last handed out ([`Pool::tick`]); the smallest is closed first.
     used: u64,
+    /// Where it was opened, and what it was then: closing it is safe only while the path
+    /// still leads to this very file.
+    path: PathBuf,
+    identity: FileIdentity,
+}
+
+impl Entry {
+    /// Whether `path` no longer leads to this file (replaced, rewritten or deleted).
+    fn moved_on(&self) -> bool {
+        std::fs::metadata(&self.path)
+            .ok()
+            .map(|meta| FileIdentity::of(&meta))
+            != Some(self.identity)
+    }
 }
 
 #[derive(Debug, Default)]
 struct Pool {
     limit: usize,
+    /// The most descriptors open and kept together: the process's own room.
+    room: usize,
     tick: u64,
     open: HashMap<u64, Entry>,
+    /// Files replaced on disk while open, held past the limit (see the module's notes).
+    kept: HashMap<u64, Entry>,
 }
 
 impl Pool {
-    /// Closes the least recently used files until at most `keep` are open.
-    fn shrink_to(&mut self, keep: usize) {
+    /// Takes the least recently used files out until at most `keep` are open, and returns
+    /// them: the caller closes or keeps each ([`HandlePool::close_or_keep`]) outside the
+    /// lock, as that looks at the file system.
+    #[must_use]
+    fn shrink_to(&mut self, keep: usize) -> Vec<(u64, Entry)> {
+        let mut out = Vec::new();
         while self.open.len() > keep {
             let Some(oldest) = self
                 .open
@@ -94,10 +160,11 @@ impl Pool {
                 .min_by_key(|(_, e)| e.used)
                 .map(|(key, _)| *key)
             else {
-                return;
+                break;
             };
-            self.open.remove(&oldest);
+            out.extend(self.open.remove_entry(&oldest));
         }
+        out
     }
 }
 
@@ -114,6 +181,7 @@ impl HandlePool {
         Self {
             pool: Mutex::new(Pool {
                 limit: limit.max(1),
+                room: limit.max(default_max_open_files()),
                 ..Pool::default()
             }),
         }
@@ -138,15 +206,53 @@ impl HandlePool {
     /// Keeps at most `limit` files open from now on (at least 1), closing the least
     /// recently used beyond it.
     pub fn set_limit(&self, limit: usize) {
-        let mut pool = self.lock();
-        pool.limit = limit.max(1);
-        let keep = pool.limit;
-        pool.shrink_to(keep);
+        let evicted = {
+            let mut pool = self.lock();
+            pool.limit = limit.max(1);
+            pool.room = pool.room.max(pool.limit);
+            let keep = pool.limit;
+            pool.shrink_to(keep)
+        };
+        self.close_or_keep(evicted);
     }
 
-    /// How many files the pool holds open now.
+    /// How many files the pool holds open now, within its limit.
     pub fn open_count(&self) -> usize {
         self.lock().open.len()
+    }
+
+    /// How many files the pool holds open past its limit, because they were replaced on
+    /// disk while open.
+    pub fn kept_count(&self) -> usize {
+        self.lock().kept.len()
+    }
+
+    /// Closes each file taken out of the pool whose path still leads to it; keeps the
+    /// others open (the only way left to read them) while there is room.
+    fn close_or_keep(&self, evicted: Vec<(u64, Entry)>) {
+        for (key, entry) in evicted {
+            if !entry.moved_on() {
+                continue;
+            }
+            let mut pool = self.lock();
+            let held = pool.open.len() + pool.kept.len();
+            if held >= pool.room {
+                tracing::warn!(
+                    file = %entry.path.display(),
+                    held,
+                    "the file changed on disk while open, and no descriptor is left to keep \
+                     it open: reads of it will be checked against what is on disk now"
+                );
+                continue;
+            }
+            tracing::warn!(
+                file = %entry.path.display(),
+                kept = pool.kept.len() + 1,
+                "the file changed on disk while open: keeping the file first opened open, \
+                 past the limit of open files, and reading on from it"
+            );
+            pool.kept.insert(key, entry);
+        }
     }
 
     /// Opens `path` for the first time as `key`, returning the handle and what the file is.
@@ -156,7 +262,7 @@ impl HandlePool {
         path: &Path,
     ) -> Result<(Arc<File>, FileIdentity), SourceError> {
         let (file, identity) = self.open_file(path)?;
-        Ok((self.insert(key, file), identity))
+        Ok((self.insert(key, file, path, identity), identity))
     }
 
     /// The handle of `key`, reopening `path` if the pool closed it; `check` says whether
@@ -175,17 +281,22 @@ impl HandlePool {
                 entry.used = tick;
                 return Ok(Arc::clone(&entry.file));
             }
+            if let Some(entry) = pool.kept.get(&key) {
+                return Ok(Arc::clone(&entry.file));
+            }
         }
         // Opened outside the lock: other threads go on reading meanwhile.
         let (file, found) = self.open_file(path)?;
         check(&file, &found)?;
         tracing::trace!(file = %path.display(), "reopened");
-        Ok(self.insert(key, file))
+        Ok(self.insert(key, file, path, found))
     }
 
     /// Forgets `key`, closing its file once no reader holds it.
     pub fn forget(&self, key: u64) {
-        self.lock().open.remove(&key);
+        let mut pool = self.lock();
+        pool.open.remove(&key);
+        pool.kept.remove(&key);
     }
 
     fn open_file(&self, path: &Path) -> Result<(File, FileIdentity), SourceError> {
@@ -212,24 +323,30 @@ impl HandlePool {
 
     /// Puts `file` in the pool as `key` (or takes the one another thread put there first),
     /// closing the least recently used beyond the limit.
-    fn insert(&self, key: u64, file: File) -> Arc<File> {
-        let mut pool = self.lock();
-        pool.tick += 1;
-        let tick = pool.tick;
-        if let Some(entry) = pool.open.get_mut(&key) {
-            entry.used = tick;
-            return Arc::clone(&entry.file);
-        }
-        let keep = pool.limit - 1;
-        pool.shrink_to(keep);
-        let file = Arc::new(file);
-        pool.open.insert(
-            key,
-            Entry {
-                file: Arc::clone(&file),
-                used: tick,
-            },
-        );
+    fn insert(&self, key: u64, file: File, path: &Path, identity: FileIdentity) -> Arc<File> {
+        let (file, evicted) = {
+            let mut pool = self.lock();
+            pool.tick += 1;
+            let tick = pool.tick;
+            if let Some(entry) = pool.open.get_mut(&key) {
+                entry.used = tick;
+                return Arc::clone(&entry.file);
+            }
+            let keep = pool.limit - 1;
+            let evicted = pool.shrink_to(keep);
+            let file = Arc::new(file);
+            pool.open.insert(
+                key,
+                Entry {
+                    file: Arc::clone(&file),
+                    used: tick,
+                    path: path.to_path_buf(),
+                    identity,
+                },
+            );
+            (file, evicted)
+        };
+        self.close_or_keep(evicted);
         file
     }
 }
@@ -342,6 +459,55 @@ mod tests {
             .unwrap_err();
         assert!(matches!(err, SourceError::Replaced { .. }), "{err}");
         std::fs::remove_dir_all(dir).unwrap();
+    }
+
+    /// A file replaced by other content (and one deleted) while open: the pool keeps
+    /// each past its limit and reads on from it; one whose path still leads to it closes.
+    #[test]
+    fn a_file_changed_while_open_is_kept_and_read_on() {
+        let (dir, paths) = files(4);
+        let pool = HandlePool::new(1);
+        let (_, identity) = pool.open_new(0, &paths[0]).unwrap();
+        let other = dir.join("other.bin");
+        std::fs::write(&other, [7u8; 16]).unwrap();
+        std::fs::rename(&other, &paths[0]).unwrap();
+        pool.open_new(1, &paths[1]).unwrap();
+        assert_eq!((pool.open_count(), pool.kept_count()), (1, 1));
+        let kept = pool
+            .get(0, &paths[0], must_be(identity, &paths[0]))
+            .unwrap();
+        let mut buf = [9u8; 16];
+        kept.read_exact_at(&mut buf, 0).unwrap();
+        assert_eq!(buf, [0u8; 16], "the first file's bytes, not the new one's");
+        // Deleted while open: kept as well.
+        std::fs::remove_file(&paths[1]).unwrap();
+        pool.open_new(2, &paths[2]).unwrap();
+        assert_eq!((pool.open_count(), pool.kept_count()), (1, 2));
+        let gone = pool
+            .get(1, &paths[1], |_, _| panic!("not reopened"))
+            .unwrap();
+        gone.read_exact_at(&mut buf, 0).unwrap();
+        assert_eq!(buf, [1u8; 16]);
+        // Unchanged: closed as usual.
+        pool.open_new(3, &paths[3]).unwrap();
+        assert_eq!((pool.open_count(), pool.kept_count()), (1, 2));
+        assert!(!pool.lock().open.contains_key(&2));
+        // The file is forgotten (its dataset closed): the kept descriptor goes too.
+        pool.forget(0);
+        pool.forget(1);
+        assert_eq!(pool.kept_count(), 0);
+        std::fs::remove_dir_all(dir).unwrap();
+    }
+
+    #[test]
+    fn the_open_file_limit_is_raised_within_the_hard_limit() {
+        let soft = raise_open_file_limit();
+        let now = rustix::process::getrlimit(rustix::process::Resource::Nofile);
+        assert_eq!(soft, now.current);
+        if let (Some(soft), Some(hard)) = (now.current, now.maximum) {
+            assert!(soft <= hard);
+            assert!(soft >= hard.min(RAISED_LIMIT));
+        }
     }
 
     #[test]

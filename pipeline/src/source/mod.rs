@@ -32,7 +32,7 @@ pub use chunk::ChunkError;
 pub use damage::Damage;
 pub use facts::ScannedFile;
 pub use framing::FramingError;
-pub use handles::{FileIdentity, HandlePool, default_max_open_files};
+pub use handles::{FileIdentity, HandlePool, default_max_open_files, raise_open_file_limit};
 
 use std::collections::{BTreeMap, HashMap};
 use std::fs::File;

@@ -500,6 +500,49 @@ fn a_resynced_drive_loses_nothing_and_a_deleted_one_is_one_counted_error() {
     let _ = std::fs::remove_dir_all(&dir);
 }
 
+/// Both sample drives served by a pipeline that keeps one file open
+/// (`max_open_files = 1`); after its first batch, the drive whose file it holds open is
+/// replaced by a truncated copy (other content, a new inode). Reading the other drive
+/// makes the pool close a file: it keeps the replaced one open instead, past its limit,
+/// and every sample of both drives trains in both epochs, from the content indexed.
+#[test]
+fn a_drive_replaced_while_open_is_read_on_from_its_descriptor() {
+    let p = prefix("held");
+    let out = temp_dir("train-held");
+    let dir = temp_dir("train-held-drives");
+    let (drives, pipe, rx, mut pipe_log) = serve_replaceable_drives(&dir, &p, "held");
+    let fds = std::fs::read_dir(format!("/proc/{}/fd", pipe.id())).unwrap();
+    let open: Vec<&PathBuf> = {
+        let targets: Vec<PathBuf> = fds
+            .filter_map(|fd| std::fs::read_link(fd.ok()?.path()).ok())
+            .collect();
+        drives.iter().filter(|d| targets.contains(d)).collect()
+    };
+    assert_eq!(open.len(), 1, "one drive open: {open:?}");
+    let held = open[0].clone();
+    superflow_tests::truncate_drives(std::slice::from_ref(&held)).unwrap();
+    let (ok, _, err) = finish(trainer(&p, "held", &out, &[]), LIMIT);
+    assert!(ok, "{err}");
+    let trained = metrics::read(&out.join("metrics.jsonl")).unwrap();
+    let (ok, _, _) = finish(pipe, LIMIT);
+    while let Ok(line) = rx.recv_timeout(Duration::from_secs(2)) {
+        pipe_log.push_str(&line);
+        pipe_log.push('\n');
+    }
+    assert!(ok, "{pipe_log}");
+    assert_eq!(trained.len(), 24, "every sample trained: {err}\n{pipe_log}");
+    assert!(!pipe_log.contains("sample lost"), "{pipe_log}");
+    let kept: Vec<&str> = pipe_log
+        .lines()
+        .filter(|l| l.contains("changed on disk while open: keeping"))
+        .collect();
+    assert_eq!(kept.len(), 1, "{pipe_log}");
+    assert!(kept[0].contains(&held.display().to_string()), "{}", kept[0]);
+    no_shared_memory_left(&p);
+    let _ = std::fs::remove_dir_all(&out);
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
 /// `dir/batch.bin`: a batch of `samples` samples of the sample drive, written by
 /// `superflow-pipeline batch`.
 fn write_batch(dir: &Path, samples: usize) -> PathBuf {

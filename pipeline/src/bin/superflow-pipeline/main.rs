@@ -52,6 +52,7 @@ fn run(args: &Args) -> anyhow::Result<()> {
 fn main() -> std::process::ExitCode {
     superflow_common::memory::keep_freed_pages();
     superflow_common::logging::init();
+    superflow_pipeline::source::raise_open_file_limit();
     match run(&Args::parse()) {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(err) => {
