@@ -62,6 +62,26 @@ impl Augmentation {
         xyz.iter().map(|p| map(*p)).collect()
     }
 
+    /// The points back where they were before the augmentation (in their LiDAR frame):
+    /// `p = flip · Rz(−yaw) · p' / scale`, in `f64`. Viewers place them with the cameras.
+    pub fn unapplied(&self, xyz: &[[f32; 3]]) -> Vec<[f32; 3]> {
+        if *self == Self::IDENTITY {
+            return xyz.to_vec();
+        }
+        let r =
+            Rotation3::from_axis_angle(&Vector3::z_axis(), -self.yaw_rad).into_inner() / self.scale;
+        let (sx, sy) = (
+            if self.flip_x { -1.0 } else { 1.0 },
+            if self.flip_y { -1.0 } else { 1.0 },
+        );
+        xyz.iter()
+            .map(|p| {
+                let v = r * Vector3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+                [(sx * v.x) as f32, (sy * v.y) as f32, v.z as f32]
+            })
+            .collect()
+    }
+
     /// The augmentation of one point: flips, then the scaled rotation, in `f64`.
     fn point_map(&self) -> impl Fn([f32; 3]) -> [f32; 3] {
         let r =
@@ -80,6 +100,23 @@ impl Augmentation {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn unapplying_gives_the_points_back() {
+        let a = Augmentation {
+            flip_x: true,
+            flip_y: false,
+            yaw_rad: 2.1,
+            scale: 1.04,
+        };
+        let points = [[12.5f32, -3.25, 1.5], [-40.0, 22.0, -1.75], [0.0, 0.0, 0.0]];
+        for (p, q) in points.iter().zip(a.unapplied(&a.applied(&points))) {
+            for k in 0..3 {
+                assert!((p[k] - q[k]).abs() < 1e-5, "{p:?} → {q:?}");
+            }
+        }
+        assert_eq!(Augmentation::IDENTITY.unapplied(&points), points);
+    }
 
     #[test]
     fn the_augmented_copy_is_the_copy_augmented_in_place() {

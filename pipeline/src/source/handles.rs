@@ -90,9 +90,7 @@ const RAISED_LIMIT: u64 = 1 << 16;
 pub fn raise_open_file_limit() -> Option<u64> {
     use rustix::process::{Resource, getrlimit, setrlimit};
     let limits = getrlimit(Resource::Nofile);
-    let Some(soft) = limits.current else {
-        return None;
-    };
+    let soft = limits.current?;
     let target = limits.maximum.unwrap_or(u64::MAX).min(RAISED_LIMIT);
     if target <= soft {
         return Some(soft);

@@ -232,3 +232,116 @@ fn numpy_checks_an_exported_sample() {
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }
+
+/// The facts `tests/python/check_sample_mcap.py` checks a view file against, taken from
+/// the samples themselves: per frame (once per stamp, as the view writes them) the cloud's
+/// size, the chosen cameras and each pairing's point, camera and pixel; per sample the
+/// dense cloud's size, paired points and source sweeps.
+fn view_facts(
+    samples: &[superflow_pipeline::sample::Sample],
+    ds: &superflow_pipeline::drive::Dataset,
+    config: &superflow_pipeline::sample::SampleConfig,
+) -> serde_json::Value {
+    let mut seen = std::collections::HashSet::new();
+    let mut frames = Vec::new();
+    let mut dense = Vec::new();
+    for sample in samples {
+        let drive = &ds.drives[sample.id.drive as usize];
+        let lidar_frame = drive.lidar.as_ref().unwrap().frame_id.clone();
+        for frame in &sample.frames {
+            if !seen.insert(frame.lidar_stamp) {
+                continue;
+            }
+            frames.push(json!({
+                "stamp": frame.lidar_stamp.nanos(),
+                "points": frame.cloud.xyz.len(),
+                "lidar_frame": lidar_frame,
+                "image_size": [config.image_width, config.image_height],
+                "cameras": frame.images.iter().map(|i| json!({
+                    "topic": i.camera.trim_matches('/').replace('/', "_"),
+                    "frame_id": i.calibration.frame_id,
+                })).collect::<Vec<_>>(),
+                "pairs": frame.cloud.pairings.iter()
+                    .map(|p| [p.point, u32::from(p.camera), u32::from(p.row), u32::from(p.col)])
+                    .collect::<Vec<_>>(),
+            }));
+        }
+        let key = &sample.frames[sample.key_frame];
+        let paired: std::collections::HashSet<u32> =
+            sample.dense.pairings.iter().map(|p| p.point).collect();
+        let mut sources: Vec<u8> = sample.dense.source_sweep.clone();
+        sources.sort_unstable();
+        sources.dedup();
+        dense.push(json!({
+            "stamp": key.lidar_stamp.nanos(),
+            "points": sample.dense.xyz.len(),
+            "paired": paired.len(),
+            "sources": sources,
+        }));
+    }
+    json!({ "frames": frames, "dense": dense })
+}
+
+/// Samples written as MCAP for Foxglove (`superflow-pipeline sample --out-mcap`, and a
+/// whole drive as with `--drive-mcap`) read back by the reference `mcap` reader with
+/// Foxglove's published protobuf classes (`tests/python/check_sample_mcap.py`): the
+/// counts are the samples', and every paired point projects through the written
+/// transforms and calibration (lens model included, images flipped or not) to within
+/// 0.5 px of its pairing's pixel.
+#[test]
+fn foxglove_reads_samples_written_as_mcap() {
+    use superflow_pipeline::sample::view::SampleMcap;
+    use superflow_pipeline::sample::{SampleBuilder, SampleConfig};
+    use superflow_recordings::Dialect;
+    let mut flipped = 0;
+    for (dialect, augment, keyframes) in [
+        (Dialect::Ros2, false, vec![1]),
+        (Dialect::Foxglove, true, vec![3]),
+        (Dialect::Foxglove, true, vec![0, 1, 2, 3, 4, 5]),
+    ] {
+        let drive = superflow_tests::sample_drive(dialect).unwrap();
+        let ds = superflow_tests::sample_dataset(&drive).unwrap();
+        let mut config = SampleConfig::default();
+        config.augment.enabled = augment;
+        let builder = SampleBuilder::new(&ds, config).unwrap();
+        let samples: Vec<_> = keyframes
+            .iter()
+            .map(|&k| builder.build_keyframe(k, 0, k as u64).unwrap())
+            .collect();
+        let dir = std::env::temp_dir().join(format!(
+            "superflow-view-{}-{}-{}",
+            std::process::id(),
+            dialect.name(),
+            keyframes.len()
+        ));
+        std::fs::create_dir_all(&dir).unwrap();
+        let file = dir.join("view.mcap");
+        let mut view = SampleMcap::create(&file, builder.config()).unwrap();
+        for sample in &samples {
+            view.add(sample, &ds.drives[sample.id.drive as usize])
+                .unwrap();
+        }
+        let summary = view.finish().unwrap();
+        assert_eq!(summary.samples, samples.len());
+        // Mirrored images are among them: their calibrations are checked too.
+        flipped += samples
+            .iter()
+            .flat_map(|s| &s.frames)
+            .flat_map(|f| &f.images)
+            .filter(|i| i.flipped)
+            .count();
+        let facts = view_facts(&samples, &ds, builder.config());
+        assert_eq!(summary.frames, facts["frames"].as_array().unwrap().len());
+        let expected = dir.join("expected.json");
+        std::fs::write(&expected, facts.to_string()).unwrap();
+        let text = python(&[
+            "tests/python/check_sample_mcap.py",
+            file.to_str().unwrap(),
+            expected.to_str().unwrap(),
+        ]);
+        assert_checks_passed(&text);
+        eprintln!("{} {keyframes:?}: {text}", dialect.name());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+    assert!(flipped > 0);
+}

@@ -568,3 +568,76 @@ fn class_maps_from_a_sidecar_mcap() {
     }
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// `superflow-pipeline sample --out-mcap` and `--drive-mcap` from the command line: one
+/// sample's file, and the drive's file with a dense cloud per keyframe of the drive and
+/// the frames in time order; `sample` with no output at all is refused by name.
+#[test]
+fn sample_writes_foxglove_files_from_the_command_line() {
+    use std::process::Command;
+    use superflow_tests::{pipeline_binary, workspace_root};
+    let dir = std::env::temp_dir().join(format!("superflow-view-cli-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let (one, all) = (dir.join("one.mcap"), dir.join("drive.mcap"));
+    let drive = "recordings/drives/street_ros2.mcap";
+    let run = |args: &[&str]| {
+        Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-subscriber")))
+            .args(args)
+            .current_dir(workspace_root())
+            .env("RUST_LOG", "warn")
+            .output()
+            .unwrap()
+    };
+    let out = run(&[
+        "sample",
+        "--mcap",
+        drive,
+        "--index",
+        "2",
+        "--out-mcap",
+        one.to_str().unwrap(),
+        "--drive-mcap",
+        all.to_str().unwrap(),
+    ]);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{stdout}{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let keyframes = open(Dialect::Ros2).drives[0]
+        .keyframes(superflow_schemas::time::KEYFRAME_INTERVAL_NANOS)
+        .len();
+    assert!(
+        stdout.contains(&format!("({keyframes} samples,")),
+        "{stdout}"
+    );
+    let topics = |path: &std::path::Path| {
+        let bytes = std::fs::read(path).unwrap();
+        let mut stamps: std::collections::BTreeMap<String, Vec<u64>> = Default::default();
+        for message in mcap::MessageStream::new(&bytes).unwrap() {
+            let message = message.unwrap();
+            stamps
+                .entry(message.channel.topic.clone())
+                .or_default()
+                .push(message.log_time);
+        }
+        stamps
+    };
+    let one = topics(&one);
+    assert_eq!(one["/superflow/dense"].len(), 1);
+    assert_eq!(one["/superflow/cloud"].len(), 3, "t − Δt, t, t + Δt");
+    let all = topics(&all);
+    assert_eq!(all["/superflow/dense"].len(), keyframes);
+    let clouds = &all["/superflow/cloud"];
+    assert!(clouds.windows(2).all(|w| w[0] < w[1]), "{clouds:?}");
+    assert!(clouds.len() >= keyframes, "{clouds:?}");
+    let out = run(&["sample", "--mcap", drive]);
+    assert_eq!(out.status.code(), Some(2));
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("--out") && stderr.contains("--drive-mcap"),
+        "{stderr}"
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}

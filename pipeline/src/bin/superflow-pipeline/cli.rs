@@ -103,7 +103,10 @@ pub enum Command {
         json: bool,
     },
     /// Builds one sample and writes it as `.npy` arrays, `sample.json` and PNGs of each
-    /// chosen image with the projected points coloured by depth and by superpixel.
+    /// chosen image with the projected points coloured by depth and by superpixel
+    /// (`--out`), and/or as an MCAP file that Foxglove opens (`--out-mcap`); or every
+    /// keyframe of its drive as such a file (`--drive-mcap`).
+    #[command(group = clap::ArgGroup::new("outputs").required(true).multiple(true))]
     Sample {
         /// Keyframe number in the plan (drive and time order; `inspect` counts them).
         #[arg(long, default_value_t = 0)]
@@ -111,9 +114,17 @@ pub enum Command {
         /// Epoch of the random draws (cameras, flips, augmentation).
         #[arg(long, default_value_t = 0)]
         epoch: u64,
-        /// Output directory.
-        #[arg(long)]
-        out: PathBuf,
+        /// Output directory of the `.npy` arrays and PNGs.
+        #[arg(long, group = "outputs")]
+        out: Option<PathBuf>,
+        /// The sample as an MCAP file with Foxglove's schemas (clouds, images as the model
+        /// sees them with their calibrations, pairings, transforms).
+        #[arg(long, group = "outputs")]
+        out_mcap: Option<PathBuf>,
+        /// Every keyframe of the drive of `--index`, one sample after the other, as one
+        /// such MCAP file, to scrub through the whole drive.
+        #[arg(long, group = "outputs")]
+        drive_mcap: Option<PathBuf>,
         /// Keep points in their LiDAR frame (no 3D augmentation).
         #[arg(long)]
         no_augment: bool,

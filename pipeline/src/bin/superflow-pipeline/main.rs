@@ -37,8 +37,20 @@ fn run(args: &Args) -> anyhow::Result<()> {
             index,
             epoch,
             out,
+            out_mcap,
+            drive_mcap,
             no_augment,
-        }) => sample::run(args, *index, *epoch, out, *no_augment),
+        }) => sample::run(
+            args,
+            &sample::Request {
+                index: *index,
+                epoch: *epoch,
+                no_augment: *no_augment,
+                out: out.as_deref(),
+                out_mcap: out_mcap.as_deref(),
+                drive_mcap: drive_mcap.as_deref(),
+            },
+        ),
         Some(Command::Batch {
             index,
             batch_size,
