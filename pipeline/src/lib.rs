@@ -31,8 +31,9 @@
 //! Beside them: [`config::PipelineConfig`] (`pipeline.toml`: `[ingest]`, `[sample]`,
 //! `[service]`, `[labels]`, `[[dataset]]`; a setting out of range is a
 //! `superflow_common::InvalidSetting`, the trainer's too), [`inspect`] (what
-//! `superflow-pipeline inspect` reports about a drive) and [`fleet`] (a dataset's groups
-//! and rigs, as `index`, `inspect` and the service report them).
+//! `superflow-pipeline inspect` reports about a drive), [`fleet`] (a dataset's groups
+//! and rigs, as `index`, `inspect` and the service report them) and [`view`] (samples as
+//! MCAP files that Foxglove opens).
 //!
 //! For example, the transform tree interpolates between recorded poses:
 //!
@@ -67,3 +68,4 @@ pub mod sample;
 pub mod source;
 #[cfg(test)]
 mod test_rng;
+pub mod view;

@@ -30,8 +30,8 @@
 //!   stride-2 down-sampling maps and their transposes for up-sampling;
 //! * [`rng`]: the keyed random streams that make a sample a function of
 //!   `(seed, epoch, index)`;
-//! * [`export`]: a sample as `.npy` arrays, `sample.json` and overlay PNGs;
-//! * [`view`]: samples as an MCAP file that Foxglove opens (Foxglove's schemas).
+//! * [`export`]: a sample as `.npy` arrays, `sample.json` and overlay PNGs (and
+//!   `crate::view`: as an MCAP file that Foxglove opens).
 
 pub mod augment;
 pub mod builder;
@@ -55,7 +55,6 @@ mod simd;
 pub mod slic;
 pub mod timing;
 pub mod types;
-pub mod view;
 pub mod voxel;
 
 pub use augment::Augmentation;

@@ -290,8 +290,8 @@ fn view_facts(
 /// 0.5 px of its pairing's pixel.
 #[test]
 fn foxglove_reads_samples_written_as_mcap() {
-    use superflow_pipeline::sample::view::SampleMcap;
     use superflow_pipeline::sample::{SampleBuilder, SampleConfig};
+    use superflow_pipeline::view::SampleMcap;
     use superflow_recordings::Dialect;
     let mut flipped = 0;
     for (dialect, augment, keyframes) in [

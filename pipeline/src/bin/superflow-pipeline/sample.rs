@@ -6,7 +6,7 @@ use anyhow::Context as _;
 use std::path::Path;
 use superflow_pipeline::sample::SampleBuilder;
 use superflow_pipeline::sample::export::write_sample;
-use superflow_pipeline::sample::view::SampleMcap;
+use superflow_pipeline::view::SampleMcap;
 
 /// What `sample` was asked for.
 pub struct Request<'a> {

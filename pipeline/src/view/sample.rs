@@ -21,91 +21,36 @@
 //! the network saw is undone (it is not rigid: a scale and flips), and listed with the
 //! rest of the draws in the file's `superflow.sample.<keyframe>` metadata.
 
-use super::export::{id_colour, ramp};
-use super::recipe::SampleConfig;
-use super::types::{Cloud, Sample, SampleImage};
+use super::cloud::Column;
+use super::writer::{ViewError, ViewWriter, frame_transform};
 use crate::drive::Drive;
+use crate::sample::SampleConfig;
+use crate::sample::export::{id_colour, ramp};
+use crate::sample::{Cloud, Sample, SampleImage};
 use foxglove::messages::{
-    CameraCalibration, Color, CompressedImage, FrameTransform, FrameTransforms, ImageAnnotations,
-    PackedElementField, Point2, PointCloud, PointsAnnotation, Quaternion, Timestamp, Vector3,
-    packed_element_field::NumericType, points_annotation,
+    CameraCalibration, Color, CompressedImage, FrameTransforms, ImageAnnotations, Point2,
+    PointsAnnotation, Timestamp, points_annotation,
 };
-use nalgebra::Isometry3;
-use std::collections::{BTreeMap, HashMap, HashSet};
-use std::fs::File;
-use std::io::BufWriter;
-use std::path::{Path, PathBuf};
+use std::collections::{BTreeMap, HashSet};
+use std::path::Path;
 use superflow_schemas::Stamp;
 use superflow_schemas::sensor::Distortion;
 
 /// Depth at the red end of the pairings' colour ramp, metres.
 const DEPTH_RAMP_METRES: f32 = 50.0;
 
-/// The fields of every cloud written, in order: name, type, byte offset.
-pub const POINT_FIELDS: [(&str, NumericType, u32); 8] = [
-    ("x", NumericType::Float32, 0),
-    ("y", NumericType::Float32, 4),
-    ("z", NumericType::Float32, 8),
-    ("intensity", NumericType::Float32, 12),
+/// The fields of every cloud written beside `x`, `y`, `z`, to colour by.
+pub const POINT_FIELDS: [&str; 5] = [
+    "intensity",
     // 0 = the keyframe's sweep, k = the k-th sweep before it (dense cloud).
-    ("source_sweep", NumericType::Uint8, 16),
+    "source_sweep",
     // 1 when a chosen camera sees the point (it has a pairing).
-    ("paired", NumericType::Uint8, 17),
+    "paired",
     // The superpixel of its first pairing, −1 when unpaired.
-    ("superpixel", NumericType::Int32, 20),
+    "superpixel",
     // Its voxel (cell) of UNet level 0.
-    ("voxel", NumericType::Uint32, 24),
+    "voxel",
 ];
-/// Bytes per point.
-const POINT_STRIDE: u32 = 28;
-
-/// Writing the view failed.
-#[derive(Debug, thiserror::Error)]
-pub enum ViewError {
-    /// The file could not be written.
-    #[error("{path}: {source}")]
-    Io {
-        /// The file.
-        path: PathBuf,
-        /// What failed.
-        #[source]
-        source: std::io::Error,
-    },
-    /// The MCAP writer failed.
-    #[error("{path}: {source}")]
-    Mcap {
-        /// The file.
-        path: PathBuf,
-        /// What failed.
-        #[source]
-        source: mcap::McapError,
-    },
-    /// An image could not be encoded as PNG.
-    #[error("{path}: {camera} at {stamp}: {source}")]
-    Png {
-        /// The file.
-        path: PathBuf,
-        /// The camera.
-        camera: String,
-        /// The frame's stamp.
-        stamp: Stamp,
-        /// What failed.
-        #[source]
-        source: png::EncodingError,
-    },
-    /// A stamp Foxglove's `Timestamp` cannot hold (before 1970 or past 2106).
-    #[error("{path}: stamp {stamp} is out of the range of Foxglove's timestamps")]
-    Stamp {
-        /// The file.
-        path: PathBuf,
-        /// The stamp.
-        stamp: Stamp,
-    },
-    /// A Foxglove message type without a schema (a build of the `foxglove` crate without
-    /// its descriptors).
-    #[error("the Foxglove message type {0} has no schema in this build")]
-    NoSchema(&'static str),
-}
 
 /// What a view file holds once written.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -120,11 +65,9 @@ pub struct ViewSummary {
 
 /// An MCAP file of samples for Foxglove: [`add`](Self::add) each, then
 /// [`finish`](Self::finish).
+#[derive(Debug)]
 pub struct SampleMcap {
-    path: PathBuf,
-    writer: mcap::Writer<BufWriter<File>>,
-    schemas: HashMap<&'static str, u16>,
-    channels: HashMap<String, u16>,
+    out: ViewWriter,
     /// Frames written, by drive and LiDAR stamp: consecutive keyframes of a drive share
     /// sweeps, and a frame is written once.
     frames: HashSet<(u32, Stamp)>,
@@ -133,110 +76,17 @@ pub struct SampleMcap {
     summary: ViewSummary,
 }
 
-impl std::fmt::Debug for SampleMcap {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("SampleMcap")
-            .field("path", &self.path)
-            .field("summary", &self.summary)
-            .finish_non_exhaustive()
-    }
-}
-
 impl SampleMcap {
     /// Creates `path` (replacing a file there) for samples built with `config`.
     pub fn create(path: &Path, config: &SampleConfig) -> Result<Self, ViewError> {
-        let file = File::create(path).map_err(|source| ViewError::Io {
-            path: path.to_path_buf(),
-            source,
-        })?;
-        let writer = mcap::WriteOptions::new()
-            .profile("")
-            .library(format!("superflow-pipeline/{}", env!("CARGO_PKG_VERSION")))
-            .compression(Some(mcap::Compression::Zstd))
-            .create(BufWriter::new(file))
-            .map_err(|source| ViewError::Mcap {
-                path: path.to_path_buf(),
-                source,
-            })?;
+        let library = format!("superflow-pipeline/{}", env!("CARGO_PKG_VERSION"));
         Ok(Self {
-            path: path.to_path_buf(),
-            writer,
-            schemas: HashMap::new(),
-            channels: HashMap::new(),
+            out: ViewWriter::create(path, &library)?,
             frames: HashSet::new(),
             image_size: (config.image_width, config.image_height),
             summary: ViewSummary::default(),
         })
     }
-
-    fn mcap_error(&self, source: mcap::McapError) -> ViewError {
-        ViewError::Mcap {
-            path: self.path.clone(),
-            source,
-        }
-    }
-
-    fn timestamp(&self, stamp: Stamp) -> Result<Timestamp, ViewError> {
-        let (sec, nanosec) = stamp.to_sec_nanosec();
-        u32::try_from(sec)
-            .ok()
-            .and_then(|sec| Timestamp::new_checked(sec, nanosec))
-            .ok_or(ViewError::Stamp {
-                path: self.path.clone(),
-                stamp,
-            })
-    }
-
-    /// The channel of `topic` for message type `T`, declared on first use.
-    fn channel<T: foxglove::Encode>(&mut self, topic: &str) -> Result<u16, ViewError> {
-        if let Some(id) = self.channels.get(topic) {
-            return Ok(*id);
-        }
-        let type_name = std::any::type_name::<T>();
-        let schema_id = match self.schemas.get(type_name) {
-            Some(id) => *id,
-            None => {
-                let schema = T::get_schema().ok_or(ViewError::NoSchema(type_name))?;
-                let id = self
-                    .writer
-                    .add_schema(&schema.name, &schema.encoding, &schema.data)
-                    .map_err(|e| self.mcap_error(e))?;
-                self.schemas.insert(type_name, id);
-                id
-            }
-        };
-        let id = self
-            .writer
-            .add_channel(schema_id, topic, "protobuf", &BTreeMap::new())
-            .map_err(|e| self.mcap_error(e))?;
-        self.channels.insert(topic.to_string(), id);
-        Ok(id)
-    }
-
-    /// Writes `message` on `topic` at `stamp`.
-    fn write<T: foxglove::Encode + prost::Message>(
-        &mut self,
-        topic: &str,
-        stamp: Stamp,
-        message: &T,
-    ) -> Result<(), ViewError> {
-        let channel_id = self.channel::<T>(topic)?;
-        let time = u64::try_from(stamp.nanos()).unwrap_or(0);
-        self.writer
-            .write_to_known_channel(
-                &mcap::records::MessageHeader {
-                    channel_id,
-                    sequence: 0,
-                    log_time: time,
-                    publish_time: time,
-                },
-                &message.encode_to_vec(),
-            )
-            .map_err(|e| self.mcap_error(e))?;
-        self.summary.messages += 1;
-        Ok(())
-    }
-
     /// Adds `sample`, built from `drive`: its frames not written before, its dense cloud
     /// and its draws as metadata.
     pub fn add(&mut self, sample: &Sample, drive: &Drive) -> Result<(), ViewError> {
@@ -251,7 +101,7 @@ impl SampleMcap {
             }
             self.summary.frames += 1;
             let stamp = frame.lidar_stamp;
-            let ts = self.timestamp(stamp)?;
+            let ts = self.out.timestamp(stamp)?;
             transforms.clear();
             if let Some(map) = &drive.map_frame {
                 match drive.tf.lookup(map, lidar_frame, stamp) {
@@ -271,23 +121,25 @@ impl SampleMcap {
                     &image.camera_from_lidar.inverse(),
                 ));
             }
-            self.write(
+            self.out.write(
                 "/tf",
                 stamp,
                 &FrameTransforms {
                     transforms: transforms.clone(),
                 },
             )?;
-            let cloud = point_cloud(ts, lidar_frame, &frame.cloud);
-            self.write("/superflow/cloud", stamp, &cloud)?;
+            self.write_cloud("/superflow/cloud", stamp, lidar_frame, &frame.cloud)?;
             for (slot, image) in frame.images.iter().enumerate() {
                 self.write_image(stamp, ts, slot, image, &frame.cloud)?;
             }
         }
         let key = &sample.frames[sample.key_frame];
-        let ts = self.timestamp(key.lidar_stamp)?;
-        let dense = point_cloud(ts, lidar_frame, &sample.dense);
-        self.write("/superflow/dense", key.lidar_stamp, &dense)?;
+        self.write_cloud(
+            "/superflow/dense",
+            key.lidar_stamp,
+            lidar_frame,
+            &sample.dense,
+        )?;
         let draws = serde_json::json!({
             "drive": sample.id.drive,
             "keyframe": sample.id.keyframe,
@@ -304,12 +156,10 @@ impl SampleMcap {
             })).collect::<Vec<_>>(),
             "dense_augmentation": sample.dense.augmentation,
         });
-        self.writer
-            .write_metadata(&mcap::records::Metadata {
-                name: format!("superflow.sample.{}", sample.id.keyframe),
-                metadata: BTreeMap::from([("draws".to_string(), draws.to_string())]),
-            })
-            .map_err(|e| self.mcap_error(e))?;
+        self.out.metadata(
+            &format!("superflow.sample.{}", sample.id.keyframe),
+            BTreeMap::from([("draws".to_string(), draws.to_string())]),
+        )?;
         self.summary.samples += 1;
         Ok(())
     }
@@ -327,7 +177,7 @@ impl SampleMcap {
         let topic = |what: &str| format!("/superflow/{}/{what}", topic_name(&image.camera));
         let frame_id = image.calibration.frame_id.clone();
         let png = self.png(stamp, image, width, height, &image.rgb)?;
-        self.write(
+        self.out.write(
             &topic("image"),
             stamp,
             &CompressedImage {
@@ -337,7 +187,7 @@ impl SampleMcap {
                 format: "png".into(),
             },
         )?;
-        self.write(
+        self.out.write(
             &topic("calibration"),
             stamp,
             &resized_calibration(ts, image, width, height),
@@ -348,7 +198,7 @@ impl SampleMcap {
             .flat_map(|id| id_colour(*id))
             .collect();
         let png = self.png(stamp, image, width, height, &colours)?;
-        self.write(
+        self.out.write(
             &topic("superpixels"),
             stamp,
             &CompressedImage {
@@ -382,7 +232,7 @@ impl SampleMcap {
             thickness: 2.0,
             metadata: Vec::new(),
         };
-        self.write(
+        self.out.write(
             &topic("pairings"),
             stamp,
             &ImageAnnotations {
@@ -413,7 +263,7 @@ impl SampleMcap {
             .write_header()
             .and_then(|mut w| w.write_image_data(rgb).and_then(|()| w.finish()))
             .map_err(|source| ViewError::Png {
-                path: self.path.clone(),
+                path: self.out.path().to_path_buf(),
                 camera: image.camera.clone(),
                 stamp,
                 source,
@@ -421,9 +271,42 @@ impl SampleMcap {
         Ok(out)
     }
 
+    /// `cloud` on `topic`: its points back where they were recorded (the augmentation
+    /// undone), with [`POINT_FIELDS`].
+    fn write_cloud(
+        &mut self,
+        topic: &str,
+        stamp: Stamp,
+        frame_id: &str,
+        cloud: &Cloud,
+    ) -> Result<(), ViewError> {
+        let xyz = cloud.augmentation.unapplied(&cloud.xyz);
+        let mut superpixel = vec![-1i32; xyz.len()];
+        for pair in cloud.pairings.iter().rev() {
+            if let Some(s) = superpixel.get_mut(pair.point as usize) {
+                *s = i32::try_from(pair.superpixel).unwrap_or(i32::MAX);
+            }
+        }
+        let paired: Vec<u8> = superpixel.iter().map(|&s| u8::from(s >= 0)).collect();
+        let [intensity, source_sweep, paired_name, superpixel_name, voxel] = POINT_FIELDS;
+        self.out.write_cloud(
+            topic,
+            stamp,
+            frame_id,
+            &xyz,
+            &[
+                Column::F32(intensity, &cloud.intensity),
+                Column::U8(source_sweep, &cloud.source_sweep),
+                Column::U8(paired_name, &paired),
+                Column::I32(superpixel_name, &superpixel),
+                Column::U32(voxel, &cloud.voxels.point_to_voxel),
+            ],
+        )
+    }
+
     /// Writes the summary and index and closes the file.
     pub fn finish(mut self) -> Result<ViewSummary, ViewError> {
-        self.writer.finish().map_err(|e| self.mcap_error(e))?;
+        self.summary.messages = self.out.finish()?;
         Ok(self.summary)
     }
 }
@@ -449,32 +332,6 @@ fn colour([r, g, b]: [u8; 3]) -> Color {
         g: f64::from(g) / 255.0,
         b: f64::from(b) / 255.0,
         a: 1.0,
-    }
-}
-
-fn frame_transform(
-    ts: Timestamp,
-    parent: &str,
-    child: &str,
-    parent_from_child: &Isometry3<f64>,
-) -> FrameTransform {
-    let t = parent_from_child.translation.vector;
-    let q = parent_from_child.rotation.quaternion();
-    FrameTransform {
-        timestamp: Some(ts),
-        parent_frame_id: parent.to_string(),
-        child_frame_id: child.to_string(),
-        translation: Some(Vector3 {
-            x: t.x,
-            y: t.y,
-            z: t.z,
-        }),
-        rotation: Some(Quaternion {
-            x: q.i,
-            y: q.j,
-            z: q.k,
-            w: q.w,
-        }),
     }
 }
 
@@ -518,52 +375,5 @@ pub fn resized_calibration(
         k: vec![fx, skew, cx, 0.0, fy, cy, 0.0, 0.0, 1.0],
         r: vec![1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0],
         p: vec![fx, skew, cx, 0.0, 0.0, fy, cy, 0.0, 0.0, 0.0, 1.0, 0.0],
-    }
-}
-
-/// `cloud` as a Foxglove point cloud in `frame_id`, its points back where they were
-/// recorded (the augmentation undone).
-fn point_cloud(ts: Timestamp, frame_id: &str, cloud: &Cloud) -> PointCloud {
-    let xyz = cloud.augmentation.unapplied(&cloud.xyz);
-    let n = xyz.len();
-    let mut superpixel = vec![-1i32; n];
-    for pair in cloud.pairings.iter().rev() {
-        if let Some(s) = superpixel.get_mut(pair.point as usize) {
-            *s = i32::try_from(pair.superpixel).unwrap_or(i32::MAX);
-        }
-    }
-    let mut data = Vec::with_capacity(n * POINT_STRIDE as usize);
-    for (i, p) in xyz.iter().enumerate() {
-        for c in p {
-            data.extend_from_slice(&c.to_le_bytes());
-        }
-        let intensity = cloud.intensity.get(i).copied().unwrap_or(0.0);
-        data.extend_from_slice(&intensity.to_le_bytes());
-        data.push(cloud.source_sweep.get(i).copied().unwrap_or(0));
-        data.push(u8::from(superpixel[i] >= 0));
-        data.extend_from_slice(&[0, 0]);
-        data.extend_from_slice(&superpixel[i].to_le_bytes());
-        let voxel = cloud
-            .voxels
-            .point_to_voxel
-            .get(i)
-            .copied()
-            .unwrap_or(u32::MAX);
-        data.extend_from_slice(&voxel.to_le_bytes());
-    }
-    PointCloud {
-        timestamp: Some(ts),
-        frame_id: frame_id.to_string(),
-        pose: None,
-        point_stride: POINT_STRIDE,
-        fields: POINT_FIELDS
-            .iter()
-            .map(|(name, ty, offset)| PackedElementField {
-                name: (*name).to_string(),
-                offset: *offset,
-                r#type: *ty as i32,
-            })
-            .collect(),
-        data: data.into(),
     }
 }
