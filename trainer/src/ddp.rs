@@ -27,7 +27,7 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 /// Exit code of a job aborted by the collective watchdog.
-pub const ABORT_CODE: i32 = 3;
+pub const ABORT_CODE: i32 = superflow_common::exit::PEER_FAILED as i32;
 
 /// The MPI job as this rank sees it.
 pub struct Ddp {

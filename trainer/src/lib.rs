@@ -62,6 +62,7 @@ pub mod config;
 pub mod ddp;
 pub mod device;
 pub mod error;
+pub mod features;
 pub mod init;
 pub mod inputs;
 pub mod loss;
@@ -73,6 +74,8 @@ pub mod rows;
 pub mod run;
 pub mod stream;
 pub mod subscribe;
+#[cfg(feature = "probe")]
+pub mod sweep_input;
 pub mod sync;
 pub mod train;
 pub mod unet;

@@ -671,3 +671,137 @@ fn check_agrees_on_wgpu_with_the_cpu_on_a_vulkan_device() {
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// `superflow-trainer features` of an untrained backbone on the sample drives: one cloud
+/// per keyframe sweep (the drive's own sweep sizes), coloured by principal components and
+/// by similarity to the query, which is 1 at the point nearest the query; the bird's-eye
+/// PNG beside it.
+#[test]
+fn features_of_a_backbone_open_as_foxglove_point_clouds() {
+    use prost::Message as _;
+    use superflow_pipeline::drive::{Dataset, IngestConfig};
+    let out = temp_dir("features");
+    std::fs::create_dir_all(&out).unwrap();
+    let (file, bev) = (out.join("features.mcap"), out.join("features.png"));
+    let (ok, stdout, err) = finish(
+        spawn(
+            Command::new(workspace_binary(
+                env!("CARGO_BIN_EXE_superflow-subscriber"),
+                "superflow-trainer",
+            ))
+            .args(["--unet", "tiny", "features", "--mcap", "recordings/drives"])
+            .args(["--checkpoint", "random", "--query", "12.5,-3,0.5", "--out"])
+            .arg(&file)
+            .arg("--bev")
+            .arg(&bev)
+            .current_dir(workspace_root())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped()),
+        ),
+        LIMIT,
+    );
+    assert!(ok, "{err}");
+    // The keyframe sweeps of each drive, read here on their own: one per 0.5 s.
+    let dataset = Dataset::open(
+        &[workspace_root().join("recordings/drives")],
+        &IngestConfig::default(),
+    )
+    .unwrap();
+    let mut sizes = Vec::new();
+    for drive in &dataset.drives {
+        let lidar = drive.lidar.as_ref().unwrap();
+        let mut cache = superflow_pipeline::source::ChunkCache::new(4);
+        let mut last = None::<i64>;
+        for frame in &lidar.sweeps {
+            let t = frame.stamp.nanos();
+            if last.is_some_and(|l| t - l < superflow_schemas::time::KEYFRAME_INTERVAL_NANOS) {
+                continue;
+            }
+            last = Some(t);
+            sizes.push(drive.read_sweep(frame, &mut cache).unwrap().cloud.xyz.len());
+        }
+    }
+    assert!(
+        stdout.contains(&format!(
+            "{} sweeps, {} points",
+            sizes.len(),
+            sizes.iter().sum::<usize>()
+        )),
+        "{stdout}"
+    );
+    let bytes = std::fs::read(&file).unwrap();
+    let mut clouds = Vec::new();
+    let mut similarity_clouds = 0;
+    for message in mcap::MessageStream::new(&bytes).unwrap() {
+        let message = message.unwrap();
+        let schema = message.channel.schema.as_ref().unwrap();
+        match message.channel.topic.as_str() {
+            "/superflow/features" => {
+                assert_eq!(schema.name, "foxglove.PointCloud");
+                clouds.push(foxglove::messages::PointCloud::decode(&message.data[..]).unwrap());
+            }
+            "/superflow/similarity" => similarity_clouds += 1,
+            "/tf" => assert_eq!(schema.name, "foxglove.FrameTransforms"),
+            other => panic!("unexpected topic {other}"),
+        }
+    }
+    let points: Vec<usize> = clouds
+        .iter()
+        .map(|c| c.data.len() / c.point_stride as usize)
+        .collect();
+    assert_eq!(points, sizes);
+    assert_eq!(similarity_clouds, sizes.len());
+    let field = |c: &foxglove::messages::PointCloud, name: &str| -> Vec<f32> {
+        let f = c.fields.iter().find(|f| f.name == name).unwrap();
+        c.data
+            .chunks_exact(c.point_stride as usize)
+            .map(|p| f32::from_le_bytes(p[f.offset as usize..][..4].try_into().unwrap()))
+            .collect()
+    };
+    let names: Vec<&str> = clouds[0].fields.iter().map(|f| f.name.as_str()).collect();
+    assert_eq!(
+        names,
+        [
+            "x",
+            "y",
+            "z",
+            "red",
+            "green",
+            "blue",
+            "alpha",
+            "pc1",
+            "pc2",
+            "pc3",
+            "similarity"
+        ]
+    );
+    // The point of the first sweep nearest the query is its own query: similarity 1.
+    let (x, y, z) = (
+        field(&clouds[0], "x"),
+        field(&clouds[0], "y"),
+        field(&clouds[0], "z"),
+    );
+    let nearest = (0..x.len())
+        .min_by(|&a, &b| {
+            let d = |i: usize| (x[i] - 12.5).powi(2) + (y[i] + 3.0).powi(2) + (z[i] - 0.5).powi(2);
+            d(a).total_cmp(&d(b))
+        })
+        .unwrap();
+    let sim = field(&clouds[0], "similarity");
+    assert!((sim[nearest] - 1.0).abs() < 1e-5, "{}", sim[nearest]);
+    for c in &clouds {
+        assert!(
+            field(c, "similarity")
+                .iter()
+                .all(|s| (-1.0001..=1.0001).contains(s))
+        );
+    }
+    assert!(
+        stdout.contains(&format!("query: point {nearest} of the first sweep")),
+        "{stdout}"
+    );
+    let png = std::fs::read(&bev).unwrap();
+    assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n");
+    assert_eq!(u32::from_be_bytes(png[16..20].try_into().unwrap()), 800);
+    let _ = std::fs::remove_dir_all(&out);
+}

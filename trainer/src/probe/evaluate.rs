@@ -11,7 +11,8 @@ use crate::probe::linear::{
     ProbeTraining, SplitCounts,
 };
 use crate::rows::RowOps;
-use crate::unet::{LevelMaps, SparseUNet};
+use crate::sweep_input::SweepInput;
+use crate::unet::SparseUNet;
 use crate::vit::VitConfig;
 use burn::module::Module;
 use burn::nn::loss::CrossEntropyLossConfig;
@@ -24,8 +25,6 @@ use superflow_pipeline::drive::Dataset;
 use superflow_pipeline::drive::labels::DriveLabels;
 use superflow_pipeline::sample::SampleConfig;
 use superflow_pipeline::sample::deskew::deskew;
-use superflow_pipeline::sample::kernel_maps::{Level, build_levels};
-use superflow_pipeline::sample::voxel::voxelize;
 use superflow_pipeline::source::ChunkCache;
 use superflow_schemas::sensor::PointCloud;
 
@@ -36,12 +35,8 @@ pub struct ProbeCloud {
     pub time: KeyframeTime,
     /// Sweep index in its drive's LiDAR stream.
     pub sweep: usize,
-    /// `[x, y, z, intensity]` of each voxel's representative point (the pretraining input).
-    pub voxel_features: Vec<[f32; 4]>,
-    /// Kernel maps of the UNet's levels, finest first.
-    pub levels: Vec<Level>,
-    /// The voxel of each point.
-    pub point_to_voxel: Vec<u32>,
+    /// Its voxels and maps.
+    pub input: SweepInput,
     /// The training class of each point (the ignore index where unlabelled).
     pub labels: Vec<u16>,
 }
@@ -136,7 +131,7 @@ pub fn labelled_clouds(
     Ok(data)
 }
 
-/// Voxels and maps of one sweep.
+/// One labelled sweep, its voxels and maps made.
 fn prepare(
     cloud: PointCloud,
     labels: Vec<u16>,
@@ -144,60 +139,11 @@ fn prepare(
     time: KeyframeTime,
     sweep: usize,
 ) -> ProbeCloud {
-    let voxels = voxelize(&cloud.xyz, &recipe.voxel);
-    let voxel_features = voxels
-        .representative
-        .iter()
-        .map(|&i| {
-            let [x, y, z] = cloud.xyz[i as usize];
-            [x, y, z, cloud.intensity[i as usize]]
-        })
-        .collect();
-    let levels = build_levels(&voxels.coords, recipe.unet_levels as usize);
     ProbeCloud {
         time,
         sweep,
-        voxel_features,
-        levels,
-        point_to_voxel: voxels.point_to_voxel,
+        input: SweepInput::prepare(&cloud.xyz, &cloud.intensity, recipe),
         labels,
-    }
-}
-
-impl ProbeCloud {
-    /// The backbone's inputs on `device`: voxel features and level maps.
-    fn inputs(&self, device: &Device) -> (Tensor<2>, Vec<LevelMaps>) {
-        let v = self.voxel_features.len();
-        let features = Tensor::from_data(
-            TensorData::new(self.voxel_features.concat(), [v, 4]),
-            device,
-        );
-        let levels = self
-            .levels
-            .iter()
-            .map(|level| {
-                LevelMaps::from_host(
-                    level.coords.len(),
-                    bytemuck::cast_slice(&level.neighbours.pairs),
-                    &level.neighbours.starts,
-                    level
-                        .down
-                        .as_ref()
-                        .map(|d| (bytemuck::cast_slice(&d.pairs), &d.starts[..])),
-                    device,
-                )
-            })
-            .collect();
-        (features, levels)
-    }
-
-    /// `unet`'s backbone features of every point (its voxel's), on `device`.
-    fn point_features(&self, unet: &SparseUNet, device: &Device) -> Tensor<2> {
-        let (features, levels) = self.inputs(device);
-        let index: Vec<i64> = self.point_to_voxel.iter().map(|&i| i64::from(i)).collect();
-        let n = index.len();
-        let index = Tensor::from_data(TensorData::new(index, [n]), device);
-        RowOps::of(device).gather(unet.backbone(features, &levels), &index)
     }
 }
 
@@ -278,7 +224,7 @@ pub fn probe(
         let (unet, classifier) = finetune(unet, clouds, &train, settings, device, &mut points)?;
         let (unet, classifier) = (unet.valid(), classifier.valid());
         for &i in &split.val {
-            let features = clouds[i].point_features(&unet, &inner);
+            let features = clouds[i].input.point_features(&unet, &inner);
             let logits = RowOps::of(&inner).linear(&classifier, features);
             let predicted = classes_of(logits.argmax(1));
             matrix.add(&clouds[i].labels, &predicted)?;
@@ -287,7 +233,7 @@ pub fn probe(
         let frozen = unet.valid();
         let dim = frozen.backbone_dim();
         let features_of = |c: &ProbeCloud| -> Vec<f32> {
-            let f = c.point_features(&frozen, &inner).into_data();
+            let f = c.input.point_features(&frozen, &inner).into_data();
             f.convert::<f32>().try_into_vec::<f32>().unwrap_or_default()
         };
         let (mut x, mut y) = (Vec::new(), Vec::new());
@@ -390,10 +336,10 @@ fn finetune(
             if kept.is_empty() {
                 continue;
             }
-            let (features, levels) = cloud.inputs(&device);
+            let (features, levels) = cloud.input.inputs(&device);
             let voxel: Vec<i64> = kept
                 .iter()
-                .map(|&p| i64::from(cloud.point_to_voxel[p]))
+                .map(|&p| i64::from(cloud.input.point_to_voxel[p]))
                 .collect();
             let target: Vec<i64> = kept.iter().map(|&p| i64::from(cloud.labels[p])).collect();
             let n = kept.len();

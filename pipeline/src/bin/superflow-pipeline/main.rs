@@ -67,9 +67,6 @@ fn main() -> std::process::ExitCode {
     superflow_pipeline::source::raise_open_file_limit();
     match run(&Args::parse()) {
         Ok(()) => std::process::ExitCode::SUCCESS,
-        Err(err) => {
-            eprintln!("superflow-pipeline: {err:#}");
-            std::process::ExitCode::from(2)
-        }
+        Err(err) => superflow_common::exit::failed("superflow-pipeline", err.as_ref()),
     }
 }

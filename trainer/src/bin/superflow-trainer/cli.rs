@@ -104,6 +104,53 @@ pub enum Sub {
     /// the frozen backbone's features (or `--finetune`: the whole network), mIoU and
     /// per-class IoU on the validation sweeps.
     Probe(ProbeArgs),
+    /// Writes a backbone's per-point features over the keyframe sweeps of DRIVES as an
+    /// MCAP file that Foxglove opens: each sweep's points coloured by the features' top
+    /// three principal components (fitted once over every sweep), and with --query, by
+    /// each point's cosine similarity to the point nearest the query.
+    Features(FeaturesArgs),
+}
+
+/// `superflow-trainer features`.
+#[derive(Debug, clap::Args)]
+pub struct FeaturesArgs {
+    /// Drives: MCAP files or directories of them.
+    #[arg(long, num_args = 1.., required = true)]
+    pub mcap: Vec<PathBuf>,
+    /// The backbone: a run's checkpoint directory (its newest checkpoint), one `step-N`
+    /// directory, or `random` (an untrained network of --unet/--config).
+    #[arg(long)]
+    pub checkpoint: String,
+    /// The MCAP file to write.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// A point `x,y,z` (metres, in the LiDAR frame of the first sweep): every point's
+    /// similarity to the feature of the point nearest it, as a heat colour.
+    #[arg(long, value_parser = parse_point, allow_hyphen_values = true)]
+    pub query: Option<[f32; 3]>,
+    /// Also a bird's-eye PNG of the first sweep in its principal-component colours
+    /// (80 m across, the LiDAR at the centre, forward up).
+    #[arg(long)]
+    pub bev: Option<PathBuf>,
+    /// The pipeline's configuration (channels, de-skew, voxel grid) [default: the
+    /// pipeline's defaults].
+    #[arg(long)]
+    pub pipeline_config: Option<PathBuf>,
+    /// One sweep per this many seconds per drive.
+    #[arg(long, default_value_t = superflow_schemas::time::KEYFRAME_INTERVAL_SECS)]
+    pub keyframe_interval_secs: f64,
+}
+
+/// `x,y,z` as three finite numbers.
+fn parse_point(s: &str) -> Result<[f32; 3], String> {
+    let values: Vec<f32> = s
+        .split(',')
+        .map(|v| v.trim().parse::<f32>().map_err(|e| format!("`{v}`: {e}")))
+        .collect::<Result<_, _>>()?;
+    match values[..] {
+        [x, y, z] if values.iter().all(|v| v.is_finite()) => Ok([x, y, z]),
+        _ => Err(format!("`{s}`: expected three finite numbers x,y,z")),
+    }
 }
 
 /// `superflow-trainer probe`.

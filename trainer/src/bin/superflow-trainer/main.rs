@@ -1,6 +1,6 @@
 //! `superflow-trainer`: subscribes to a run's batches and trains the 3D network with the
 //! SuperFlow losses (burn); `check` compares backends on one batch, `probe` scores a
-//! backbone. The training itself lives in the library (`superflow_trainer::run`); this
+//! backbone, `features` shows what it learned. The training itself lives in the library (`superflow_trainer::run`); this
 //! file parses, sets up logging, dispatches and turns the outcome into an exit code.
 
 mod check;
@@ -24,9 +24,11 @@ fn main() -> std::process::ExitCode {
         Some(Sub::Check(c)) => check::check(&args, c),
         #[cfg(feature = "probe")]
         Some(Sub::Probe(p)) => probe::probe(&args, p),
+        #[cfg(feature = "probe")]
+        Some(Sub::Features(f)) => probe::features(&args, f),
         #[cfg(not(feature = "probe"))]
-        Some(Sub::Probe(_)) => Err(anyhow::anyhow!(
-            "probe is not compiled in: build superflow-trainer with its `probe` feature (on by default)"
+        Some(Sub::Probe(_) | Sub::Features(_)) => Err(anyhow::anyhow!(
+            "probe and features are not compiled in: build superflow-trainer with its `probe` feature (on by default)"
         )),
         None => args
             .config()
@@ -36,9 +38,6 @@ fn main() -> std::process::ExitCode {
         Ok(None) => std::process::ExitCode::SUCCESS,
         // Stopped by a signal after checkpointing: not done, so not success.
         Ok(Some(code)) => std::process::ExitCode::from(code as u8),
-        Err(err) => {
-            eprintln!("superflow-trainer: {err:#}");
-            std::process::ExitCode::from(1)
-        }
+        Err(err) => superflow_common::exit::failed("superflow-trainer", err.as_ref()),
     }
 }

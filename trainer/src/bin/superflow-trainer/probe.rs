@@ -1,6 +1,7 @@
-//! `superflow-trainer probe`: scores a 3D backbone on labelled drives.
+//! `superflow-trainer probe`: scores a 3D backbone on labelled drives; `features`:
+//! writes what it learned for Foxglove.
 
-use crate::cli::{Args, ProbeArgs};
+use crate::cli::{Args, FeaturesArgs, ProbeArgs};
 use anyhow::Context as _;
 use superflow_trainer::device;
 use superflow_trainer::probe as evaluate;
@@ -77,6 +78,48 @@ pub fn probe(args: &Args, p: &ProbeArgs) -> anyhow::Result<Option<i32>> {
         for (name, iou) in &report.per_class {
             println!("  {name:<24} {:6.2} %", iou * 100.0);
         }
+    }
+    Ok(None)
+}
+
+/// `superflow-trainer features`.
+pub fn features(args: &Args, f: &FeaturesArgs) -> anyhow::Result<Option<i32>> {
+    use superflow_trainer::features::{FeatureSettings, write_features};
+    let pipeline = match &f.pipeline_config {
+        Some(path) => superflow_pipeline::config::PipelineConfig::load(path)?,
+        None => superflow_pipeline::config::PipelineConfig::default(),
+    };
+    let device = device::select(args.backend, args.device_index)?;
+    let (unet, what) = evaluate::load_backbone(&f.checkpoint, &args.config()?, &device)?;
+    tracing::info!(backbone = %what, "features");
+    let dataset = superflow_pipeline::drive::Dataset::open(&f.mcap, &pipeline.ingest)
+        .context("opening the drives")?;
+    let settings = FeatureSettings {
+        out: f.out.clone(),
+        query: f.query,
+        interval_ns: (f.keyframe_interval_secs * 1e9) as i64,
+        bev: f.bev.clone(),
+        backbone: what.clone(),
+    };
+    let report = write_features(&dataset, &pipeline, &unet, &device, &settings);
+    device::settle(&device);
+    let report = report?;
+    println!("backbone: {what}");
+    println!(
+        "wrote {}: {} sweeps, {} points, features of width {}; the 3 components explain {:.1} %, {:.1} %, {:.1} % of their variance",
+        f.out.display(),
+        report.sweeps,
+        report.points,
+        report.dim,
+        report.explained[0] * 100.0,
+        report.explained[1] * 100.0,
+        report.explained[2] * 100.0,
+    );
+    if let Some((point, distance)) = report.query_point {
+        println!("query: point {point} of the first sweep, {distance:.2} m from --query");
+    }
+    if let Some(bev) = &f.bev {
+        println!("wrote {}", bev.display());
     }
     Ok(None)
 }
