@@ -674,8 +674,9 @@ fn check_agrees_on_wgpu_with_the_cpu_on_a_vulkan_device() {
 
 /// `superflow-trainer features` of an untrained backbone on the sample drives: one cloud
 /// per keyframe sweep (the drive's own sweep sizes), coloured by principal components and
-/// by similarity to the query, which is 1 at the point nearest the query; the bird's-eye
-/// PNG beside it.
+/// by similarity to the query, which is 1 at the point nearest the query; every message
+/// decoded by the reference reader with Foxglove's published classes; the bird's-eye PNG
+/// beside it.
 #[test]
 fn features_of_a_backbone_open_as_foxglove_point_clouds() {
     use prost::Message as _;
@@ -800,6 +801,20 @@ fn features_of_a_backbone_open_as_foxglove_point_clouds() {
         stdout.contains(&format!("query: point {nearest} of the first sweep")),
         "{stdout}"
     );
+    // The reference reader with Foxglove's published classes decodes every message.
+    let python = Command::new("python3")
+        .args(["tests/python/check_sample_mcap.py"])
+        .arg(&file)
+        .current_dir(workspace_root())
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&python.stdout);
+    assert!(
+        python.status.success(),
+        "{text}{}",
+        String::from_utf8_lossy(&python.stderr)
+    );
+    assert!(text.trim_end().ends_with(" 0 failed"), "{text}");
     let png = std::fs::read(&bev).unwrap();
     assert_eq!(&png[..8], b"\x89PNG\r\n\x1a\n");
     assert_eq!(u32::from_be_bytes(png[16..20].try_into().unwrap()), 800);
