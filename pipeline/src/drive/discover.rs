@@ -53,12 +53,12 @@ pub struct IngestConfig {
 
 impl IngestConfig {
     /// The index cache [`index_cache`](Self::index_cache) names, `None` when off.
-    pub fn index_cache(&self) -> Option<super::IndexCache> {
+    pub fn index_cache(&self) -> Option<super::index_cache::IndexCache> {
         let access = self.index_cache_access();
         match &self.index_cache {
             Some(dir) if dir.as_os_str() == "off" => None,
-            Some(dir) => Some(super::IndexCache::with_access(dir, access)),
-            None => super::IndexCache::user_default(access),
+            Some(dir) => Some(super::index_cache::IndexCache::with_access(dir, access)),
+            None => super::index_cache::IndexCache::user_default(access),
         }
     }
 

@@ -16,8 +16,12 @@
 //! how many batches an epoch of its stream has and how many epochs the run serves, so it
 //! knows which batch ends an epoch and which ends the stream.
 
+use super::config::{Mode, ServiceConfig};
+use super::cursors::Cursors;
+use super::error::ServiceError;
+use super::metrics::Metrics;
 use super::plan_id::PlanId;
-use super::{Cursors, Metrics, Mode, Schedule, ServiceConfig, ServiceError};
+use super::schedule::Schedule;
 use iceoryx2::prelude::*;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;

@@ -2,8 +2,10 @@
 //! with the dead-subscriber backpressure handler), the ready event's notifier, and
 //! publishing one prepared batch in place into a loaned shared-memory slice.
 
+use super::config::ServiceConfig;
+use super::error::ServiceError;
+use super::metrics::Metrics;
 use super::producer::Prepared;
-use super::{Metrics, ServiceConfig, ServiceError};
 use crate::batch::{BatchPlan, BatchShape};
 use iceoryx2::node::NodeView as _;
 use iceoryx2::port::{BackpressureAction, BackpressureInfo};

@@ -2,7 +2,10 @@
 //! waiting in the channel), stream by stream in turn, each from its stream's cursor,
 //! the samples of a batch in parallel (rayon).
 
-use super::{Cursors, MAX_LEAD_STEPS, Metrics, Schedule, ServiceConfig};
+use super::config::ServiceConfig;
+use super::cursors::{Cursors, MAX_LEAD_STEPS};
+use super::metrics::Metrics;
+use super::schedule::Schedule;
 use crate::sample::{Sample, SampleBuilder, SampleError};
 use rayon::prelude::*;
 use std::collections::{HashMap, HashSet};
@@ -128,7 +131,13 @@ impl Producer<'_> {
     }
 
     /// The samples of one batch; a sample that fails is counted, logged and left out.
-    fn build(&self, slots: &[super::Slot], stream: usize, epoch: u64, step: u64) -> Vec<Sample> {
+    fn build(
+        &self,
+        slots: &[super::schedule::Slot],
+        stream: usize,
+        epoch: u64,
+        step: u64,
+    ) -> Vec<Sample> {
         let span = tracing::debug_span!("build batch", stream, epoch, step);
         let _entered = span.enter();
         let built: Vec<Result<Sample, SampleError>> = slots

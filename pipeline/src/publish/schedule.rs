@@ -186,7 +186,7 @@ impl Schedule {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::publish::ServiceConfig;
+    use crate::publish::config::ServiceConfig;
 
     #[test]
     fn ranks_get_disjoint_covering_shares_in_short_last_batches() {

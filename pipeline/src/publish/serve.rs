@@ -2,14 +2,16 @@
 //! producer thread, and publishes what it builds until the epochs are done and the
 //! subscribers gone, or until `stop`.
 
+use super::config::{Mode, ServiceConfig};
 use super::control::{ControlAnswers, ResumeContext, ScheduleAnswers};
+use super::cursors::{Cursors, MAX_LEAD_STEPS};
+use super::error::ServiceError;
+use super::metrics::Metrics;
 use super::metrics::log_counters;
 use super::plan_id::PlanId;
 use super::ports::{Stamp, StreamPorts};
 use super::producer::{Prepared, Producer};
-use super::{
-    Cursors, MAX_LEAD_STEPS, Metrics, Mode, ResumeAt, Schedule, ServiceConfig, ServiceError,
-};
+use super::schedule::Schedule;
 use crate::batch::BatchShape;
 use crate::sample::SampleBuilder;
 use iceoryx2::prelude::*;
@@ -18,6 +20,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::mpsc::{Receiver, RecvTimeoutError, sync_channel};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
+use superflow_schemas::service::ResumeAt;
 use superflow_schemas::service::{self as names, ServiceSetupError};
 
 /// Runs the service until the configured epochs are published and every subscriber has

@@ -14,7 +14,7 @@
 //! image would give nearly — not exactly — the mirrored segmentation (SLIC is not
 //! mirror-symmetric); unflipped images get exactly the labels SLIC gives.
 
-use super::SampleConfig;
+use super::recipe::SampleConfig;
 use super::slic::slic;
 use crate::decode::foxglove::{CompressedImage, Timestamp, decode};
 use crate::decode::image::Target;

@@ -1,8 +1,15 @@
 //! SLIC's centre update: every centre moves to the mean position and colour of its
 //! pixels.
 
-use super::Centre;
 use super::lab::Lab;
+
+/// A cluster centre: position (row, column) and mean colour (CIELAB).
+#[derive(Debug, Clone, Copy)]
+pub(super) struct Centre {
+    pub(super) y: f32,
+    pub(super) x: f32,
+    pub(super) lab: [f32; 3],
+}
 
 /// Rows summed side by side: their runs are independent, so interleaving them keeps
 /// several additions in flight where one row alone waits on each.

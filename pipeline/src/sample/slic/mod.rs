@@ -49,7 +49,7 @@ mod tiles;
 
 #[cfg(target_arch = "x86_64")]
 use crate::sample::simd;
-use centres::Means;
+use centres::{Centre, Means};
 use connectivity::enforce_connectivity;
 use lab::Lab;
 use search::Search;
@@ -346,14 +346,6 @@ fn initial_centres(
         }
     }
     centres
-}
-
-/// A cluster centre: position (row, column) and mean colour (CIELAB).
-#[derive(Debug, Clone, Copy)]
-struct Centre {
-    y: f32,
-    x: f32,
-    lab: [f32; 3],
 }
 
 /// scikit-image's `regular_grid` for the shape `(1, height, width)` (its SLIC works on

@@ -2,7 +2,7 @@
 //! window, tile by tile, with lower bounds that skip most centres without changing the
 //! result.
 
-use super::Centre;
+use super::centres::Centre;
 use super::lab::Lab;
 use super::tiles::{Band, TH, TW, Tiles, colour_gap, spatial};
 use std::ops::Range;

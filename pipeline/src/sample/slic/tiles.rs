@@ -2,7 +2,7 @@
 //! bounding box (once per image), and the centres whose windows meet a band of tiles,
 //! with their lower bounds on a tile (each pass).
 
-use super::Centre;
+use super::centres::Centre;
 use super::lab::Lab;
 use std::ops::Range;
 
