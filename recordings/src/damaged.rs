@@ -10,9 +10,11 @@
 //! message-level damage rewrites the file, message by message, with the writer settings
 //! of its dialect.
 
+use crate::dialect::Dialect;
 use crate::error::{GenerateError, Result};
+use crate::generate::generate_with;
+use crate::options::DriveOptions;
 use crate::out::McapOut;
-use crate::{Dialect, DriveOptions, generate_with};
 use foxglove::messages::{PointCloud, Timestamp};
 use prost::Message as _;
 use std::collections::BTreeMap;

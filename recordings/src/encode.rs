@@ -2,10 +2,10 @@
 //! grey PNG, and whole cameras' frames encoded in parallel (the bytes are the same as
 //! encoding one after another).
 
-use crate::JPEG_QUALITY;
 use crate::error::{GenerateError, Result};
 use crate::options::JpegCoding;
-use crate::sim::CameraFrame;
+use crate::render::CameraFrame;
+use crate::sample_drive::JPEG_QUALITY;
 use rayon::prelude::*;
 use superflow_schemas::sensor::{Image, PixelFormat};
 
@@ -72,8 +72,9 @@ pub fn class_map_pngs(frames: &[CameraFrame]) -> Result<Vec<Vec<u8>>> {
 #[cfg(test)]
 mod tests {
     #![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
+    use crate::dialect::Dialect;
+    use crate::generate::generate_with;
     use crate::options::{ClassMapStorage, DriveOptions, JpegCoding};
-    use crate::{Dialect, generate_with};
     use prost::Message as _;
     use superflow_schemas::ros2;
 

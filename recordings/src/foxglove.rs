@@ -7,13 +7,16 @@
 //! nuScenes-lidarseg conversion has them) or clouds of that one field on
 //! `/LIDAR_TOP/labels` in a `<drive>.labels.mcap` sidecar.
 
+use crate::dialect::Dialect;
+use crate::drive::{GeneratedDrive, WrittenDrive};
 use crate::encode::{class_map_pngs, jpegs};
 use crate::error::{GenerateError, Result};
 use crate::options::{ClassMapStorage, LidarLabels};
 use crate::out::McapOut;
-use crate::sim::{CameraFrame, CameraRig};
+use crate::render::CameraFrame;
+use crate::sim::CameraRig;
+use crate::simulation::Simulation;
 use crate::truth::{CameraTruth, FramesTruth, PoseTruth, SweepTruth};
-use crate::{Dialect, GeneratedDrive, Simulation, WrittenDrive};
 use foxglove::Encode;
 use foxglove::messages::{
     CameraCalibration, CompressedImage, FrameTransform, PackedElementField, PointCloud, Quaternion,

@@ -2,7 +2,8 @@
 //! settings by default, a short drive for the damaged recordings, and a nuScenes-sized
 //! drive for benchmarks.
 
-use crate::{Dialect, IMAGE_SIZE};
+use crate::dialect::Dialect;
+use crate::sample_drive::{DURATION_NANOS, IMAGE_SIZE};
 
 /// When the cameras fire.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -87,7 +88,7 @@ pub enum ClassMapStorage {
     #[default]
     InDrive,
     /// 8-bit grey PNGs (`CompressedImage`, format `png`) on the same topics, in a sidecar
-    /// file `<drive>.superpixels.mcap` ([`crate::GeneratedDrive::sidecar`]).
+    /// file `<drive>.superpixels.mcap` ([`crate::drive::GeneratedDrive::sidecar`]).
     PngSidecar,
 }
 
@@ -191,7 +192,7 @@ impl Default for DriveOptions {
     fn default() -> Self {
         Self {
             name: "street_{dialect}".into(),
-            duration_nanos: 3_000_000_000,
+            duration_nanos: DURATION_NANOS,
             cameras: 6,
             image_size: IMAGE_SIZE,
             lidar_columns: 300,
@@ -334,7 +335,7 @@ mod tests {
             two.drive_name(Dialect::Ros2),
             "street_ros2_2cam_640x360_32beams"
         );
-        let one = DriveOptions::rig(1, crate::IMAGE_SIZE, 16);
+        let one = DriveOptions::rig(1, crate::sample_drive::IMAGE_SIZE, 16);
         assert_eq!(one.drive_name(Dialect::Foxglove), "street_foxglove_1cam");
         assert_eq!(
             DriveOptions::default().sample_name(),

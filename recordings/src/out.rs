@@ -99,7 +99,10 @@ impl McapOut {
     ) -> crate::error::Result<(Vec<u8>, Vec<ChannelTruth>)> {
         let options = mcap::WriteOptions::new()
             .profile(profile)
-            .library(format!("superflow-recordings/{}", crate::GENERATOR_VERSION))
+            .library(format!(
+                "superflow-recordings/{}",
+                crate::sample_drive::GENERATOR_VERSION
+            ))
             .compression(compression)
             .chunk_size(Some(self.chunk_size.unwrap_or(512 * 1024)));
         let mut writer = options.create(Cursor::new(Vec::new()))?;

@@ -284,9 +284,10 @@ pub fn pixel_rays(calibration: &CameraCalibration) -> Vec<Vector3<f64>> {
 mod tests {
     #![allow(clippy::unwrap_used)] // tests fail loudly on purpose
     use super::*;
+    use crate::dialect::Dialect;
+    use crate::sample_drive::SCENE_SEED;
     use crate::scene::Scene;
     use crate::sim::{Return, simulate_sweep};
-    use crate::{Dialect, SCENE_SEED};
     use std::collections::BTreeMap;
 
     /// Returns on moving boxes by (camera, firing stamp), with their projected pixel.

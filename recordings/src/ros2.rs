@@ -8,13 +8,16 @@
 //! field on `/lidar_top/points_raw/labels` in a `<drive>.labels.mcap` sidecar (same
 //! stamp, frame and point order as the sweep), or a `label` field of the sweep itself.
 
+use crate::dialect::Dialect;
+use crate::drive::{GeneratedDrive, WrittenDrive};
 use crate::encode::{class_map_pngs, jpegs};
 use crate::error::{GenerateError, Result};
 use crate::options::{ClassMapStorage, LidarLabels};
 use crate::out::McapOut;
-use crate::sim::{CameraFrame, CameraRig, Return, body_from_optical};
+use crate::render::CameraFrame;
+use crate::sim::{CameraRig, Return, body_from_optical};
+use crate::simulation::Simulation;
 use crate::truth::{CameraTruth, FramesTruth, PoseTruth, SweepTruth};
-use crate::{Dialect, GeneratedDrive, Simulation, WrittenDrive};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion};
 use std::collections::BTreeMap;
 use superflow_schemas::Stamp;

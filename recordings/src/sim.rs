@@ -1,7 +1,6 @@
 //! The simulated drive: ego trajectory, sensor rig, a spinning LiDAR ray-cast per
 //! column, and cameras rendered per pixel from the same scene at their own stamps.
 
-pub use crate::render::{CameraFrame, ObjectMap, pixel_rays, render_camera};
 use crate::scene::{CLASSES, Scene};
 use nalgebra::{Isometry3, Point3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use std::f64::consts::{PI, TAU};

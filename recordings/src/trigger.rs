@@ -70,7 +70,7 @@ pub fn camera_stamps(
 mod tests {
     #![allow(clippy::unwrap_used)] // tests fail loudly on purpose
     use super::*;
-    use crate::Dialect;
+    use crate::dialect::Dialect;
     use crate::sim::column_azimuth;
     use superflow_schemas::sensor::Distortion;
 

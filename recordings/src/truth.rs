@@ -201,7 +201,7 @@ pub struct GroundTruth {
     pub sidecar: Option<SidecarTruth>,
     /// The LiDAR's per-point labels, when written (absent from the JSON otherwise). The
     /// label of every point is its return's class
-    /// ([`crate::Simulation::sweep_classes`] recomputes them).
+    /// ([`crate::simulation::Simulation::sweep_classes`] recomputes them).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub labels: Option<LabelsTruth>,
 }
