@@ -1,6 +1,5 @@
 //! The fixed-size parts of the wire format: header, section descriptors, dtypes.
 
-use super::BatchError;
 use bytemuck::{Pod, Zeroable};
 use iceoryx2::prelude::ZeroCopySend;
 
@@ -258,29 +257,6 @@ pub(crate) fn nul_padded_str(field: &[u8]) -> Option<&str> {
     std::str::from_utf8(&field[..end]).ok()
 }
 
-/// Checks a run name: printable ASCII without `/`, shorter than [`RUN_NAME_LEN`].
-pub fn validate_run_name(run: &str) -> Result<(), BatchError> {
-    let fail = |reason| {
-        Err(BatchError::BadRunName {
-            name: run.to_string(),
-            reason,
-        })
-    };
-    if run.is_empty() {
-        return fail("empty");
-    }
-    if run.len() >= RUN_NAME_LEN {
-        return fail("longer than 63 bytes");
-    }
-    if !run
-        .bytes()
-        .all(|b| b.is_ascii_alphanumeric() || b"-_.".contains(&b))
-    {
-        return fail("only ASCII letters, digits, '-', '_' and '.' are allowed");
-    }
-    Ok(())
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -331,9 +307,5 @@ mod tests {
         assert!(write_nul_padded(&mut field, "abcdefg"));
         assert_eq!(nul_padded_str(&[b'a', 0, b'b', 0]), None);
         assert_eq!(nul_padded_str(&[0xff, 0]), None);
-        assert!(validate_run_name("ablation-3.a_b").is_ok());
-        assert!(validate_run_name("a/b").is_err());
-        assert!(validate_run_name("").is_err());
-        assert!(validate_run_name(&"x".repeat(64)).is_err());
     }
 }

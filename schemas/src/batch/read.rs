@@ -1,10 +1,11 @@
 //! Validated, typed, zero-copy views of a received batch.
 
-use super::BatchError;
+use super::error::BatchError;
 use super::format::{
     BATCH_FORMAT_VERSION, BATCH_LOST, BATCH_MAGIC, BatchHeader, BatchMeta, DType, Element,
-    MAX_DIMS, MAX_SECTIONS, SECTION_ALIGN, SectionDesc, nul_padded_str, validate_run_name,
+    MAX_DIMS, MAX_SECTIONS, SECTION_ALIGN, SectionDesc, nul_padded_str,
 };
+use super::run_name::validate_run_name;
 use super::sections::Section;
 
 /// A typed view of one section: its elements and shape, borrowed from the payload.

@@ -7,7 +7,7 @@
 //! `Section::LevelNbr(l)`; [`Section::in_order`] lists the sections of a batch in payload
 //! order, and [`Dims::shape`] turns a section's symbolic shape into numbers.
 
-use super::BatchError;
+use super::error::BatchError;
 use super::format::{DType, Element};
 use std::borrow::Cow;
 

@@ -1,11 +1,11 @@
 //! Planning a batch ([`BatchLayout`]) and filling it in place ([`BatchWriter`]).
 
-use super::BatchError;
+use super::error::BatchError;
 use super::format::{
     BATCH_FORMAT_VERSION, BATCH_LOST, BATCH_MAGIC, BatchHeader, BatchMeta, DType, Element,
-    MAX_DIMS, MAX_SECTIONS, SECTION_ALIGN, SectionDesc, nul_padded_str, validate_run_name,
-    write_nul_padded,
+    MAX_DIMS, MAX_SECTIONS, SECTION_ALIGN, SectionDesc, nul_padded_str, write_nul_padded,
 };
+use super::run_name::validate_run_name;
 use super::sections::Section;
 use bytemuck::Zeroable;
 
