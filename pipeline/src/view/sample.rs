@@ -190,7 +190,7 @@ impl SampleMcap {
         self.out.write(
             &topic("calibration"),
             stamp,
-            &resized_calibration(ts, image, width, height),
+            &resized_calibration(ts, &image.calibration, image.flipped, width, height),
         )?;
         let colours: Vec<u8> = image
             .superpixels
@@ -341,11 +341,11 @@ fn colour([r, g, b]: [u8; 3]) -> Color {
 /// normalised coordinates, unchanged.
 pub fn resized_calibration(
     ts: Timestamp,
-    image: &SampleImage,
+    cal: &superflow_schemas::sensor::CameraCalibration,
+    flipped: bool,
     width: u32,
     height: u32,
 ) -> CameraCalibration {
-    let cal = &image.calibration;
     let (sx, sy) = (
         f64::from(width) / f64::from(cal.width),
         f64::from(height) / f64::from(cal.height),
@@ -356,7 +356,7 @@ pub fn resized_calibration(
     let mut cx = (k[(0, 2)] + 0.5) * sx - 0.5;
     let fy = k[(1, 1)] * sy;
     let cy = (k[(1, 2)] + 0.5) * sy - 0.5;
-    if image.flipped {
+    if flipped {
         fx = -fx;
         skew = -skew;
         cx = f64::from(width) - 1.0 - cx;

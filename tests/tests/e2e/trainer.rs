@@ -690,8 +690,23 @@ fn features_of_a_backbone_open_as_foxglove_point_clouds() {
                 env!("CARGO_BIN_EXE_superflow-subscriber"),
                 "superflow-trainer",
             ))
-            .args(["--unet", "tiny", "features", "--mcap", "recordings/drives"])
-            .args(["--checkpoint", "random", "--query", "12.5,-3,0.5", "--out"])
+            .args([
+                "--unet",
+                "tiny",
+                "--vit",
+                "tiny",
+                "features",
+                "--mcap",
+                "recordings/drives",
+            ])
+            .args([
+                "--checkpoint",
+                "random",
+                "--query",
+                "12.5,-3,0.5",
+                "--images",
+                "--out",
+            ])
             .arg(&file)
             .arg("--bev")
             .arg(&bev)
@@ -733,19 +748,44 @@ fn features_of_a_backbone_open_as_foxglove_point_clouds() {
     let bytes = std::fs::read(&file).unwrap();
     let mut clouds = Vec::new();
     let mut similarity_clouds = 0;
+    let mut camera_messages: BTreeMap<String, usize> = BTreeMap::new();
+    let mut camera_transforms = 0;
     for message in mcap::MessageStream::new(&bytes).unwrap() {
         let message = message.unwrap();
         let schema = message.channel.schema.as_ref().unwrap();
-        match message.channel.topic.as_str() {
+        let topic = message.channel.topic.as_str();
+        match topic {
             "/superflow/features" => {
                 assert_eq!(schema.name, "foxglove.PointCloud");
                 clouds.push(foxglove::messages::PointCloud::decode(&message.data[..]).unwrap());
             }
             "/superflow/similarity" => similarity_clouds += 1,
-            "/tf" => assert_eq!(schema.name, "foxglove.FrameTransforms"),
-            other => panic!("unexpected topic {other}"),
+            "/tf" => {
+                assert_eq!(schema.name, "foxglove.FrameTransforms");
+                let tf = foxglove::messages::FrameTransforms::decode(&message.data[..]).unwrap();
+                camera_transforms += tf.transforms.len() - 1;
+            }
+            _ => {
+                // The cameras' images, their ViT features and calibrations.
+                let what = topic.rsplit('/').next().unwrap().to_string();
+                assert!(
+                    ["image", "vit_pca", "calibration"].contains(&what.as_str()),
+                    "{topic}"
+                );
+                *camera_messages.entry(what).or_default() += 1;
+            }
         }
     }
+    // Every camera of both drives (6 each) at every keyframe sweep.
+    let images = 6 * sizes.len();
+    assert!(
+        stdout.contains(&format!("images: {images} camera images")),
+        "{stdout}"
+    );
+    for what in ["image", "vit_pca", "calibration"] {
+        assert_eq!(camera_messages[what], images, "{what}");
+    }
+    assert_eq!(camera_transforms, images);
     let points: Vec<usize> = clouds
         .iter()
         .map(|c| c.data.len() / c.point_stride as usize)

@@ -1,11 +1,15 @@
 //! `superflow-trainer features`: a backbone's per-point features over a drive's keyframe
 //! sweeps, written as Foxglove point clouds coloured by the features' top three principal
 //! components (fitted once over every sweep written), and optionally by the cosine
-//! similarity to one query point; a bird's-eye PNG of the first sweep beside it.
+//! similarity to one query point; a bird's-eye PNG of the first sweep beside it; with a
+//! 2D network, each camera's image and its ViT patch features in their own principal
+//! components' colours.
 
+use super::images::{CameraView, Grid, camera_views, patch_colours};
 use super::pca::{Pca, PcaError, cosine_similarity};
 use crate::sweep_input::SweepInput;
 use crate::unet::SparseUNet;
+use crate::vit::DinoVit;
 use burn::tensor::Device;
 use std::path::{Path, PathBuf};
 use superflow_pipeline::config::PipelineConfig;
@@ -13,7 +17,9 @@ use superflow_pipeline::drive::{Dataset, ReadError, TfError};
 use superflow_pipeline::sample::deskew::deskew;
 use superflow_pipeline::sample::export::ramp;
 use superflow_pipeline::source::ChunkCache;
-use superflow_pipeline::view::{Column, ViewError, ViewWriter, frame_transform};
+use superflow_pipeline::view::{
+    Column, ViewError, ViewWriter, frame_transform, resized_calibration,
+};
 use superflow_schemas::Stamp;
 
 /// What to write.
@@ -32,6 +38,15 @@ pub struct FeatureSettings {
     pub backbone: String,
 }
 
+/// The 2D network and the image size it sees (the recipe's `image_width × image_height`).
+#[derive(Debug)]
+pub struct ImageSettings<'a> {
+    /// The frozen ViT.
+    pub vit: &'a DinoVit,
+    /// Images are resized to this, a multiple of the ViT's patch.
+    pub size: (u32, u32),
+}
+
 /// What was written.
 #[derive(Debug, Clone, PartialEq)]
 pub struct FeatureReport {
@@ -48,6 +63,8 @@ pub struct FeatureReport {
     /// The query's nearest point in the first sweep: its index and its distance to the
     /// query, metres.
     pub query_point: Option<(usize, f32)>,
+    /// Camera images written with their ViT features.
+    pub images: usize,
 }
 
 /// Why the features could not be written.
@@ -87,6 +104,16 @@ pub enum FeaturesError {
         /// Feature width.
         dim: usize,
     },
+    /// The image size is not a multiple of the ViT's patch.
+    #[error("images of {width}×{height} are not a whole number of the ViT's {patch}-pixel patches")]
+    PatchGrid {
+        /// Image width.
+        width: u32,
+        /// Image height.
+        height: u32,
+        /// The patch side.
+        patch: usize,
+    },
     /// No drive has a LiDAR sweep.
     #[error("no LiDAR sweep in the drives")]
     NoSweeps,
@@ -103,6 +130,8 @@ pub enum FeaturesError {
 
 /// One sweep and its features.
 struct SweepFeatures {
+    /// The cameras' images of the keyframe, with the ViT's patch features.
+    cameras: Vec<CameraView>,
     stamp: Stamp,
     frame_id: String,
     /// The map frame and the LiDAR's pose in it at the sweep's stamp, when known.
@@ -116,11 +145,36 @@ pub fn write_features(
     dataset: &Dataset,
     config: &PipelineConfig,
     unet: &SparseUNet,
+    images: Option<&ImageSettings<'_>>,
     device: &Device,
     settings: &FeatureSettings,
 ) -> Result<FeatureReport, FeaturesError> {
     let dim = unet.backbone_dim();
-    let sweeps = sweep_features(dataset, config, unet, device, settings.interval_ns)?;
+    let grid = match images {
+        Some(i) => {
+            let patch = i.vit.config().patch;
+            let (w, h) = i.size;
+            if patch == 0
+                || !(w as usize).is_multiple_of(patch)
+                || !(h as usize).is_multiple_of(patch)
+            {
+                return Err(FeaturesError::PatchGrid {
+                    width: w,
+                    height: h,
+                    patch,
+                });
+            }
+            Some((
+                i.vit,
+                Grid {
+                    size: i.size,
+                    patch,
+                },
+            ))
+        }
+        None => None,
+    };
+    let sweeps = sweep_features(dataset, config, unet, grid, device, settings.interval_ns)?;
     let Some(first) = sweeps.first() else {
         return Err(FeaturesError::NoSweeps);
     };
@@ -130,6 +184,16 @@ pub fn write_features(
         .collect();
     let pca = Pca::fit(&all, dim)?;
     drop(all);
+    let image_pca = match grid {
+        Some((vit, _)) if sweeps.iter().any(|s| !s.cameras.is_empty()) => {
+            let patches: Vec<f32> = sweeps
+                .iter()
+                .flat_map(|s| s.cameras.iter().flat_map(|c| c.patches.iter().copied()))
+                .collect();
+            Some(Pca::fit(&patches, vit.config().dim)?)
+        }
+        _ => None,
+    };
     let query = settings.query.map(|q| {
         let (i, d2) = first
             .xyz
@@ -149,6 +213,7 @@ pub fn write_features(
         &format!("superflow-trainer/{}", env!("CARGO_PKG_VERSION")),
     )?;
     let mut points = 0;
+    let mut images_written = 0;
     for (s, sweep) in sweeps.iter().enumerate() {
         let colours: Vec<[u8; 3]> = sweep
             .features
@@ -205,14 +270,26 @@ pub fn write_features(
                 ],
             )?;
         }
+        let ts = out.timestamp(sweep.stamp)?;
+        let mut transforms = Vec::new();
         if let Some((map, pose)) = &sweep.pose {
-            let ts = out.timestamp(sweep.stamp)?;
+            transforms.push(frame_transform(ts, map, &sweep.frame_id, pose));
+        }
+        if let (Some((_, grid)), Some(image_pca)) = (grid, &image_pca) {
+            for view in &sweep.cameras {
+                let frame_id = view.calibration.frame_id.as_str();
+                if let Some(pose) = &view.lidar_from_camera {
+                    transforms.push(frame_transform(ts, &sweep.frame_id, frame_id, pose));
+                }
+                write_camera(&mut out, sweep.stamp, ts, view, image_pca, grid)?;
+                images_written += 1;
+            }
+        }
+        if !transforms.is_empty() {
             out.write(
                 "/tf",
                 sweep.stamp,
-                &foxglove::messages::FrameTransforms {
-                    transforms: vec![frame_transform(ts, map, &sweep.frame_id, pose)],
-                },
+                &foxglove::messages::FrameTransforms { transforms },
             )?;
         }
         if s == 0
@@ -244,7 +321,78 @@ pub fn write_features(
         messages,
         explained,
         query_point: query.map(|(i, d, _)| (i, d)),
+        images: images_written,
     })
+}
+
+/// One camera of a keyframe: the image as the ViT saw it, its patch features' colours,
+/// and the calibration of that image size, on `/superflow/<camera>/…`.
+fn write_camera(
+    out: &mut ViewWriter,
+    stamp: Stamp,
+    ts: foxglove::messages::Timestamp,
+    view: &CameraView,
+    pca: &Pca,
+    grid: Grid,
+) -> Result<(), FeaturesError> {
+    let (width, height) = grid.size;
+    let topic = |what: &str| {
+        format!(
+            "/superflow/{}/{what}",
+            view.camera.trim_matches('/').replace('/', "_")
+        )
+    };
+    let frame_id = view.calibration.frame_id.clone();
+    for (what, rgb) in [
+        ("image", view.rgb.clone()),
+        ("vit_pca", patch_colours(view, pca, grid)),
+    ] {
+        let png = png_bytes(out, &view.camera, stamp, width, height, &rgb)?;
+        out.write(
+            &topic(what),
+            stamp,
+            &foxglove::messages::CompressedImage {
+                timestamp: Some(ts),
+                frame_id: frame_id.clone(),
+                data: png.into(),
+                format: "png".into(),
+            },
+        )?;
+    }
+    out.write(
+        &topic("calibration"),
+        stamp,
+        &resized_calibration(ts, &view.calibration, false, width, height),
+    )?;
+    Ok(())
+}
+
+/// `rgb` as PNG bytes.
+fn png_bytes(
+    out: &ViewWriter,
+    camera: &str,
+    stamp: Stamp,
+    width: u32,
+    height: u32,
+    rgb: &[u8],
+) -> Result<Vec<u8>, FeaturesError> {
+    let mut bytes = Vec::new();
+    let mut encoder = png::Encoder::new(&mut bytes, width, height);
+    encoder.set_color(png::ColorType::Rgb);
+    encoder.set_depth(png::BitDepth::Eight);
+    encoder.set_compression(png::Compression::Fast);
+    encoder
+        .write_header()
+        .and_then(|mut w| w.write_image_data(rgb).and_then(|()| w.finish()))
+        .map_err(|source| {
+            FeaturesError::View(ViewError::Png {
+                path: out.path().to_path_buf(),
+                camera: camera.to_string(),
+                stamp,
+                source,
+            })
+        })?;
+    Ok(bytes)
 }
 
 /// The sum of the features' variances (the covariance's trace).
@@ -270,6 +418,7 @@ fn sweep_features(
     dataset: &Dataset,
     config: &PipelineConfig,
     unet: &SparseUNet,
+    images: Option<(&DinoVit, Grid)>,
     device: &Device,
     interval_ns: i64,
 ) -> Result<Vec<SweepFeatures>, FeaturesError> {
@@ -323,7 +472,20 @@ fn sweep_features(
                     .ok()
                     .map(|p| (m.clone(), p))
             });
+            let cameras = match images {
+                Some((vit, grid)) => camera_views(
+                    drive,
+                    &lidar.frame_id,
+                    frame.stamp,
+                    grid,
+                    vit,
+                    device,
+                    &mut cache,
+                )?,
+                None => Vec::new(),
+            };
             out.push(SweepFeatures {
+                cameras,
                 stamp: frame.stamp,
                 frame_id: lidar.frame_id.clone(),
                 pose,

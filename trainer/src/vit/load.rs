@@ -10,6 +10,28 @@ use safetensors::{Dtype, SafeTensors};
 use std::path::Path;
 
 impl DinoVit {
+    /// The frozen 2D network: DINOv2 weights from `image_weights`, else a random network
+    /// of `preset` seeded from `seed` (meaningless features: tests and demos only).
+    ///
+    /// # Errors
+    ///
+    /// As [`load_safetensors`](Self::load_safetensors).
+    pub fn frozen(
+        image_weights: Option<&Path>,
+        preset: super::VitPreset,
+        seed: u64,
+        device: &Device,
+    ) -> Result<Self, WeightsError> {
+        match image_weights {
+            Some(path) => Self::load_safetensors(path, device),
+            None => Ok(Self::random(
+                &VitConfig::preset(preset),
+                seed ^ 0x005e_ed0f_u64,
+                device,
+            )),
+        }
+    }
+
     /// Loads a DINOv2 checkpoint, inferring the shape from its tensors.
     ///
     /// Accepts the Hugging Face `Dinov2Model` names (`embeddings.cls_token`,

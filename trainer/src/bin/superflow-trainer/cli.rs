@@ -132,6 +132,11 @@ pub struct FeaturesArgs {
     /// (80 m across, the LiDAR at the centre, forward up).
     #[arg(long)]
     pub bev: Option<PathBuf>,
+    /// Also each camera's image nearest every keyframe sweep, resized as training resizes
+    /// it, and the 2D network's patch features coloured by their principal components
+    /// (the network of --image-weights, else a random one of --vit).
+    #[arg(long)]
+    pub images: bool,
     /// The pipeline's configuration (channels, de-skew, voxel grid) [default: the
     /// pipeline's defaults].
     #[arg(long)]

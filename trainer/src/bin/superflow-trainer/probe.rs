@@ -84,14 +84,33 @@ pub fn probe(args: &Args, p: &ProbeArgs) -> anyhow::Result<Option<i32>> {
 
 /// `superflow-trainer features`.
 pub fn features(args: &Args, f: &FeaturesArgs) -> anyhow::Result<Option<i32>> {
-    use superflow_trainer::features::{FeatureSettings, write_features};
+    use superflow_trainer::features::{FeatureSettings, ImageSettings, write_features};
     let pipeline = match &f.pipeline_config {
         Some(path) => superflow_pipeline::config::PipelineConfig::load(path)?,
         None => superflow_pipeline::config::PipelineConfig::default(),
     };
     let device = device::select(args.backend, args.device_index)?;
-    let (unet, what) = evaluate::load_backbone(&f.checkpoint, &args.config()?, &device)?;
+    let config = args.config()?;
+    let (unet, what) = evaluate::load_backbone(&f.checkpoint, &config, &device)?;
     tracing::info!(backbone = %what, "features");
+    let vit = if f.images {
+        let model = &config.model;
+        if model.image_weights.is_none() {
+            tracing::warn!(preset = ?model.vit, "2D network: RANDOM ViT weights (no --image-weights): its image features mean nothing");
+        }
+        Some(superflow_trainer::vit::DinoVit::frozen(
+            model.image_weights.as_deref(),
+            model.vit,
+            model.seed,
+            &device,
+        )?)
+    } else {
+        None
+    };
+    let images = vit.as_ref().map(|vit| ImageSettings {
+        vit,
+        size: (pipeline.sample.image_width, pipeline.sample.image_height),
+    });
     let dataset = superflow_pipeline::drive::Dataset::open(&f.mcap, &pipeline.ingest)
         .context("opening the drives")?;
     let settings = FeatureSettings {
@@ -101,7 +120,14 @@ pub fn features(args: &Args, f: &FeaturesArgs) -> anyhow::Result<Option<i32>> {
         bev: f.bev.clone(),
         backbone: what.clone(),
     };
-    let report = write_features(&dataset, &pipeline, &unet, &device, &settings);
+    let report = write_features(
+        &dataset,
+        &pipeline,
+        &unet,
+        images.as_ref(),
+        &device,
+        &settings,
+    );
     device::settle(&device);
     let report = report?;
     println!("backbone: {what}");
@@ -117,6 +143,12 @@ pub fn features(args: &Args, f: &FeaturesArgs) -> anyhow::Result<Option<i32>> {
     );
     if let Some((point, distance)) = report.query_point {
         println!("query: point {point} of the first sweep, {distance:.2} m from --query");
+    }
+    if f.images {
+        println!(
+            "images: {} camera images with the 2D network's features",
+            report.images
+        );
     }
     if let Some(bev) = &f.bev {
         println!("wrote {}", bev.display());
