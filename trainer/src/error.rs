@@ -150,3 +150,16 @@ impl TrainerError {
         }
     }
 }
+
+/// `error` followed by each of its causes ([`source`](std::error::Error::source)), each
+/// after `: ` — the text anyhow prints for `{:#}`.
+pub fn with_causes(error: &dyn std::error::Error) -> String {
+    let mut text = error.to_string();
+    let mut cause = error.source();
+    while let Some(e) = cause {
+        text.push_str(": ");
+        text.push_str(&e.to_string());
+        cause = e.source();
+    }
+    text
+}
