@@ -11,6 +11,7 @@ use crate::probe::error::ProbeError;
 use crate::vit::WeightsError;
 use burn::store::RecordError;
 use std::path::PathBuf;
+use superflow_schemas::batch::BatchError;
 
 pub use superflow_common::InvalidSetting;
 
@@ -115,13 +116,22 @@ pub enum TrainerError {
         /// Batch in the epoch.
         batch: u64,
     },
-    /// A batch file (`superflow-pipeline batch`) that cannot be used.
-    #[error("batch file {}: {reason}", path.display())]
+    /// A batch file (`superflow-pipeline batch`) too short for a batch header.
+    #[error("batch file {}: {bytes} bytes: shorter than a batch header", path.display())]
+    BatchFileTooShort {
+        /// The file.
+        path: PathBuf,
+        /// Its size.
+        bytes: usize,
+    },
+    /// A batch file (`superflow-pipeline batch`) whose batch cannot be read.
+    #[error("batch file {}", path.display())]
     BatchFile {
         /// The file.
         path: PathBuf,
         /// What is wrong.
-        reason: String,
+        #[source]
+        error: BatchError,
     },
     /// The downstream probe (`superflow-trainer probe`).
     #[error("probe")]
