@@ -30,10 +30,11 @@ impl BatchFile {
     /// Reads and validates a batch file.
     pub fn read(path: &Path) -> Result<Self, TrainerError> {
         let bytes = std::fs::read(path).map_err(|e| TrainerError::io("reading", path, e))?;
-        let header = BatchHeader::from_bytes(&bytes).ok_or_else(|| TrainerError::BatchFile {
-            path: path.to_path_buf(),
-            reason: format!("{} bytes: shorter than a batch header", bytes.len()),
-        })?;
+        let header =
+            BatchHeader::from_bytes(&bytes).ok_or_else(|| TrainerError::BatchFileTooShort {
+                path: path.to_path_buf(),
+                bytes: bytes.len(),
+            })?;
         let body = &bytes[BatchHeader::SIZE..];
         let mut payload = vec![0u64; body.len().div_ceil(8)];
         bytemuck::cast_slice_mut::<u64, u8>(&mut payload)[..body.len()].copy_from_slice(body);
@@ -50,9 +51,9 @@ impl BatchFile {
     /// The batch, as the trainer reads it from shared memory.
     pub fn view(&self) -> Result<BatchView<'_>, TrainerError> {
         let bytes = &bytemuck::cast_slice::<u64, u8>(&self.payload)[..self.len];
-        BatchView::new(&self.header, bytes).map_err(|e| TrainerError::BatchFile {
+        BatchView::new(&self.header, bytes).map_err(|error| TrainerError::BatchFile {
             path: self.path.clone(),
-            reason: e.to_string(),
+            error,
         })
     }
 

@@ -38,12 +38,24 @@ pub enum BackendError {
     #[error("backend {0} is not compiled in: build with `--features {0}`")]
     NotCompiledIn(&'static str),
     /// A GPU backend this machine has no device for (no driver, no adapter).
-    #[error("backend {backend}: no device on this machine ({reason})")]
+    // The runtime's reason sits inside the message, in parentheses: not a source, so a
+    // printer of the chain does not repeat it.
+    #[cfg(feature = "wgpu")]
+    #[error("backend {backend}: no device on this machine ({error})")]
     NoDevice {
         /// The backend asked for.
         backend: &'static str,
         /// What the runtime said.
-        reason: String,
+        error: burn::cubecl::device::DeviceUnavailable,
+    },
+    /// A GPU backend whose runtime answered with a device of another runtime.
+    #[cfg(feature = "wgpu")]
+    #[error(
+        "backend {backend}: no device on this machine (the runtime answered with a device of another runtime)"
+    )]
+    OtherRuntime {
+        /// The backend asked for.
+        backend: &'static str,
     },
 }
 
@@ -150,10 +162,10 @@ mod wgpu {
     /// The default adapter (the best one; `CUBECL_WGPU_DEFAULT_DEVICE` chooses another)
     /// as a burn device, with its name and limits.
     pub(super) fn open() -> Result<(Device, GpuInfo), BackendError> {
-        let cube = burn::cubecl::Device::wgpu(WgpuDeviceKind::DefaultDevice).map_err(|e| {
+        let cube = burn::cubecl::Device::wgpu(WgpuDeviceKind::DefaultDevice).map_err(|error| {
             BackendError::NoDevice {
                 backend: "wgpu",
-                reason: e.to_string(),
+                error,
             }
         })?;
         let client = cube.client();
@@ -165,10 +177,7 @@ mod wgpu {
             software: properties.identity.physical.is_none(),
         };
         let burn::cubecl::Device::Wgpu(wgpu) = cube else {
-            return Err(BackendError::NoDevice {
-                backend: "wgpu",
-                reason: "the runtime answered with a device of another runtime".into(),
-            });
+            return Err(BackendError::OtherRuntime { backend: "wgpu" });
         };
         let device = Device::new(wgpu);
         let mut opened = OPENED.lock().unwrap_or_else(PoisonError::into_inner);

@@ -2,15 +2,16 @@
 //! and checkpoints; a setting out of range is an [`InvalidSetting`] (shared with the
 //! pipeline, from `superflow-common`).
 //!
-//! Every message is complete on its own — it names the file (and line) or the setting at
-//! fault and includes the cause's text — so the causes are not chained again as
-//! [`source`](std::error::Error::source): printed with `{:#}` (anyhow) each shows once.
+//! Every message names the file (and line) or the setting at fault; a typed cause is the
+//! error's [`source`](std::error::Error::source), not part of its message: a printer of
+//! the whole chain (the binary's `{:#}`, [`with_causes`]) shows it after a `: `.
 
 use crate::inputs::InputError;
 use crate::probe::error::ProbeError;
 use crate::vit::WeightsError;
 use burn::store::RecordError;
 use std::path::PathBuf;
+use superflow_schemas::batch::BatchError;
 
 pub use superflow_common::InvalidSetting;
 
@@ -18,50 +19,55 @@ pub use superflow_common::InvalidSetting;
 #[derive(Debug, thiserror::Error)]
 pub enum TrainerError {
     /// Reading, writing, creating, renaming or syncing a file or directory failed.
-    #[error("{action} {}: {error}", path.display())]
+    #[error("{action} {}", path.display())]
     Io {
         /// What was done, such as `reading` or `checkpoint: renaming into`.
         action: &'static str,
         /// The file or directory.
         path: PathBuf,
         /// The I/O error.
+        #[source]
         error: std::io::Error,
     },
     /// A JSON file does not parse (or could not be written).
-    #[error("{}: {error}", path.display())]
+    #[error("{}", path.display())]
     Json {
         /// The file.
         path: PathBuf,
         /// The parse error.
+        #[source]
         error: serde_json::Error,
     },
     /// A line of a JSON-lines file does not parse.
-    #[error("{}:{line}: {error}", path.display())]
+    #[error("{}:{line}", path.display())]
     JsonLine {
         /// The file.
         path: PathBuf,
         /// The line, 1-based.
         line: usize,
         /// The parse error.
+        #[source]
         error: serde_json::Error,
     },
     /// trainer.toml does not parse (or names an unknown field).
-    #[error("{}: {error}", path.display())]
+    #[error("{}", path.display())]
     Toml {
         /// The file.
         path: PathBuf,
         /// The parse error.
+        #[source]
         error: toml::de::Error,
     },
     /// A setting out of range.
     #[error(transparent)]
     Config(#[from] InvalidSetting),
     /// A setting out of range in a configuration file.
-    #[error("{}: {error}", path.display())]
+    #[error("{}", path.display())]
     ConfigFile {
         /// The file.
         path: PathBuf,
         /// The setting.
+        #[source]
         error: InvalidSetting,
     },
     /// A checkpoint's `state.json` has another format tag.
@@ -75,19 +81,21 @@ pub enum TrainerError {
         expected: &'static str,
     },
     /// A checkpoint's model or optimizer record cannot be loaded.
-    #[error("{}: {error}", path.display())]
+    #[error("{}", path.display())]
     Record {
         /// The record file.
         path: PathBuf,
         /// burn's error.
+        #[source]
         error: RecordError,
     },
     /// The model or the optimizer cannot be encoded for a checkpoint.
-    #[error("checkpoint: encoding the {what}: {error}")]
+    #[error("checkpoint: encoding the {what}")]
     Encode {
         /// `model` or `optimizer`.
         what: &'static str,
         /// burn's error.
+        #[source]
         error: RecordError,
     },
     /// The 2D network's weights cannot be loaded.
@@ -108,17 +116,26 @@ pub enum TrainerError {
         /// Batch in the epoch.
         batch: u64,
     },
-    /// A batch file (`superflow-pipeline batch`) that cannot be used.
-    #[error("batch file {}: {reason}", path.display())]
+    /// A batch file (`superflow-pipeline batch`) too short for a batch header.
+    #[error("batch file {}: {bytes} bytes: shorter than a batch header", path.display())]
+    BatchFileTooShort {
+        /// The file.
+        path: PathBuf,
+        /// Its size.
+        bytes: usize,
+    },
+    /// A batch file (`superflow-pipeline batch`) whose batch cannot be read.
+    #[error("batch file {}", path.display())]
     BatchFile {
         /// The file.
         path: PathBuf,
         /// What is wrong.
-        reason: String,
+        #[source]
+        error: BatchError,
     },
     /// The downstream probe (`superflow-trainer probe`).
-    #[error("probe: {0}")]
-    Probe(Box<ProbeError>),
+    #[error("probe")]
+    Probe(#[source] Box<ProbeError>),
     /// `--ddp` in a process whose MPI was initialized already.
     #[error("MPI: MPI was initialized already")]
     MpiInitialized,
@@ -133,7 +150,7 @@ pub enum TrainerError {
     NothingToPlot,
 }
 
-/// The message embeds the probe's error, so it is not chained again as a source.
+/// Boxed: a probe's error would make every `TrainerError` larger.
 impl From<ProbeError> for TrainerError {
     fn from(error: ProbeError) -> Self {
         Self::Probe(Box::new(error))
@@ -149,4 +166,17 @@ impl TrainerError {
             error,
         }
     }
+}
+
+/// `error` followed by each of its causes ([`source`](std::error::Error::source)), each
+/// after `: ` — the text anyhow prints for `{:#}`.
+pub fn with_causes(error: &dyn std::error::Error) -> String {
+    let mut text = error.to_string();
+    let mut cause = error.source();
+    while let Some(e) = cause {
+        text.push_str(": ");
+        text.push_str(&e.to_string());
+        cause = e.source();
+    }
+    text
 }

@@ -23,7 +23,7 @@
 //!
 //! 8. [`run`]: a training run as the `superflow-trainer` binary runs it — start (fresh,
 //!    `--resume`, or a data-parallel job over MPI, `ddp`), the step loop, checkpoints on a
-//!    schedule and on SIGTERM, the summary.
+//!    schedule and on SIGTERM, the summary; why it fails is a [`RunError`](run::RunError).
 //!
 //! [`config`] is `trainer.toml` ([`TrainerConfig`](config::TrainerConfig)) with the
 //! command line's [`Overrides`](config::Overrides); [`device`] turns a backend name into

@@ -1,12 +1,13 @@
 //! `--ddp`: joining the MPI job, or saying why this build cannot.
 
+use super::error::RunError;
 use super::options::RunOptions;
 
 #[cfg(feature = "mpi")]
 pub use crate::ddp::Ddp;
 
 /// `--ddp`: this rank's place in the MPI job.
-pub fn join_job(options: &RunOptions) -> anyhow::Result<Option<Ddp>> {
+pub fn join_job(options: &RunOptions) -> Result<Option<Ddp>, RunError> {
     if !options.ddp {
         return Ok(None);
     }
@@ -23,11 +24,7 @@ pub fn join_job(options: &RunOptions) -> anyhow::Result<Option<Ddp>> {
         Ok(Some(Ddp::init(timeout)?))
     }
     #[cfg(not(feature = "mpi"))]
-    anyhow::bail!(
-        "--ddp needs MPI, and this superflow-trainer was built without its `mpi` feature \
-         (install Open MPI and libclang: apt-get install libopenmpi-dev openmpi-bin libclang-dev, \
-         then build with the default features)"
-    )
+    Err(RunError::NoMpi)
 }
 
 /// Without the `mpi` feature there is no job to be part of: an uninhabited stand-in,

@@ -6,10 +6,12 @@
 //!   networks: those are the [`TrainerConfig`]);
 //! * [`paths`]: where the run's files go;
 //! * [`start`]: fresh start, `--resume`, and the data-parallel start;
+//! * [`error`]: [`RunError`], why a run stops with an error;
 //! * [`job`]: joining the MPI job (`--ddp`);
 //! * [`session`]: the step loop, the periodic and final checkpoints;
 //! * [`signals`]: SIGTERM/SIGINT end the run after the step in progress.
 
+pub mod error;
 pub mod job;
 pub mod options;
 pub mod paths;
@@ -23,7 +25,6 @@ use crate::metrics::MetricsWriter;
 use crate::stream::StreamTracker;
 use crate::subscribe::{Subscription, Target};
 use crate::train::Trainer;
-use anyhow::Context as _;
 use job::{Ddp, join_job};
 use paths::RunPaths;
 use session::{Session, progress_bar};
@@ -31,23 +32,27 @@ use signals::watch_signals;
 use start::{resume, run_complete, start_fresh, start_ranks};
 use std::time::Instant;
 
+pub use error::{ResumeRefused, RunError};
 pub use options::RunOptions;
 
 /// Trains with `config`; `Some(code)` when stopped early by a signal (after a
 /// checkpoint). Resuming a run whose pipeline has served all its epochs (a requeued job
 /// of a finished run) is not a failure: it says so and returns `Ok(None)` at once.
-pub fn train(options: &RunOptions, config: TrainerConfig) -> anyhow::Result<Option<i32>> {
+pub fn train(options: &RunOptions, config: TrainerConfig) -> Result<Option<i32>, RunError> {
     options.check_rank()?;
     let ddp = join_job(options)?;
-    let iox = superflow_schemas::service::iceoryx2_config(options.iox_prefix.as_deref())
-        .map_err(|e| anyhow::anyhow!(e))?;
-    let stop = watch_signals().context("installing the SIGTERM/SIGINT handlers")?;
+    let iox = superflow_schemas::service::iceoryx2_config(options.iox_prefix.as_deref())?;
+    let stop = watch_signals().map_err(RunError::Signals)?;
     let target = match &ddp {
         Some(ddp) => Target::Rank(ddp.local_rank() as u32),
         None => options.rank.map_or(Target::Broadcast, Target::Rank),
     };
-    let subscription = Subscription::open(&options.run, target, &iox, 2)
-        .with_context(|| format!("subscribing to run {}", options.run))?;
+    let subscription = Subscription::open(&options.run, target, &iox, 2).map_err(|source| {
+        RunError::Subscribe {
+            run: options.run.clone(),
+            source,
+        }
+    })?;
     let paths = RunPaths::new(options.out_dir(), &config, ddp.as_ref().map(Ddp::rank));
     let (steps, every) = (config.optim.steps, config.checkpoint.every);
     let device = device::select(options.backend, options.device_index)?;
@@ -61,7 +66,7 @@ pub fn train(options: &RunOptions, config: TrainerConfig) -> anyhow::Result<Opti
     let resumed_at = match started {
         Ok(at) => at,
         Err(e) if run_complete(&e).is_some() => {
-            tracing::info!(run = %options.run, step = trainer.step_count(), "{e:#}");
+            tracing::info!(run = %options.run, step = trainer.step_count(), "{e}");
             return Ok(None);
         }
         Err(e) => return Err(e),

@@ -1,5 +1,6 @@
 //! [`RunOptions`]: what the command line says about a run besides its configuration.
 
+use super::error::RunError;
 use std::path::PathBuf;
 
 /// What the command line says about a run besides its configuration.
@@ -33,11 +34,11 @@ pub struct RunOptions {
 
 impl RunOptions {
     /// `--rank` must be below `--world-size`.
-    pub fn check_rank(&self) -> anyhow::Result<()> {
-        if let (Some(rank), Some(world)) = (self.rank, self.world_size)
-            && rank >= world
+    pub fn check_rank(&self) -> Result<(), RunError> {
+        if let (Some(rank), Some(world_size)) = (self.rank, self.world_size)
+            && rank >= world_size
         {
-            anyhow::bail!("--rank {rank} is not below --world-size {world}");
+            return Err(RunError::RankOutOfRange { rank, world_size });
         }
         Ok(())
     }

@@ -1,6 +1,7 @@
 //! A run in progress: receiving batches, stepping, checkpointing, and the summary at the
 //! end.
 
+use super::error::RunError;
 use super::job::Ddp;
 use super::options::RunOptions;
 use super::paths::RunPaths;
@@ -11,7 +12,6 @@ use crate::metrics::{self, DdpRecord, MetricsWriter, StepRecord};
 use crate::stream::{self, Action, PlanView, RankState, StreamPosition, StreamTracker};
 use crate::subscribe::{Received, ResumeAt, Subscription};
 use crate::train::{StepOutcome, Trainer};
-use anyhow::Context as _;
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -31,7 +31,7 @@ fn next_batch(
     run: &str,
     timeout: Duration,
     stop: &AtomicI32,
-) -> anyhow::Result<Option<Received>> {
+) -> Result<Option<Received>, RunError> {
     let t = Instant::now();
     let mut gone_reported = false;
     loop {
@@ -56,10 +56,10 @@ fn next_batch(
             gone_reported = false;
         }
         if t.elapsed() > timeout {
-            anyhow::bail!(
-                "no batch from run {run} within {} s (is superflow-pipeline running with --run {run}?)",
-                timeout.as_secs()
-            );
+            return Err(RunError::NoBatch {
+                run: run.to_string(),
+                secs: timeout.as_secs(),
+            });
         }
     }
 }
@@ -124,7 +124,7 @@ impl Session<'_> {
 
     /// Steps until the run's length, the end of the stream (the last batch of the
     /// pipeline's last epoch, from its schedule) or a stop signal.
-    pub fn train(&mut self) -> anyhow::Result<()> {
+    pub fn train(&mut self) -> Result<(), RunError> {
         while self.trainer.step_count() < self.steps {
             let t = Instant::now();
             let batch = match self.held.take() {
@@ -247,7 +247,7 @@ impl Session<'_> {
 
     /// The next batch to train on, past batches trained already and streams asked to
     /// continue elsewhere; `None` once a stop signal was caught.
-    fn next_trainable(&mut self) -> anyhow::Result<Option<Received>> {
+    fn next_trainable(&mut self) -> Result<Option<Received>, RunError> {
         loop {
             let Some(batch) = next_batch(
                 &self.subscription,
@@ -279,7 +279,7 @@ impl Session<'_> {
                         // A restarted pipeline that has already served every epoch: the
                         // stream ended.
                         Err(e) if run_complete(&e).is_some() => {
-                            tracing::info!(run = %self.options.run, "{e:#}");
+                            tracing::info!(run = %self.options.run, "{e}");
                             self.ended = true;
                             return Ok(None);
                         }
@@ -291,7 +291,7 @@ impl Session<'_> {
     }
 
     /// Asks the pipeline `origin` how this stream is scheduled, once per pipeline process.
-    fn learn_schedule(&mut self, origin: u128) -> anyhow::Result<()> {
+    fn learn_schedule(&mut self, origin: u128) -> Result<(), RunError> {
         if self.schedule.is_some_and(|s| s.publisher() == origin)
             || self.unscheduled.contains(&origin)
         {
@@ -328,7 +328,7 @@ impl Session<'_> {
         got: StreamPosition,
         at: StreamPosition,
         restarted: bool,
-    ) -> anyhow::Result<()> {
+    ) -> Result<(), RunError> {
         tracing::warn!(
             got_epoch = got.epoch,
             got_batch = got.batch,
@@ -383,12 +383,12 @@ impl Session<'_> {
         batch: Option<Received>,
         at: StreamPosition,
         wait: f64,
-    ) -> anyhow::Result<bool> {
+    ) -> Result<bool, RunError> {
         let view = batch
             .as_ref()
             .map(Received::view)
             .transpose()
-            .context("invalid batch")?;
+            .map_err(RunError::InvalidBatch)?;
         let had_batch = view.is_some();
         if view.as_ref().is_some_and(BatchView::is_lost) {
             if self.ddp.is_none() {
@@ -409,9 +409,13 @@ impl Session<'_> {
                 self.trainer.step_synced(view.as_ref(), Some(&mut reduce))
             }
             (None, Some(view)) => self.trainer.step(view),
-            (None, None) => anyhow::bail!("step {number}: no batch"),
+            (None, None) => return Err(RunError::NoBatchForStep { step: number }),
         }
-        .with_context(|| format!("step {number} ({at})"))?;
+        .map_err(|source| RunError::Step {
+            step: number,
+            at,
+            source: Box::new(source),
+        })?;
         drop(view);
         drop(batch);
         self.waiting += wait;
@@ -461,12 +465,12 @@ impl Session<'_> {
     /// Saves a checkpoint (a data-parallel job: every rank calls this, rank 0 writes it
     /// with every rank's next position); the directory written, if this process wrote.
     /// `losses` are the last step's (over all ranks in a data-parallel job).
-    fn save_checkpoint(&self, losses: &LossValues) -> anyhow::Result<Option<PathBuf>> {
+    fn save_checkpoint(&self, losses: &LossValues) -> Result<Option<PathBuf>, RunError> {
         let run = &self.options.run;
         let Some(ddp) = &self.ddp else {
             let next = self
                 .next_position()
-                .context("a checkpoint before the first step")?;
+                .ok_or(RunError::CheckpointBeforeFirstStep)?;
             let mut state = self.trainer.checkpoint_state(run, next, losses);
             state.job = self.job_position(next);
             return Ok(Some(
@@ -499,7 +503,7 @@ impl Session<'_> {
 
     /// The final checkpoint, the plot and the summary; `Some(128 + signal)` when stopped
     /// by a signal.
-    pub fn finish(self) -> anyhow::Result<Option<i32>> {
+    pub fn finish(self) -> Result<Option<i32>, RunError> {
         self.bar.finish_and_clear();
         let signal = self.stop.load(Ordering::SeqCst);
         let checkpoint = match &self.ddp {

@@ -6,7 +6,7 @@ use std::sync::atomic::{AtomicI32, Ordering};
 /// Watches SIGTERM and SIGINT (on a thread of its own): the first sets the returned
 /// number (15 or 2) — the trainer checkpoints after the step in progress and exits
 /// with 128 + the signal — and a second one exits at once.
-pub fn watch_signals() -> anyhow::Result<Arc<AtomicI32>> {
+pub fn watch_signals() -> std::io::Result<Arc<AtomicI32>> {
     use tokio::signal::unix::{SignalKind, signal};
     let caught = Arc::new(AtomicI32::new(0));
     let runtime = tokio::runtime::Builder::new_current_thread()

@@ -1,86 +1,26 @@
 //! How a run starts: fresh, from its newest checkpoint (`--resume`), or — a data-parallel
 //! job — as rank 0 decides, with every rank receiving rank 0's parameters.
 
+use super::error::RunError;
 use super::job::Ddp;
 use super::options::RunOptions;
 use super::paths::RunPaths;
 use crate::checkpoint::CheckpointState;
+use crate::error::with_causes;
 use crate::metrics;
 use crate::stream::StreamPosition;
 use crate::subscribe::{ResumeAt, Subscription};
 use crate::train::Trainer;
-use anyhow::Context as _;
 use std::path::PathBuf;
 use std::time::Duration;
-use superflow_schemas::service::ResumeReply;
 
-/// Why the pipeline did not continue a stream where a trainer asked.
-#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-pub enum ResumeRefused {
-    /// The position is at or past the end of the pipeline's epochs: a finished run (a
-    /// requeued job, a `--resume` after the last step). Nothing is wrong; there is
-    /// nothing to do.
-    #[error("the run is complete ({epochs} epochs): nothing left to train")]
-    RunComplete {
-        /// The epochs the pipeline serves.
-        epochs: u64,
-    },
-    /// Any other refusal: the position or stream does not fit this pipeline.
-    #[error("the pipeline refused to resume run {run} at {position}: {why}")]
-    Refused {
-        /// The run.
-        run: String,
-        /// The position asked for, in words.
-        position: String,
-        /// `ResumeReply::reason`.
-        reason: u32,
-        /// What the reason means and what to check.
-        why: String,
-    },
-}
-
-impl ResumeRefused {
-    /// The refusal `reply` of a request to continue `run` at `at`.
-    pub fn of(run: &str, at: ResumeAt, reply: &ResumeReply) -> Self {
-        if reply.reason == ResumeReply::RUN_COMPLETE {
-            return Self::RunComplete {
-                epochs: reply.epoch,
-            };
-        }
-        let position = match at {
-            ResumeAt::Step { epoch, step } => format!("epoch {epoch} batch {step}"),
-            ResumeAt::Sample { epoch, sample, .. } => {
-                format!("epoch {epoch} after {sample} samples")
-            }
-        };
-        let why = match reply.reason {
-            ResumeReply::NO_SUCH_STREAM => {
-                "no such stream: another --world-size or --mode?".to_string()
-            }
-            ResumeReply::OUT_OF_RANGE => {
-                "no such position in its epochs: is it the same recording and configuration?"
-                    .to_string()
-            }
-            ResumeReply::OTHER_JOB_SIZE => "the position was saved by a job of another size: \
-                resume by sample (start the pipeline with --start-sample, from a checkpoint \
-                that counts samples)"
-                .to_string(),
-            other => format!("reason {other}"),
-        };
-        Self::Refused {
-            run: run.to_string(),
-            position,
-            reason: reply.reason,
-            why,
-        }
-    }
-}
+pub use super::error::ResumeRefused;
 
 /// The epochs of a finished run, when `error` says the pipeline found the run complete
-/// ([`ResumeRefused::RunComplete`], however much context was added to it).
-pub fn run_complete(error: &anyhow::Error) -> Option<u64> {
-    match error.downcast_ref::<ResumeRefused>() {
-        Some(ResumeRefused::RunComplete { epochs }) => Some(*epochs),
+/// ([`ResumeRefused::RunComplete`]).
+pub fn run_complete(error: &RunError) -> Option<u64> {
+    match error {
+        RunError::Resume(ResumeRefused::RunComplete { epochs }) => Some(*epochs),
         _ => None,
     }
 }
@@ -93,10 +33,13 @@ pub fn ask_resume(
     run: &str,
     at: ResumeAt,
     timeout: Duration,
-) -> anyhow::Result<(u128, StreamPosition)> {
+) -> Result<(u128, StreamPosition), RunError> {
     let reply = subscription
         .resume(at, timeout)
-        .with_context(|| format!("asking run {run} to resume"))?;
+        .map_err(|source| RunError::AskResume {
+            run: run.to_string(),
+            source,
+        })?;
     if reply.accepted != 1 {
         return Err(ResumeRefused::of(run, at, &reply).into());
     }
@@ -112,9 +55,9 @@ pub fn ask_resume(
 /// own failure is its error, and the ranks that succeeded fail too, naming the ranks
 /// that did not, rather than wait for them in the next collective.
 fn agree_on_resume(
-    asked: anyhow::Result<(u128, StreamPosition)>,
+    asked: Result<(u128, StreamPosition), RunError>,
     ddp: &Ddp,
-) -> anyhow::Result<StreamPosition> {
+) -> Result<StreamPosition, RunError> {
     let outcome = match &asked {
         Ok(_) => 0,
         Err(e) if run_complete(e).is_some() => 1,
@@ -125,17 +68,13 @@ fn agree_on_resume(
         |wanted: u64| -> Vec<usize> { (0..all.len()).filter(|&r| all[r] == wanted).collect() };
     match asked {
         Err(e) if outcome == 2 => Err(e),
-        _ if all.contains(&2) => anyhow::bail!(
-            "rank(s) {:?} could not resume (their logs say why): this rank stops with them",
-            ranks(2)
-        ),
+        _ if all.contains(&2) => Err(RunError::RanksCannotResume { ranks: ranks(2) }),
         Err(e) if all.iter().all(|&o| o == 1) => Err(e),
         Ok((_, position)) if all.iter().all(|&o| o == 0) => Ok(position),
-        _ => anyhow::bail!(
-            "the pipelines of rank(s) {:?} found the run complete and those of rank(s) {:?} did not: every host's pipeline needs the same --epochs, drives and configuration",
-            ranks(1),
-            ranks(0)
-        ),
+        _ => Err(RunError::CompletionDiffers {
+            complete: ranks(1),
+            incomplete: ranks(0),
+        }),
     }
 }
 
@@ -160,36 +99,33 @@ pub fn start_ranks(
     subscription: &Subscription,
     paths: &RunPaths,
     ddp: &Ddp,
-) -> anyhow::Result<Option<StreamPosition>> {
+) -> Result<Option<StreamPosition>, RunError> {
     let rank = ddp.rank();
-    let (start, model, optim) = if rank == 0 {
+    // Rank 0 keeps its own error to return; the other ranks receive its text.
+    let (start, model, optim, failed) = if rank == 0 {
         match first_rank_start(options.resume, trainer, paths) {
-            Ok(start) => start,
+            Ok((start, model, optim)) => (start, model, optim, None),
             Err(e) => (
                 JobStart {
-                    error: Some(format!("{e:#}")),
+                    error: Some(with_causes(&e)),
                     ..JobStart::default()
                 },
                 Vec::new(),
                 Vec::new(),
+                Some(e),
             ),
         }
     } else {
         Default::default()
     };
-    let start = ddp.broadcast_bytes(serde_json::to_vec(&start)?, "job start (rank 0's decision)");
-    let start: JobStart = serde_json::from_slice(&start).context("rank 0's job start")?;
+    let start = serde_json::to_vec(&start).map_err(RunError::EncodeJobStart)?;
+    let start = ddp.broadcast_bytes(start, "job start (rank 0's decision)");
+    let start: JobStart = serde_json::from_slice(&start).map_err(RunError::DecodeJobStart)?;
     if let Some(error) = start.error {
-        anyhow::bail!(if rank == 0 {
-            error
-        } else {
-            format!("rank 0 could not start the job: {error}")
-        });
+        return Err(failed.unwrap_or(RunError::FirstRank(error)));
     }
     if start.config != trainer.config_toml() {
-        anyhow::bail!(
-            "rank {rank}'s configuration differs from rank 0's: give every rank the same trainer.toml and flags"
-        );
+        return Err(RunError::ConfigDiffers { rank });
     }
     let model = ddp.broadcast_bytes(model, "rank 0's parameters");
     let optim = ddp.broadcast_bytes(optim, "rank 0's optimizer state");
@@ -213,12 +149,12 @@ pub fn start_ranks(
     let at = match (state.job, own) {
         (Some(_), _) => state.resume_at(state.next()),
         (None, Some(own)) if state.ranks.len() == ddp.size() => state.resume_at(own),
-        (None, _) => anyhow::bail!(
-            "the checkpoint at step {} was written by a job of {} data-parallel ranks and does not count the samples it consumed; resume it with mpirun -np {}",
-            state.step,
-            state.ranks.len(),
-            state.ranks.len().max(1)
-        ),
+        (None, _) => {
+            return Err(RunError::UncountedCheckpoint {
+                step: state.step,
+                ranks: state.ranks.len(),
+            });
+        }
     };
     let asked = ask_resume(
         subscription,
@@ -245,13 +181,12 @@ pub fn first_rank_start(
     resume: bool,
     trainer: &Trainer,
     paths: &RunPaths,
-) -> anyhow::Result<(JobStart, Vec<u8>, Vec<u8>)> {
+) -> Result<(JobStart, Vec<u8>, Vec<u8>), RunError> {
     let config = trainer.config_toml();
     let latest = crate::checkpoint::latest(&paths.checkpoints)?;
     match latest {
         Some(ckpt) if resume => {
-            let read =
-                |p: PathBuf| std::fs::read(&p).with_context(|| format!("reading {}", p.display()));
+            let read = |p: PathBuf| std::fs::read(&p).map_err(|e| RunError::io("reading", p, e));
             let (model, optim) = (read(ckpt.model_path())?, read(ckpt.optim_path())?);
             tracing::info!(checkpoint = %ckpt.dir.display(), step = ckpt.state.step, "the job continues from this checkpoint");
             let start = JobStart {
@@ -282,7 +217,7 @@ pub fn resume(
     trainer: &mut Trainer,
     subscription: &Subscription,
     paths: &RunPaths,
-) -> anyhow::Result<Option<StreamPosition>> {
+) -> Result<Option<StreamPosition>, RunError> {
     let Some(state) = restore_newest(trainer, paths)? else {
         return Ok(None);
     };
@@ -308,7 +243,7 @@ pub fn resume(
 pub fn restore_newest(
     trainer: &mut Trainer,
     paths: &RunPaths,
-) -> anyhow::Result<Option<CheckpointState>> {
+) -> Result<Option<CheckpointState>, RunError> {
     let state = trainer.restore_latest(&paths.checkpoints)?;
     if state.is_none() {
         tracing::warn!(dir = %paths.checkpoints.display(), "--resume: no checkpoint yet, starting fresh");
@@ -317,7 +252,7 @@ pub fn restore_newest(
 }
 
 /// A resumed run redoes the steps after its checkpoint's `step`: their metrics lines go.
-pub fn drop_redone_metrics(paths: &RunPaths, step: u64) -> anyhow::Result<()> {
+pub fn drop_redone_metrics(paths: &RunPaths, step: u64) -> Result<(), RunError> {
     let redone = metrics::truncate_after(&paths.metrics, step)?;
     if redone > 0 {
         tracing::warn!(
@@ -330,22 +265,21 @@ pub fn drop_redone_metrics(paths: &RunPaths, step: u64) -> anyhow::Result<()> {
 }
 
 /// Why a fresh run does not start in `paths`: it holds checkpoints.
-fn holds_checkpoints(paths: &RunPaths) -> anyhow::Error {
-    anyhow::anyhow!(
-        "{} already holds checkpoints: pass --resume to continue that run, or choose another --out",
-        paths.checkpoints.display()
-    )
+fn holds_checkpoints(paths: &RunPaths) -> RunError {
+    RunError::HoldsCheckpoints {
+        dir: paths.checkpoints.clone(),
+    }
 }
 
 /// A fresh run: refuses an output directory holding checkpoints (`check_checkpoints`:
 /// the process that writes them), drops old metrics.
-pub fn start_fresh(paths: &RunPaths, check_checkpoints: bool) -> anyhow::Result<()> {
+pub fn start_fresh(paths: &RunPaths, check_checkpoints: bool) -> Result<(), RunError> {
     if check_checkpoints && crate::checkpoint::latest(&paths.checkpoints)?.is_some() {
         return Err(holds_checkpoints(paths));
     }
     if paths.metrics.exists() {
         std::fs::remove_file(&paths.metrics)
-            .with_context(|| format!("replacing {}", paths.metrics.display()))?;
+            .map_err(|e| RunError::io("replacing", &paths.metrics, e))?;
     }
     Ok(())
 }
@@ -358,6 +292,7 @@ mod tests {
     use crate::metrics::{MetricsWriter, StepRecord};
     use crate::unet::UNetPreset;
     use crate::vit::VitPreset;
+    use superflow_schemas::service::ResumeReply;
 
     fn tiny_trainer(seed: u64) -> Trainer {
         let mut config = TrainerConfig::default();
@@ -392,8 +327,8 @@ mod tests {
         state
     }
 
-    /// The pipeline's refusals in words; a finished run is told apart whatever context
-    /// the error picked up on its way.
+    /// The pipeline's refusals in words; a finished run is told apart from any other
+    /// refusal.
     #[test]
     fn refusals_name_the_reason_and_a_finished_run_is_its_own() {
         let at = ResumeAt::Sample {
@@ -412,14 +347,14 @@ mod tests {
             done.to_string(),
             "the run is complete (3 epochs): nothing left to train"
         );
-        let error = anyhow::Error::from(done).context("resuming");
+        let error = RunError::from(done);
         assert_eq!(run_complete(&error), Some(3));
         let other = ResumeRefused::of("r", at, &reply(ResumeReply::OUT_OF_RANGE, 0));
         assert_eq!(
             other.to_string(),
             "the pipeline refused to resume run r at epoch 2 after 36 samples: no such position in its epochs: is it the same recording and configuration?"
         );
-        assert_eq!(run_complete(&anyhow::Error::from(other)), None);
+        assert_eq!(run_complete(&RunError::from(other)), None);
         let step = ResumeAt::Step { epoch: 1, step: 4 };
         let text = ResumeRefused::of("r", step, &reply(ResumeReply::OTHER_JOB_SIZE, 0)).to_string();
         assert!(

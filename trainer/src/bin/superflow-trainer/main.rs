@@ -30,9 +30,9 @@ fn main() -> std::process::ExitCode {
         Some(Sub::Probe(_) | Sub::Features(_)) => Err(anyhow::anyhow!(
             "probe and features are not compiled in: build superflow-trainer with its `probe` feature (on by default)"
         )),
-        None => args
-            .config()
-            .and_then(|config| superflow_trainer::run::train(&args.run_options(), config)),
+        None => args.config().and_then(|config| {
+            superflow_trainer::run::train(&args.run_options(), config).map_err(Into::into)
+        }),
     };
     match outcome {
         Ok(None) => std::process::ExitCode::SUCCESS,

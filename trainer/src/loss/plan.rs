@@ -1,78 +1,12 @@
-//! The SuperFlow losses: superpoint / superpixel pooling with count masks, InfoNCE, and
-//! the spatial (`L_sc`), temporal (`L_tc`) and dense-to-sparse (`L_d2s`) terms.
-//!
-//! Everything that depends only on the batch's integer sections — which pairing falls
-//! into which superpoint, which pixel into which superpixel, which slots are non-empty
-//! — is computed once on the host into a [`LossPlan`]; the device work is two
-//! scatter-adds (pooling), a few row selections and the similarity matrices.
-//!
-//! Slots: a *superpoint slot* is (cloud kind `c`, sample `b`, superpixel id `s`) with
-//! `s < num_superpixels[b, frame(c)]` (the dense cloud uses the key frame's ids); a
-//! *superpixel slot* is (frame `f`, sample `b`, id `s`). Slots of one kind are
-//! concatenated over the samples, so negatives come from the whole batch (as in SLidR
-//! and SuperFlow's code). Pooled features are plain means — not re-normalized.
-//!
-//! * `L_sc` = mean over frames f of InfoNCE(superpoints of frame f, superpixels of f),
-//!   on slots with pairings and pixels;
-//! * `L_tc` = mean over f ≠ key of InfoNCE(superpoints at the key frame, superpoints at
-//!   f), on ids below both frames' counts with pairings in both;
-//! * `L_d2s` on ids of the key frame with pairings in the key cloud and the dense
-//!   cloud: `mean(1 − cos(q_key, q_dense))` (paper, Eq. 3) or InfoNCE(q_dense, q_key)
-//!   (official code);
-//! * total = w_sc·L_sc + w_tc·L_tc + w_d2s·L_d2s. A term without slots is 0.
-//!
-//! InfoNCE(a, b) = mean_i −log softmax_j(a_i·b_j / τ)\[i\].
+//! The host-side index plan of a batch's losses ([`LossPlan`]): from the batch's integer
+//! sections, which pairing falls into which superpoint slot, which sampled pixel into
+//! which superpixel slot, and which slots each term compares. Built once per batch on the
+//! CPU; the device only receives its index tensors.
 
 use crate::rows::RowOps;
 use crate::unet::index_tensor;
-use burn::tensor::activation::log_softmax;
 use burn::tensor::{Device, Int, Tensor, TensorData};
-use serde::{Deserialize, Serialize};
 use superflow_schemas::batch::Section;
-
-/// Which form of the dense-to-sparse term.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum D2sForm {
-    /// `mean(1 − cos)`, the paper's Eq. 3.
-    Cosine,
-    /// InfoNCE, as the official code.
-    #[default]
-    Infonce,
-}
-
-/// `[loss]` of trainer.toml.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct LossConfig {
-    /// InfoNCE temperature τ.
-    pub temperature: f64,
-    /// Weight of `L_sc`.
-    pub w_sc: f64,
-    /// Weight of `L_tc`.
-    pub w_tc: f64,
-    /// Weight of `L_d2s`.
-    pub w_d2s: f64,
-    /// Form of `L_d2s`.
-    pub d2s: D2sForm,
-    /// Superpixel pooling evaluates the 2D features at every `pixel_stride`-th pixel of
-    /// each row and column (1 = every pixel, as the official code; larger strides make
-    /// CPU training affordable — the features at those pixels are exact).
-    pub pixel_stride: usize,
-}
-
-impl Default for LossConfig {
-    fn default() -> Self {
-        Self {
-            temperature: 0.07,
-            w_sc: 1.0,
-            w_tc: 1.0,
-            w_d2s: 1.0,
-            d2s: D2sForm::Infonce,
-            pixel_stride: 1,
-        }
-    }
-}
 
 /// What the plan needs from a batch, as host arrays (see `pipeline/src/batch.rs`).
 #[derive(Debug, Clone, Copy)]
@@ -148,17 +82,17 @@ pub struct LossPlan {
     /// Point row of every pairing (to gather the 3D features).
     pub pairing_point: Tensor<1, Int>,
     /// Superpoint slot of every pairing.
-    pairing_slot: Tensor<1, Int>,
+    pub(super) pairing_slot: Tensor<1, Int>,
     /// `[superpoint slots, 1]` pairings per slot, clamped to ≥ 1.
-    point_counts: Tensor<2>,
-    point_slots: usize,
+    pub(super) point_counts: Tensor<2>,
+    pub(super) point_slots: usize,
     /// Sampled pixels: image number, row, column.
     pub pixels: Vec<[u32; 3]>,
     /// Superpixel slot of every sampled pixel.
-    pixel_slot: Tensor<1, Int>,
+    pub(super) pixel_slot: Tensor<1, Int>,
     /// `[superpixel slots, 1]` sampled pixels per slot, clamped to ≥ 1.
-    pixel_counts: Tensor<2>,
-    pixel_slots: usize,
+    pub(super) pixel_counts: Tensor<2>,
+    pub(super) pixel_slots: usize,
     /// `L_sc` per frame: (superpoint rows, superpixel rows).
     pub sc: Vec<Matched>,
     /// `L_tc` per non-key frame: (key superpoint rows, frame superpoint rows).
@@ -168,7 +102,7 @@ pub struct LossPlan {
     /// Image height and width.
     pub image_size: [usize; 2],
     /// How the device runs the gathers and scatter-adds ([`RowOps::of`]).
-    ops: RowOps,
+    pub(super) ops: RowOps,
 }
 
 impl LossPlan {
@@ -447,194 +381,5 @@ impl<'x, 'a> Slots<'x, 'a> {
             &ids,
         );
         (sc, tc, d2s)
-    }
-}
-
-/// Mean of `rows` per slot: scatter-add, then divide by the (clamped) counts.
-fn pool(
-    rows: Tensor<2>,
-    slot: &Tensor<1, Int>,
-    slots: usize,
-    counts: &Tensor<2>,
-    ops: RowOps,
-) -> Tensor<2> {
-    let [_, d] = rows.dims();
-    let device = rows.device();
-    let sums = ops.scatter_add(Tensor::zeros([slots, d], &device), slot, rows);
-    sums / counts.clone()
-}
-
-/// InfoNCE of matched rows: cross-entropy of `a·bᵀ/τ` against the diagonal.
-pub fn info_nce(a: Tensor<2>, b: Tensor<2>, temperature: f64) -> Tensor<1> {
-    let [m, _] = a.dims();
-    let device = a.device();
-    let logits = a.matmul(b.transpose()).div_scalar(temperature);
-    let log_p = log_softmax(logits, 1);
-    let diagonal = (log_p * Tensor::<2>::eye(m, &device)).sum();
-    diagonal.neg().div_scalar(m as f64)
-}
-
-/// `mean(1 − cos(a_i, b_i))`.
-pub fn cosine_distance(a: Tensor<2>, b: Tensor<2>) -> Tensor<1> {
-    let dot = (a.clone() * b.clone()).sum_dim(1);
-    let na = a.square().sum_dim(1).sqrt();
-    let nb = b.square().sum_dim(1).sqrt();
-    let cos = dot / (na * nb).clamp_min(1e-8);
-    cos.neg().add_scalar(1.0).mean()
-}
-
-/// The loss terms of one step (scalars, `[1]`).
-#[derive(Debug, Clone)]
-pub struct LossTerms {
-    /// The weighted sum that is optimized.
-    pub total: Tensor<1>,
-    /// `L_sc` (mean over frames).
-    pub sc: Tensor<1>,
-    /// `L_sc` of each frame.
-    pub sc_frames: Vec<Tensor<1>>,
-    /// `L_tc` (mean over the non-key frames).
-    pub tc: Tensor<1>,
-    /// `L_d2s`.
-    pub d2s: Tensor<1>,
-}
-
-/// The loss values of a step, read back from the device.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
-pub struct LossValues {
-    /// Weighted total.
-    pub total: f64,
-    /// `L_sc`.
-    pub sc: f64,
-    /// `L_tc`.
-    pub tc: f64,
-    /// `L_d2s`.
-    pub d2s: f64,
-}
-
-impl LossTerms {
-    /// Reads the scalars back (one transfer).
-    pub fn values(&self) -> LossValues {
-        let all = Tensor::cat(
-            vec![
-                self.total.clone(),
-                self.sc.clone(),
-                self.tc.clone(),
-                self.d2s.clone(),
-            ],
-            0,
-        );
-        let v: Vec<f32> = all
-            .into_data()
-            .try_into_vec()
-            .unwrap_or_else(|_| vec![f32::NAN; 4]);
-        LossValues {
-            total: f64::from(v[0]),
-            sc: f64::from(v[1]),
-            tc: f64::from(v[2]),
-            d2s: f64::from(v[3]),
-        }
-    }
-}
-
-/// The SuperFlow objective.
-#[derive(Debug, Clone)]
-pub struct SuperFlowLoss {
-    /// Temperature, weights and the `L_d2s` form.
-    pub config: LossConfig,
-}
-
-impl SuperFlowLoss {
-    /// The objective with `config`.
-    pub fn new(config: LossConfig) -> Self {
-        Self { config }
-    }
-
-    /// Superpoint features: mean 3D feature of each slot's pairings. `pairing_features`
-    /// holds the 3D feature of every pairing's point, in pairing order.
-    pub fn superpoints(&self, pairing_features: Tensor<2>, plan: &LossPlan) -> Tensor<2> {
-        pool(
-            pairing_features,
-            &plan.pairing_slot,
-            plan.point_slots,
-            &plan.point_counts,
-            plan.ops,
-        )
-    }
-
-    /// Superpixel features: mean 2D feature of each slot's sampled pixels
-    /// (`pixel_features` in the order of `plan.pixels`).
-    pub fn superpixels(&self, pixel_features: Tensor<2>, plan: &LossPlan) -> Tensor<2> {
-        pool(
-            pixel_features,
-            &plan.pixel_slot,
-            plan.pixel_slots,
-            &plan.pixel_counts,
-            plan.ops,
-        )
-    }
-
-    fn nce(&self, a: &Tensor<2>, b: &Tensor<2>, m: &Matched, ops: RowOps) -> Option<Tensor<1>> {
-        (m.len > 0).then(|| {
-            info_nce(
-                ops.gather(a.clone(), &m.a),
-                ops.gather(b.clone(), &m.b),
-                self.config.temperature,
-            )
-        })
-    }
-
-    /// All terms from the 3D features of the pairings' points and the 2D features of
-    /// the sampled pixels.
-    pub fn forward(
-        &self,
-        pairing_features: Tensor<2>,
-        pixel_features: Tensor<2>,
-        plan: &LossPlan,
-    ) -> LossTerms {
-        let device = pairing_features.device();
-        let zero = || Tensor::<1>::zeros([1], &device);
-        let k = self.superpoints(pairing_features, plan);
-        let q = self.superpixels(pixel_features, plan);
-        let mean = |terms: Vec<Tensor<1>>| {
-            let n = terms.len();
-            if n == 0 {
-                zero()
-            } else {
-                Tensor::cat(terms, 0).sum().div_scalar(n as f64)
-            }
-        };
-        let sc_frames: Vec<Tensor<1>> = plan
-            .sc
-            .iter()
-            .map(|m| self.nce(&k, &q, m, plan.ops).unwrap_or_else(zero))
-            .collect();
-        let sc = mean(sc_frames.clone());
-        let tc = mean(
-            plan.tc
-                .iter()
-                .map(|m| self.nce(&k, &k, m, plan.ops).unwrap_or_else(zero))
-                .collect(),
-        );
-        let d2s = if plan.d2s.len == 0 {
-            zero()
-        } else {
-            let key = plan.ops.gather(k.clone(), &plan.d2s.a);
-            let dense = plan.ops.gather(k, &plan.d2s.b);
-            match self.config.d2s {
-                D2sForm::Cosine => cosine_distance(key, dense),
-                D2sForm::Infonce => info_nce(dense, key, self.config.temperature),
-            }
-        };
-        let c = &self.config;
-        let total = sc.clone().mul_scalar(c.w_sc)
-            + tc.clone().mul_scalar(c.w_tc)
-            + d2s.clone().mul_scalar(c.w_d2s);
-        LossTerms {
-            total,
-            sc,
-            sc_frames,
-            tc,
-            d2s,
-        }
     }
 }
