@@ -10,7 +10,7 @@ use crate::lr_schedule::OneCycle;
 use crate::model::SuperFlowModel;
 use crate::stream::StreamPosition;
 use crate::sync::{GradientBuffer, params_hash};
-use crate::vit::{DinoVit, VitConfig, imagenet_normalize};
+use crate::vit::{DinoVit, imagenet_normalize};
 use burn::module::Module;
 use burn::optim::{AdamWConfig, GradientsParams, ModuleOptimizer};
 use burn::tensor::{Bytes, Device};
@@ -125,26 +125,23 @@ impl Trainer {
         config.validate()?;
         let device = device.clone().autodiff();
         let vit_device = device.clone().inner();
-        let vit = match &config.model.image_weights {
+        let model_config = &config.model;
+        let vit = DinoVit::frozen(
+            model_config.image_weights.as_deref(),
+            model_config.vit,
+            model_config.seed,
+            &vit_device,
+        )?;
+        match &model_config.image_weights {
             Some(path) => {
-                let vit = DinoVit::load_safetensors(path, &vit_device)?;
                 tracing::info!(weights = %path.display(), dim = vit.config().dim, depth = vit.config().depth, "2D network: DINOv2 weights loaded");
-                vit
             }
-            None => {
-                let vit_config = VitConfig::preset(config.model.vit);
-                tracing::warn!(
-                    preset = ?config.model.vit,
-                    "2D network: RANDOM ViT weights (no --image-weights). The 2D features are \
-                     meaningless: use this for tests and demos only, never for pretraining"
-                );
-                DinoVit::random(
-                    &vit_config,
-                    config.model.seed ^ 0x005e_ed0f_u64,
-                    &vit_device,
-                )
-            }
-        };
+            None => tracing::warn!(
+                preset = ?model_config.vit,
+                "2D network: RANDOM ViT weights (no --image-weights). The 2D features are \
+                 meaningless: use this for tests and demos only, never for pretraining"
+            ),
+        }
         let model = SuperFlowModel::new(
             &config.model.unet_config(),
             vit.config().dim,
