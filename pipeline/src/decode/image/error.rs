@@ -2,7 +2,7 @@
 //! message's frame id and (where the message has one) its stamp.
 
 use super::Codec;
-use crate::decode::DecodeError;
+use crate::decode::error::DecodeError;
 use superflow_schemas::Stamp;
 use superflow_schemas::sensor::SensorError;
 
