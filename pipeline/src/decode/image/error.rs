@@ -1,7 +1,7 @@
 //! [`ImageError`]: why an image message cannot be decoded. Every variant names the
 //! message's frame id and (where the message has one) its stamp.
 
-use super::Codec;
+use super::codec::Codec;
 use crate::decode::error::DecodeError;
 use superflow_schemas::Stamp;
 use superflow_schemas::sensor::SensorError;
