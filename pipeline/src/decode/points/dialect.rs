@@ -1,11 +1,12 @@
 //! The per-dialect entry points: ROS 2 `PointCloud2` (row geometry, endianness),
 //! `foxglove.PointCloud` (stride, pose) and MCAP messages dispatched on their schema.
 
+use super::cloud::DecodedCloud;
+use super::error::PointsError;
 use super::label::LabelFieldSpec;
 use super::layout::{FieldList, foxglove_ctx};
 use super::read::{Grid, decode_core};
 use super::time::TimeFieldSpec;
-use super::{DecodedCloud, PointsError};
 use crate::decode::context::Ctx;
 use crate::decode::error::DecodeError;
 use crate::decode::foxglove as fox;

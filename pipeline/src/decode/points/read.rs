@@ -2,13 +2,14 @@
 //! drops the non-finite ones, converts ring and time, and resolves a float time field's
 //! unit by the magnitude of its values.
 
+use super::cloud::DecodedCloud;
+use super::error::PointsError;
 use super::field::{Endianness, FieldPlan, NamedField, NumericType, array};
 use super::label::{LabelPlan, bad_label};
 use super::layout::PointLayout;
 use super::time::{
     TimeConversion, TimeFieldSpec, TimeReference, TimeRule, TimeUnit, magnitude_rule,
 };
-use super::{DecodedCloud, PointsError};
 use crate::decode::context::Ctx;
 use superflow_schemas::sensor::PointCloud;
 
