@@ -3,9 +3,10 @@
 
 use super::cloud::DecodedCloud;
 use super::error::PointsError;
+use super::grid::Grid;
 use super::label::LabelFieldSpec;
 use super::layout::{FieldList, foxglove_ctx};
-use super::read::{Grid, decode_core};
+use super::read::decode_core;
 use super::time::TimeFieldSpec;
 use crate::decode::context::Ctx;
 use crate::decode::error::DecodeError;

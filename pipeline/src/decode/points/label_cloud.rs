@@ -4,9 +4,9 @@
 
 use super::dialect::{AnyCloud, foxglove_grid, ros2_grid};
 use super::error::PointsError;
+use super::grid::{Grid, rows};
 use super::label::{LabelFieldSpec, LabelPlan, bad_label};
 use super::layout::FieldList;
-use super::read::{Grid, rows};
 use crate::decode::foxglove as fox;
 use crate::decode::ros2::PointCloud2;
 use crate::source::MessageRef;

@@ -127,6 +127,7 @@ mod cloud;
 mod dialect;
 mod error;
 mod field;
+mod grid;
 mod label;
 mod label_cloud;
 mod layout;
