@@ -1,7 +1,8 @@
 //! The decoding context shared by the point-cloud and image decoders: the frame id and
 //! stamp of the message being decoded, which every error about the message names.
 
-use super::{DecodeError, foxglove, ros2};
+use super::error::DecodeError;
+use super::{foxglove, ros2};
 use superflow_schemas::Stamp;
 
 /// Frame and stamp of the message being decoded, for error messages.

@@ -2,7 +2,9 @@
 //! the nuScenes converter and the Foxglove SDK. The message types are the Foxglove SDK's
 //! own generated protobuf types; this module converts them into the sensor model.
 
-use super::{DecodeError, isometry};
+use super::calibration::calibration;
+use super::error::DecodeError;
+use super::transform::isometry;
 pub use foxglove::messages::{
     CameraCalibration, CompressedImage, FrameTransform, FrameTransforms, PointCloud, RawImage,
     Timestamp,
@@ -63,7 +65,7 @@ pub fn camera_calibration(
 ) -> Result<sensor::CameraCalibration, DecodeError> {
     const SCHEMA: &str = "foxglove.CameraCalibration";
     let stamp = stamp(SCHEMA, msg.timestamp.as_ref())?;
-    super::calibration(
+    calibration(
         stamp,
         &msg.frame_id,
         (msg.width, msg.height),

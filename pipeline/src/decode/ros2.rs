@@ -12,7 +12,9 @@ pub use superflow_schemas::ros2::*;
 
 use superflow_schemas::sensor::{CameraCalibration, StampedTransform};
 
-use super::DecodeError;
+use super::calibration::calibration;
+use super::error::DecodeError;
+use super::transform::isometry;
 
 /// The transforms of a `tf2_msgs/msg/TFMessage`, each as `parent_from_child`
 /// (`header.frame_id` is the parent). `is_static` is true for `/tf_static`.
@@ -27,7 +29,7 @@ pub fn transforms(msg: &TfMessage, is_static: bool) -> Vec<Result<StampedTransfo
                 stamp,
                 parent_frame: t.header.frame_id.clone(),
                 child_frame: t.child_frame_id.clone(),
-                parent_from_child: super::isometry(
+                parent_from_child: isometry(
                     stamp,
                     &t.header.frame_id,
                     &t.child_frame_id,
@@ -43,7 +45,7 @@ pub fn transforms(msg: &TfMessage, is_static: bool) -> Vec<Result<StampedTransfo
 /// A `sensor_msgs/msg/CameraInfo` as the intrinsics of the raw image: `k` and `d` with
 /// its distortion model (`p` describes the rectified image and is not used).
 pub fn camera_info(msg: &CameraInfo) -> Result<CameraCalibration, DecodeError> {
-    super::calibration(
+    calibration(
         msg.header.stamp.stamp(),
         &msg.header.frame_id,
         (msg.width, msg.height),

@@ -1,8 +1,8 @@
 //! [`ImageError`]: why an image message cannot be decoded. Every variant names the
 //! message's frame id and (where the message has one) its stamp.
 
-use super::Codec;
-use crate::decode::DecodeError;
+use super::codec::Codec;
+use crate::decode::error::DecodeError;
 use superflow_schemas::Stamp;
 use superflow_schemas::sensor::SensorError;
 

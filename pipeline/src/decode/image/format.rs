@@ -2,32 +2,17 @@
 //! order, `compressedDepth`), what the magic bytes say, and the choice of codec when the
 //! two disagree (see the module documentation of [`super`]).
 
-use std::fmt;
-
 use superflow_schemas::sensor::PixelFormat;
 
+use super::checks::guarded;
+use super::codec::Codec;
+use super::decoded::Decoded;
+use super::error::ImageError;
 use super::jpeg::decode_jpeg;
 use super::png::decode_png;
-use super::{Decoded, ImageError, Scale, ScaledImage, Target, guarded};
+use super::scale::{Scale, ScaledImage};
+use super::target::Target;
 use crate::decode::context::Ctx;
-
-/// A compression codec the decoder supports.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-pub enum Codec {
-    /// JPEG (JFIF/EXIF), baseline or progressive.
-    Jpeg,
-    /// PNG.
-    Png,
-}
-
-impl fmt::Display for Codec {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(match self {
-            Codec::Jpeg => "JPEG",
-            Codec::Png => "PNG",
-        })
-    }
-}
 
 /// The codec a format string names.
 #[derive(Debug, Clone, PartialEq, Eq)]

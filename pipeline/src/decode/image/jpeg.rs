@@ -11,7 +11,11 @@ use superflow_schemas::sensor::PixelFormat;
 use turbojpeg::{Colorspace, Decompressor, Image as TjImage, PixelFormat as TjFormat};
 use turbojpeg::{DecompressHeader, ScalingFactor};
 
-use super::{Codec, Decoded, ImageError, Scale, Target};
+use super::codec::Codec;
+use super::decoded::Decoded;
+use super::error::ImageError;
+use super::scale::Scale;
+use super::target::Target;
 use crate::decode::context::Ctx;
 
 /// Scans a progressive JPEG may have before it is rejected (libjpeg-turbo's advice

@@ -82,238 +82,31 @@
 //! [`MAX_IMAGE_BYTES`] are rejected, truncated JPEG and PNG data are errors (a JPEG
 //! without an end-of-image marker after its scan data counts as truncated), and a panic
 //! inside a third-party codec is caught and reported as [`ImageError::Corrupt`].
+//!
+//! [`Image`]: superflow_schemas::sensor::Image
 
 pub mod buffers;
+mod checks;
+mod codec;
+mod decoded;
+mod dialect;
 mod error;
 mod format;
 mod jpeg;
 mod png;
 mod png_grey;
 mod raw;
+mod scale;
+mod target;
 #[cfg(test)]
 mod tests;
 
-use std::panic::{AssertUnwindSafe, catch_unwind};
-
-use superflow_schemas::sensor::{Image, PixelFormat};
-
-use super::context::{Ctx, FoxgloveStamped};
-use super::{foxglove, ros2};
+pub use checks::MAX_IMAGE_BYTES;
+pub use codec::Codec;
+pub use dialect::{
+    decode_foxglove_compressed, decode_foxglove_compressed_scaled, decode_foxglove_raw,
+    decode_ros2_compressed, decode_ros2_compressed_scaled, decode_ros2_raw,
+};
 pub use error::ImageError;
-pub use format::Codec;
-use format::decode_compressed;
-use raw::{Raw, decode_raw};
-
-/// Largest decoded image accepted, in bytes (512 MiB). Checked before allocating, on the
-/// output and on the PNG decoder's sample buffer.
-pub const MAX_IMAGE_BYTES: u64 = 512 * 1024 * 1024;
-
-/// What the caller wants out of an image.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
-pub enum Target {
-    /// A camera image as `Rgb8`; single-channel sources are replicated to three channels.
-    #[default]
-    Rgb,
-    /// `Mono8` with the stored values kept exactly (class ids of a semantic map, or grey
-    /// levels); colour or 16-bit sources are an error, never converted.
-    Mono,
-}
-
-/// How small a decoded colour image may be. A JPEG can decode at 1/2 or 1/4 of its size
-/// in the DCT domain, which costs a fraction of a full decode; a sample that resizes to
-/// 448×224 anyway asks for [`Scale::AtLeast`] that size. PNG, raw images and class maps
-/// ([`Target::Mono`]) always decode at full size.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
-pub enum Scale {
-    /// Every pixel.
-    #[default]
-    Full,
-    /// The smallest of 1/4, 1/2 and full size that is at least `width × height`.
-    AtLeast {
-        /// Smallest acceptable width.
-        width: u32,
-        /// Smallest acceptable height.
-        height: u32,
-    },
-}
-
-/// A decoded image and the size of the image it was decoded from (different from the
-/// image's own size when a JPEG decoded at a reduced [`Scale`]).
-#[derive(Debug, Clone, PartialEq)]
-pub struct ScaledImage {
-    /// The pixels.
-    pub image: Image,
-    /// Width and height of the stored image.
-    pub native: (u32, u32),
-}
-
-/// Decodes a ROS 2 `sensor_msgs/msg/CompressedImage` (JPEG or PNG, see the module
-/// documentation for the accepted `format` strings).
-pub fn decode_ros2_compressed(
-    msg: &ros2::CompressedImage,
-    target: Target,
-) -> Result<Image, ImageError> {
-    decode_ros2_compressed_scaled(msg, target, Scale::Full).map(|s| s.image)
-}
-
-/// [`decode_ros2_compressed`] at a reduced [`Scale`] where the JPEG allows it.
-pub fn decode_ros2_compressed_scaled(
-    msg: &ros2::CompressedImage,
-    target: Target,
-    scale: Scale,
-) -> Result<ScaledImage, ImageError> {
-    let ctx = Ctx::ros2(&msg.header);
-    decode_compressed(&msg.data, &msg.format, target, scale, ctx)
-}
-
-/// Decodes a ROS 2 `sensor_msgs/msg/Image` (8-bit RGB/BGR/RGBA/BGRA/mono encodings,
-/// with row padding; see the module documentation).
-pub fn decode_ros2_raw(msg: &ros2::Image, target: Target) -> Result<Image, ImageError> {
-    let ctx = Ctx::ros2(&msg.header);
-    let raw = Raw {
-        encoding: &msg.encoding,
-        width: msg.width,
-        height: msg.height,
-        step: msg.step,
-        data: &msg.data,
-    };
-    decode_raw(&raw, target, ctx)
-}
-
-/// Decodes a `foxglove.CompressedImage` (`format` `jpeg` or `png`; `webp` and `avif` are
-/// reported as unsupported).
-pub fn decode_foxglove_compressed(
-    msg: &foxglove::CompressedImage,
-    target: Target,
-) -> Result<Image, ImageError> {
-    decode_foxglove_compressed_scaled(msg, target, Scale::Full).map(|s| s.image)
-}
-
-/// [`decode_foxglove_compressed`] at a reduced [`Scale`] where the JPEG allows it.
-pub fn decode_foxglove_compressed_scaled(
-    msg: &foxglove::CompressedImage,
-    target: Target,
-    scale: Scale,
-) -> Result<ScaledImage, ImageError> {
-    let ctx = foxglove_ctx(msg)?;
-    decode_compressed(&msg.data, &msg.format, target, scale, ctx)
-}
-
-/// Decodes a `foxglove.RawImage` (the encodings of [`decode_ros2_raw`]).
-pub fn decode_foxglove_raw(msg: &foxglove::RawImage, target: Target) -> Result<Image, ImageError> {
-    let ctx = foxglove_ctx(msg)?;
-    let raw = Raw {
-        encoding: &msg.encoding,
-        width: msg.width,
-        height: msg.height,
-        step: msg.step,
-        data: &msg.data,
-    };
-    decode_raw(&raw, target, ctx)
-}
-
-/// The context of a Foxglove image: its frame and stamp (an error without a timestamp).
-fn foxglove_ctx<M: FoxgloveStamped>(msg: &M) -> Result<Ctx<'_>, ImageError> {
-    Ctx::foxglove(msg).map_err(|source| ImageError::Timestamp {
-        frame_id: msg.frame_id().to_string(),
-        source,
-    })
-}
-
-/// The image decoders' errors and checks about the message being decoded.
-impl Ctx<'_> {
-    /// [`ImageError::Corrupt`]: `codec` rejected the data.
-    fn corrupt(&self, codec: Codec, reason: impl Into<String>) -> ImageError {
-        ImageError::Corrupt {
-            frame_id: self.id(),
-            stamp: self.stamp,
-            codec,
-            reason: reason.into(),
-        }
-    }
-
-    /// [`ImageError::NotMono`]: `found` cannot be kept as `Mono8`.
-    fn not_mono(&self, found: impl Into<String>) -> ImageError {
-        ImageError::NotMono {
-            frame_id: self.id(),
-            stamp: self.stamp,
-            found: found.into(),
-        }
-    }
-
-    /// [`ImageError::TooLarge`]: `bytes` exceed [`MAX_IMAGE_BYTES`].
-    fn too_large(&self, width: u64, height: u64, bytes: u64) -> ImageError {
-        ImageError::TooLarge {
-            frame_id: self.id(),
-            stamp: self.stamp,
-            width,
-            height,
-            bytes,
-            limit: MAX_IMAGE_BYTES,
-        }
-    }
-
-    /// Checks that a `width × height` image of `channels` bytes per pixel is non-empty
-    /// and within [`MAX_IMAGE_BYTES`]; returns its size in bytes.
-    fn checked_size(&self, width: u64, height: u64, channels: u64) -> Result<usize, ImageError> {
-        if width == 0 || height == 0 {
-            return Err(ImageError::ZeroSize {
-                frame_id: self.id(),
-                stamp: self.stamp,
-                width,
-                height,
-            });
-        }
-        let bytes = width
-            .checked_mul(height)
-            .and_then(|n| n.checked_mul(channels))
-            .unwrap_or(u64::MAX);
-        if bytes > MAX_IMAGE_BYTES {
-            return Err(self.too_large(width, height, bytes));
-        }
-        usize::try_from(bytes).map_err(|_| self.too_large(width, height, bytes))
-    }
-
-    /// The sensor-model image, checked.
-    fn image(&self, decoded: Decoded) -> Result<Image, ImageError> {
-        Image::new(
-            self.stamp,
-            self.frame_id,
-            decoded.width,
-            decoded.height,
-            decoded.format,
-            decoded.data,
-        )
-        .map_err(|source| ImageError::Sensor {
-            frame_id: self.id(),
-            stamp: self.stamp,
-            source,
-        })
-    }
-}
-
-/// Decoded pixels before they become an [`Image`].
-#[derive(Debug)]
-struct Decoded {
-    /// Width in pixels.
-    width: u32,
-    /// Height in pixels.
-    height: u32,
-    /// Size of the stored image (`(width, height)` unless a JPEG decoded at a reduced
-    /// scale).
-    native: (u32, u32),
-    /// `Rgb8` or `Mono8`.
-    format: PixelFormat,
-    /// Tightly packed rows.
-    data: Vec<u8>,
-}
-
-/// Runs a third-party decoder, turning a panic into [`ImageError::Corrupt`].
-fn guarded<T>(
-    codec: Codec,
-    ctx: Ctx<'_>,
-    decode: impl FnOnce() -> Result<T, ImageError>,
-) -> Result<T, ImageError> {
-    catch_unwind(AssertUnwindSafe(decode))
-        .unwrap_or_else(|_| Err(ctx.corrupt(codec, "the decoder panicked on this input")))
-}
+pub use scale::{Scale, ScaledImage};
+pub use target::Target;

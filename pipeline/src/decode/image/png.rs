@@ -8,7 +8,11 @@ use png::{BitDepth, ColorType};
 
 use superflow_schemas::sensor::PixelFormat;
 
-use super::{Codec, Decoded, ImageError, MAX_IMAGE_BYTES, Target};
+use super::checks::MAX_IMAGE_BYTES;
+use super::codec::Codec;
+use super::decoded::Decoded;
+use super::error::ImageError;
+use super::target::Target;
 use crate::decode::context::Ctx;
 
 /// The header of a PNG: size, colour type and bit depth.

@@ -3,7 +3,9 @@
 
 use superflow_schemas::sensor::{Image, PixelFormat};
 
-use super::{Decoded, ImageError, Target};
+use super::decoded::Decoded;
+use super::error::ImageError;
+use super::target::Target;
 use crate::decode::context::Ctx;
 
 /// The fields of a raw image message.

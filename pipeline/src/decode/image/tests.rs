@@ -2,10 +2,11 @@
 //! raw encodings, and robustness. This file holds the shared fixtures (messages, test
 //! images, encoders).
 
-use super::foxglove::Timestamp;
 use super::*;
-use crate::decode::ros2::{Header, Ros2Time};
+use crate::decode::foxglove::{self, Timestamp};
+use crate::decode::ros2::{self, Header, Ros2Time};
 use superflow_schemas::Stamp;
+use superflow_schemas::sensor::{Image, PixelFormat};
 
 mod format;
 mod jpeg;

@@ -1,16 +1,19 @@
 //! The per-dialect entry points: ROS 2 `PointCloud2` (row geometry, endianness),
 //! `foxglove.PointCloud` (stride, pose) and MCAP messages dispatched on their schema.
 
+use super::cloud::DecodedCloud;
+use super::error::PointsError;
+use super::grid::Grid;
 use super::label::LabelFieldSpec;
 use super::layout::{FieldList, foxglove_ctx};
-use super::read::{Grid, decode_core};
+use super::read::decode_core;
 use super::time::TimeFieldSpec;
-use super::{DecodedCloud, PointsError};
-use crate::decode::DecodeError;
 use crate::decode::context::Ctx;
+use crate::decode::error::DecodeError;
 use crate::decode::foxglove as fox;
 use crate::decode::ros2::{self, PointCloud2};
 use crate::decode::schema::{Dialect, SchemaKind, schema_kind};
+use crate::decode::transform;
 use crate::source::MessageRef;
 
 /// Schema name of `foxglove.PointCloud`.
@@ -232,7 +235,7 @@ fn foxglove_pose(
     let q = pose
         .orientation
         .map_or([0.0, 0.0, 0.0, 1.0], |q| [q.x, q.y, q.z, q.w]);
-    let iso = crate::decode::isometry(ctx.stamp, ctx.frame_id, "cloud origin", [t.x, t.y, t.z], q)
+    let iso = transform::isometry(ctx.stamp, ctx.frame_id, "cloud origin", [t.x, t.y, t.z], q)
         .map_err(|e| PointsError::BadPose {
             frame_id: ctx.frame_id.to_string(),
             stamp: ctx.stamp,

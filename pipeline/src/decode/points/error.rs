@@ -1,7 +1,7 @@
 //! [`PointsError`]: why a point cloud cannot be decoded. Every variant about a message
 //! names its frame id and stamp; the caller adds the file and topic.
 
-use crate::decode::DecodeError;
+use crate::decode::error::DecodeError;
 use superflow_schemas::Stamp;
 
 /// A point cloud that cannot be decoded. Errors about a message name its frame id and

@@ -14,7 +14,7 @@
 //! `value & mask`; a negative value of a signed integer field is then taken as its
 //! two's-complement bits, so an INT32 field with instance bits set still masks right.
 
-use super::PointsError;
+use super::error::PointsError;
 use super::field::{FieldPlan, NamedField};
 use superflow_schemas::Stamp;
 

@@ -2,11 +2,11 @@
 //! sidecar, one raw id per point, read by the rules of [`super::label`]; and the field
 //! names of a cloud, to tell whether it carries labels.
 
-use super::PointsError;
 use super::dialect::{AnyCloud, foxglove_grid, ros2_grid};
+use super::error::PointsError;
+use super::grid::{Grid, rows};
 use super::label::{LabelFieldSpec, LabelPlan, bad_label};
 use super::layout::FieldList;
-use super::read::{Grid, rows};
 use crate::decode::foxglove as fox;
 use crate::decode::ros2::PointCloud2;
 use crate::source::MessageRef;

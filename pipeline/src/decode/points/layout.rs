@@ -2,7 +2,7 @@
 //! list and checked against the point size (the fields' own types are in
 //! [`super::field`]).
 
-use super::PointsError;
+use super::error::PointsError;
 use super::field::{Endianness, FieldPlan, NamedField, NumericType};
 use super::label::{LabelFieldSpec, LabelPlan};
 use super::time::{TIME_NAMES, TimeFieldSpec, TimePlan, TimeReference, TimeRule, TimeUnit};

@@ -120,10 +120,14 @@
 //! Every [`PointsError`] about a message names its frame id and stamp (the caller adds the
 //! file and topic). Malformed input never panics: sizes are checked against the data
 //! before anything is read, and allocation is bounded by the data's size.
+//!
+//! [`PointCloud`]: superflow_schemas::sensor::PointCloud
 
+mod cloud;
 mod dialect;
 mod error;
 mod field;
+mod grid;
 mod label;
 mod label_cloud;
 mod layout;
@@ -132,6 +136,7 @@ mod read;
 mod tests;
 mod time;
 
+pub use cloud::DecodedCloud;
 pub use dialect::{
     CloudOptions, decode_foxglove, decode_foxglove_with, decode_message, decode_message_with,
     decode_ros2, decode_ros2_with,
@@ -145,25 +150,3 @@ pub use label_cloud::{
 };
 pub use layout::PointLayout;
 pub use time::{TimeFieldSpec, TimeReference, TimeUnit};
-
-use superflow_schemas::sensor::PointCloud;
-
-/// The result of decoding one message.
-#[derive(Debug, Clone, PartialEq)]
-pub struct DecodedCloud {
-    /// The finite points, in message order, with their attributes.
-    pub cloud: PointCloud,
-    /// Points left out because `x`, `y` or `z` was not finite (no-return points of
-    /// organized clouds, corrupt points).
-    pub dropped_non_finite: usize,
-    /// Whether the message has an intensity field (`intensity`, `i` or `reflectivity`);
-    /// when `false`, every intensity is 0.
-    pub has_intensity: bool,
-    /// How the per-point time was read (inferred or as configured); `None` when the
-    /// message has no time field.
-    pub time_field: Option<TimeFieldSpec>,
-    /// The index in the message (row by row, dropped points counted) of each kept
-    /// point, when [`CloudOptions::kept_indices`] asked for it: what carries anything
-    /// parallel to the message's points (a sidecar's labels) through the dropping.
-    pub kept_indices: Option<Vec<u32>>,
-}
