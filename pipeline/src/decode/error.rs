@@ -8,12 +8,13 @@ use superflow_schemas::sensor::SensorError;
 #[derive(Debug, thiserror::Error)]
 pub enum DecodeError {
     /// The payload is not a valid protobuf message of the schema.
-    #[error("invalid {schema} protobuf message: {reason}")]
+    #[error("invalid {schema} protobuf message: {source}")]
     Protobuf {
         /// Schema name.
         schema: &'static str,
         /// What prost reported.
-        reason: String,
+        #[source]
+        source: prost::DecodeError,
     },
     /// The payload is not a valid CDR message of the schema.
     #[error(transparent)]

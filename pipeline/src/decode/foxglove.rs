@@ -17,10 +17,7 @@ pub fn decode<T: prost::Message + Default>(
     schema: &'static str,
     bytes: &[u8],
 ) -> Result<T, DecodeError> {
-    T::decode(bytes).map_err(|e| DecodeError::Protobuf {
-        schema,
-        reason: e.to_string(),
-    })
+    T::decode(bytes).map_err(|source| DecodeError::Protobuf { schema, source })
 }
 
 /// The sensor stamp of a message (`timestamp` field).
