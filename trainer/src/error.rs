@@ -4,7 +4,8 @@
 //!
 //! Every message names the file (and line) or the setting at fault; a typed cause is the
 //! error's [`source`](std::error::Error::source), not part of its message: a printer of
-//! the whole chain (the binary's `{:#}`, [`with_causes`]) shows it after a `: `.
+//! the whole chain (`superflow_common::exit::describe`, as the binary prints) shows it
+//! after a `: `.
 
 use crate::inputs::InputError;
 use crate::probe::error::ProbeError;
@@ -166,17 +167,4 @@ impl TrainerError {
             error,
         }
     }
-}
-
-/// `error` followed by each of its causes ([`source`](std::error::Error::source)), each
-/// after `: ` — the text anyhow prints for `{:#}`.
-pub fn with_causes(error: &dyn std::error::Error) -> String {
-    let mut text = error.to_string();
-    let mut cause = error.source();
-    while let Some(e) = cause {
-        text.push_str(": ");
-        text.push_str(&e.to_string());
-        cause = e.source();
-    }
-    text
 }

@@ -4,7 +4,7 @@
 //!
 //! A variant that wraps a cause says what the run was doing; the cause is its
 //! [`source`](std::error::Error::source), printed after it by a printer of the whole
-//! chain (the binary's `{:#}`, [`with_causes`](crate::error::with_causes)).
+//! chain (`superflow_common::exit::describe`, as the binary prints).
 
 use crate::device::BackendError;
 use crate::error::TrainerError;

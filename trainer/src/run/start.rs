@@ -6,7 +6,6 @@ use super::job::Ddp;
 use super::options::RunOptions;
 use super::paths::RunPaths;
 use crate::checkpoint::CheckpointState;
-use crate::error::with_causes;
 use crate::metrics;
 use crate::stream::StreamPosition;
 use crate::subscribe::{ResumeAt, Subscription};
@@ -107,7 +106,7 @@ pub fn start_ranks(
             Ok((start, model, optim)) => (start, model, optim, None),
             Err(e) => (
                 JobStart {
-                    error: Some(with_causes(&e)),
+                    error: Some(superflow_common::exit::describe(&e)),
                     ..JobStart::default()
                 },
                 Vec::new(),
