@@ -22,14 +22,15 @@
 //! rest of the draws in the file's `superflow.sample.<keyframe>` metadata.
 
 use super::cloud::Column;
+use super::image::camera_topic;
 use super::writer::{ViewError, ViewWriter, frame_transform};
 use crate::drive::Drive;
 use crate::sample::SampleConfig;
 use crate::sample::export::{id_colour, ramp};
 use crate::sample::{Cloud, Sample, SampleImage};
 use foxglove::messages::{
-    CameraCalibration, Color, CompressedImage, FrameTransforms, ImageAnnotations, Point2,
-    PointsAnnotation, Timestamp, points_annotation,
+    CameraCalibration, Color, FrameTransforms, ImageAnnotations, Point2, PointsAnnotation,
+    Timestamp, points_annotation,
 };
 use std::collections::{BTreeMap, HashSet};
 use std::path::Path;
@@ -174,21 +175,18 @@ impl SampleMcap {
         cloud: &Cloud,
     ) -> Result<(), ViewError> {
         let (width, height) = self.image_size;
-        let topic = |what: &str| format!("/superflow/{}/{what}", topic_name(&image.camera));
-        let frame_id = image.calibration.frame_id.clone();
-        let png = self.png(stamp, image, width, height, &image.rgb)?;
-        self.out.write(
-            &topic("image"),
+        let camera = image.camera.as_str();
+        let frame_id = image.calibration.frame_id.as_str();
+        self.out.write_png(
+            camera,
+            "image",
+            frame_id,
             stamp,
-            &CompressedImage {
-                timestamp: Some(ts),
-                frame_id: frame_id.clone(),
-                data: png.into(),
-                format: "png".into(),
-            },
+            self.image_size,
+            &image.rgb,
         )?;
         self.out.write(
-            &topic("calibration"),
+            &camera_topic(camera, "calibration"),
             stamp,
             &resized_calibration(ts, &image.calibration, image.flipped, width, height),
         )?;
@@ -197,16 +195,13 @@ impl SampleMcap {
             .iter()
             .flat_map(|id| id_colour(*id))
             .collect();
-        let png = self.png(stamp, image, width, height, &colours)?;
-        self.out.write(
-            &topic("superpixels"),
+        self.out.write_png(
+            camera,
+            "superpixels",
+            frame_id,
             stamp,
-            &CompressedImage {
-                timestamp: Some(ts),
-                frame_id,
-                data: png.into(),
-                format: "png".into(),
-            },
+            self.image_size,
+            &colours,
         )?;
         let pairs: Vec<_> = cloud
             .pairings
@@ -233,7 +228,7 @@ impl SampleMcap {
             metadata: Vec::new(),
         };
         self.out.write(
-            &topic("pairings"),
+            &camera_topic(camera, "pairings"),
             stamp,
             &ImageAnnotations {
                 timestamp: Some(ts),
@@ -243,32 +238,6 @@ impl SampleMcap {
                 metadata: Vec::new(),
             },
         )
-    }
-
-    /// `rgb` (`width × height × 3`) as PNG.
-    fn png(
-        &self,
-        stamp: Stamp,
-        image: &SampleImage,
-        width: u32,
-        height: u32,
-        rgb: &[u8],
-    ) -> Result<Vec<u8>, ViewError> {
-        let mut out = Vec::new();
-        let mut encoder = png::Encoder::new(&mut out, width, height);
-        encoder.set_color(png::ColorType::Rgb);
-        encoder.set_depth(png::BitDepth::Eight);
-        encoder.set_compression(png::Compression::Fast);
-        encoder
-            .write_header()
-            .and_then(|mut w| w.write_image_data(rgb).and_then(|()| w.finish()))
-            .map_err(|source| ViewError::Png {
-                path: self.out.path().to_path_buf(),
-                camera: image.camera.clone(),
-                stamp,
-                source,
-            })?;
-        Ok(out)
     }
 
     /// `cloud` on `topic`: its points back where they were recorded (the augmentation
@@ -309,21 +278,6 @@ impl SampleMcap {
         self.summary.messages = self.out.finish()?;
         Ok(self.summary)
     }
-}
-
-/// A camera name as one topic level.
-fn topic_name(camera: &str) -> String {
-    camera
-        .trim_matches('/')
-        .chars()
-        .map(|c| {
-            if c.is_ascii_alphanumeric() || c == '_' || c == '-' {
-                c
-            } else {
-                '_'
-            }
-        })
-        .collect()
 }
 
 fn colour([r, g, b]: [u8; 3]) -> Color {

@@ -18,7 +18,7 @@ use superflow_pipeline::sample::deskew::deskew;
 use superflow_pipeline::sample::export::ramp;
 use superflow_pipeline::source::ChunkCache;
 use superflow_pipeline::view::{
-    Column, ViewError, ViewWriter, frame_transform, resized_calibration,
+    Column, ViewError, ViewWriter, camera_topic, frame_transform, resized_calibration,
 };
 use superflow_schemas::Stamp;
 
@@ -215,16 +215,12 @@ pub fn write_features(
     let mut points = 0;
     let mut images_written = 0;
     for (s, sweep) in sweeps.iter().enumerate() {
-        let colours: Vec<[u8; 3]> = sweep
-            .features
-            .chunks_exact(dim)
-            .map(|r| pca.colour(r))
-            .collect();
         let projected: Vec<[f32; 3]> = sweep
             .features
             .chunks_exact(dim)
             .map(|r| pca.project(r))
             .collect();
+        let colours: Vec<[u8; 3]> = projected.iter().map(|p| pca.colour_of(*p)).collect();
         let channel = |k: usize| -> Vec<u8> { colours.iter().map(|c| c[k]).collect() };
         let component = |k: usize| -> Vec<f32> { projected.iter().map(|c| c[k]).collect() };
         let (red, green, blue) = (channel(0), channel(1), channel(2));
@@ -299,9 +295,9 @@ pub fn write_features(
         }
         points += sweep.xyz.len();
     }
-    let total: f64 = pca.variances.iter().sum::<f64>().max(f64::MIN_POSITIVE);
-    let trace = total_variance(&sweeps, dim);
-    let explained = pca.variances.map(|v| v / trace.max(total));
+    let explained = pca
+        .variances
+        .map(|v| v / pca.total_variance.max(f64::MIN_POSITIVE));
     let meta = serde_json::json!({
         "backbone": settings.backbone,
         "dim": dim,
@@ -336,80 +332,17 @@ fn write_camera(
     grid: Grid,
 ) -> Result<(), FeaturesError> {
     let (width, height) = grid.size;
-    let topic = |what: &str| {
-        format!(
-            "/superflow/{}/{what}",
-            view.camera.trim_matches('/').replace('/', "_")
-        )
-    };
-    let frame_id = view.calibration.frame_id.clone();
-    for (what, rgb) in [
-        ("image", view.rgb.clone()),
-        ("vit_pca", patch_colours(view, pca, grid)),
-    ] {
-        let png = png_bytes(out, &view.camera, stamp, width, height, &rgb)?;
-        out.write(
-            &topic(what),
-            stamp,
-            &foxglove::messages::CompressedImage {
-                timestamp: Some(ts),
-                frame_id: frame_id.clone(),
-                data: png.into(),
-                format: "png".into(),
-            },
-        )?;
-    }
+    let camera = view.camera.as_str();
+    let frame_id = view.calibration.frame_id.as_str();
+    out.write_png(camera, "image", frame_id, stamp, grid.size, &view.rgb)?;
+    let colours = patch_colours(view, pca, grid);
+    out.write_png(camera, "vit_pca", frame_id, stamp, grid.size, &colours)?;
     out.write(
-        &topic("calibration"),
+        &camera_topic(camera, "calibration"),
         stamp,
         &resized_calibration(ts, &view.calibration, false, width, height),
     )?;
     Ok(())
-}
-
-/// `rgb` as PNG bytes.
-fn png_bytes(
-    out: &ViewWriter,
-    camera: &str,
-    stamp: Stamp,
-    width: u32,
-    height: u32,
-    rgb: &[u8],
-) -> Result<Vec<u8>, FeaturesError> {
-    let mut bytes = Vec::new();
-    let mut encoder = png::Encoder::new(&mut bytes, width, height);
-    encoder.set_color(png::ColorType::Rgb);
-    encoder.set_depth(png::BitDepth::Eight);
-    encoder.set_compression(png::Compression::Fast);
-    encoder
-        .write_header()
-        .and_then(|mut w| w.write_image_data(rgb).and_then(|()| w.finish()))
-        .map_err(|source| {
-            FeaturesError::View(ViewError::Png {
-                path: out.path().to_path_buf(),
-                camera: camera.to_string(),
-                stamp,
-                source,
-            })
-        })?;
-    Ok(bytes)
-}
-
-/// The sum of the features' variances (the covariance's trace).
-fn total_variance(sweeps: &[SweepFeatures], dim: usize) -> f64 {
-    let mut sum = vec![0f64; dim];
-    let mut sq = vec![0f64; dim];
-    let mut n = 0f64;
-    for row in sweeps.iter().flat_map(|s| s.features.chunks_exact(dim)) {
-        for (k, v) in row.iter().enumerate() {
-            sum[k] += f64::from(*v);
-            sq[k] += f64::from(*v) * f64::from(*v);
-        }
-        n += 1.0;
-    }
-    (0..dim)
-        .map(|k| (sq[k] - sum[k] * sum[k] / n) / (n - 1.0).max(1.0))
-        .sum()
 }
 
 /// Every drive's keyframe sweeps (one per `interval_ns`), decoded and de-skewed as the

@@ -23,6 +23,9 @@ pub struct Pca {
     pub components: [Vec<f32>; 3],
     /// The variance along each component.
     pub variances: [f64; 3],
+    /// The features' whole variance (the covariance's trace): what the components'
+    /// shares are of.
+    pub total_variance: f64,
     /// The projections' 1st and 99th percentiles: 0 and 255 of each colour channel.
     pub ranges: [(f32, f32); 3],
 }
@@ -91,6 +94,7 @@ impl Pca {
                 cov[(j, i)] = v;
             }
         }
+        let total_variance = cov.trace();
         let eigen = SymmetricEigen::new(cov);
         let mut order: Vec<usize> = (0..dim).collect();
         order.sort_by(|&a, &b| eigen.eigenvalues[b].total_cmp(&eigen.eigenvalues[a]));
@@ -108,6 +112,7 @@ impl Pca {
             mean: mean.iter().map(|&m| m as f32).collect(),
             components: [component(0), component(1), component(2)],
             variances: [0, 1, 2].map(|k| eigen.eigenvalues[order[k]].max(0.0)),
+            total_variance,
             ranges: [(0.0, 1.0); 3],
         };
         let projected: Vec<[f32; 3]> = fit_rows.iter().map(|r| pca.project(r)).collect();
@@ -135,7 +140,12 @@ impl Pca {
     /// The colour of `row`: each component's coordinate, its range mapped to 0–255
     /// (clamped), as red, green and blue.
     pub fn colour(&self, row: &[f32]) -> [u8; 3] {
-        let p = self.project(row);
+        self.colour_of(self.project(row))
+    }
+
+    /// The colour of coordinates `p` along the three components (what
+    /// [`project`](Self::project) gives).
+    pub fn colour_of(&self, p: [f32; 3]) -> [u8; 3] {
         [0, 1, 2].map(|k| {
             let (lo, hi) = self.ranges[k];
             ((p[k] - lo) / (hi - lo) * 255.0).clamp(0.0, 255.0).round() as u8
@@ -231,6 +241,7 @@ mod tests {
             .sum();
         assert!(cos.abs() > 0.99, "{cos}");
         assert!(pca.variances[0] > 10.0 * pca.variances[1]);
+        assert!(pca.variances.iter().sum::<f64>() <= pca.total_variance * (1.0 + 1e-9));
         // The same fit, the same colours.
         assert_eq!(Pca::fit(&features, dim).unwrap(), pca);
     }
