@@ -4,7 +4,12 @@
 //!
 //! `cargo bench -p superflow-pipeline --bench speed` (options: `-- --samples N` (48),
 //! `--slic-samples N` (12), `--sizes 800x450,1600x900`, `--ros2-sizes 800x450`,
-//! `--regenerate`).
+//! `--columns N` (LiDAR columns a sweep, 1084: ~33 k returns; 700 gives the ~21 k of a
+//! nuScenes sweep), `--regenerate`).
+//!
+//! `--loop N` builds N class-map samples of the first size one after the other on one
+//! thread (after a warm-up epoch) and prints ms a sample and its stages, nothing else:
+//! the run to profile (`perf record`) and to alternate between two builds.
 //!
 //! A last table sets a sample's decoding beside what the libraries alone cost for the same
 //! work (`speed/floor.rs`): the chunks and bytes a sample decompresses (counted) at
@@ -63,8 +68,18 @@ const BATCH: usize = 4;
 
 /// Writes (or finds) the nuScenes-sized drive of `width × height` in `dialect`; returns
 /// its path.
-fn drive(dialect: Dialect, width: u32, height: u32, regenerate: bool) -> anyhow::Result<PathBuf> {
-    let options = DriveOptions::nuscenes(width, height);
+fn drive(
+    dialect: Dialect,
+    width: u32,
+    height: u32,
+    columns: Option<usize>,
+    regenerate: bool,
+) -> anyhow::Result<PathBuf> {
+    let mut options = DriveOptions::nuscenes(width, height);
+    let default_columns = options.lidar_columns;
+    if let Some(columns) = columns {
+        options.lidar_columns = columns;
+    }
     let dir = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
         .join("../target/bench-drives")
         .join(format!(
@@ -74,7 +89,12 @@ fn drive(dialect: Dialect, width: u32, height: u32, regenerate: bool) -> anyhow:
             options.chunk_size / 1024,
             options.duration_secs(),
             options.beam_interval_nanos
-        ));
+        ))
+        .join(if options.lidar_columns == default_columns {
+            String::new()
+        } else {
+            format!("columns{}", options.lidar_columns)
+        });
     std::fs::create_dir_all(&dir)?;
     let path = dir.join(format!("{}.mcap", options.drive_name(dialect)));
     if path.exists() && !regenerate {
@@ -227,6 +247,43 @@ fn target_ms(width: u32, height: u32) -> Option<f64> {
     }
 }
 
+/// `WIDTHxHEIGHT`.
+fn parse_size(size: &str) -> anyhow::Result<(u32, u32)> {
+    size.split_once('x')
+        .and_then(|(w, h)| Some((w.parse::<u32>().ok()?, h.parse::<u32>().ok()?)))
+        .ok_or_else(|| anyhow::anyhow!("{size}: expected WIDTHxHEIGHT"))
+}
+
+/// `--loop N`: `n` class-map samples of the drive at `path` one after the other on one
+/// thread, after a warm-up epoch; prints ms a sample and its stages.
+fn profile_loop(path: &std::path::Path, n: usize) -> anyhow::Result<()> {
+    let dataset = Dataset::open(
+        std::slice::from_ref(&path.to_path_buf()),
+        &IngestConfig::default(),
+    )?;
+    let config = SampleConfig {
+        superpixels: SuperpixelSource::Channel,
+        ..SampleConfig::default()
+    };
+    let builder = SampleBuilder::new(&dataset, config)?;
+    let points: usize = builder
+        .build(0, 0)?
+        .frames
+        .iter()
+        .map(|f| f.cloud.xyz.len())
+        .sum();
+    sample::throughput(&builder, builder.plan().keyframes.len(), 1)?;
+    let (per_s, times) = sample::throughput(&builder, n, 1)?;
+    println!(
+        "{}: {n} samples on 1 thread, {:.0} points a frame: {:.2} ms a sample | {} |",
+        path.display(),
+        points as f64 / builder.config().temporal_frames as f64,
+        1e3 / per_s,
+        stage_cells(&times, n)
+    );
+    Ok(())
+}
+
 fn main() -> anyhow::Result<()> {
     superflow_common::memory::keep_freed_pages();
     let n = arg_count("--samples")?.unwrap_or(48);
@@ -234,6 +291,13 @@ fn main() -> anyhow::Result<()> {
     let sizes = arg_value("--sizes").unwrap_or_else(|| "800x450,1600x900".into());
     let ros2_sizes = arg_value("--ros2-sizes").unwrap_or_else(|| "800x450".into());
     let regenerate = flag("--regenerate");
+    let columns = arg_count("--columns")?;
+    if let Some(n) = arg_count("--loop")? {
+        let size = sizes.split(',').next().unwrap_or_default();
+        let (w, h) = parse_size(size)?;
+        let path = drive(Dialect::Foxglove, w, h, columns, regenerate)?;
+        return profile_loop(&path, n);
+    }
     let cores = cores();
     println!(
         "nuScenes-sized drives (nuscenes2mcap layout; ROS 2: rosbag2 CDR, raw sweeps with a time per point, distorted images), default recipe; {} rounds of {n} samples on 1 core then {cores} ({n_slic} with SLIC), load average {} at start",
@@ -250,19 +314,19 @@ fn main() -> anyhow::Result<()> {
     let mut runs = Vec::new();
     for (dialect, list) in [(Dialect::Foxglove, &sizes), (Dialect::Ros2, &ros2_sizes)] {
         for size in list.split(',').filter(|s| !s.is_empty()) {
-            let (w, h) = size
-                .split_once('x')
-                .and_then(|(w, h)| Some((w.parse::<u32>().ok()?, h.parse::<u32>().ok()?)))
-                .ok_or_else(|| anyhow::anyhow!("{size}: expected WIDTHxHEIGHT"))?;
+            let (w, h) = parse_size(size)?;
             runs.push((dialect, w, h));
         }
     }
     for (dialect, w, h) in runs {
-        let name = match dialect {
+        let mut name = match dialect {
             Dialect::Foxglove => format!("{w}×{h}"),
             Dialect::Ros2 => format!("{w}×{h} ROS 2"),
         };
-        let path = drive(dialect, w, h, regenerate)?;
+        if let Some(columns) = columns {
+            name.push_str(&format!(", {columns} columns"));
+        }
+        let path = drive(dialect, w, h, columns, regenerate)?;
         let dataset = Dataset::open(std::slice::from_ref(&path), &IngestConfig::default())?;
         // SLIC does not depend on the layout: its rows are the Foxglove drives'.
         let slic_dataset = match dialect {
