@@ -82,6 +82,11 @@ impl CheckedChunks {
         self.lock().get(&chunk) == Some(&fingerprint)
     }
 
+    /// Whether chunk `chunk` was checked with any record.
+    fn contains(&self, chunk: u32) -> bool {
+        self.lock().contains_key(&chunk)
+    }
+
     fn insert(&self, chunk: u32, fingerprint: u32) {
         self.lock().insert(chunk, fingerprint);
     }
@@ -280,42 +285,79 @@ impl McapFile {
                     .record_len
                     .checked_sub(9)
                     .ok_or_else(|| chunk_error(ChunkError::NotAChunk))?;
-                let held = self
-                    .with_bytes_at(loc.offset.saturating_add(9), body_len, |body| {
-                        let Ok(records::Record::Chunk { header, data }) =
-                            mcap::parse_record(op::CHUNK, body)
-                        else {
-                            return Err(chunk_error(ChunkError::NotAChunk));
-                        };
-                        // Only zstd chunks with a CRC: LZ4 decodes several times faster,
-                        // and a chunk without a CRC is decoded whole every time so that
-                        // damage anywhere in it rejects all of it.
-                        let on_demand =
-                            header.compression == "zstd" && header.uncompressed_crc != 0;
-                        // Over the whole record: header fields and compressed bytes.
-                        let fingerprint = on_demand.then(|| crc32fast::hash(body));
-                        if let Some(fingerprint) = fingerprint
-                            && self.checked.holds(chunk, fingerprint)
-                        {
-                            let partial =
-                                PartialChunk::new(header.uncompressed_size, data.into_owned())
-                                    .map_err(chunk_error)?;
-                            return Ok(Held::Partial(partial));
-                        }
-                        let decoded = decode_chunk(&header, &data).map_err(chunk_error)?;
-                        if let Some(fingerprint) = fingerprint {
-                            self.checked.insert(chunk, fingerprint);
-                        }
-                        self.decompressed
-                            .bytes
-                            .fetch_add(header.uncompressed_size, Ordering::Relaxed);
-                        Ok(Held::Whole(decoded.messages))
+                let at = loc.offset.saturating_add(9);
+                // A chunk checked before is most likely decoded on demand, keeping its
+                // compressed bytes: read it into a buffer of its own, which the decoder
+                // then keeps, instead of the scratch buffer it would be copied out of.
+                let held = if self.checked.contains(chunk) {
+                    let body = self
+                        .read_owned_at(at, body_len)
+                        .map_err(LoadError::Source)?;
+                    self.chunk_from(chunk, Body::Owned(body))
+                } else {
+                    self.with_bytes_at(at, body_len, |body| {
+                        self.chunk_from(chunk, Body::Borrowed(body))
                     })
-                    .map_err(LoadError::Source)??;
+                    .map_err(LoadError::Source)?
+                };
+                let held = held.map_err(chunk_error)?;
                 self.decompressed.chunks.fetch_add(1, Ordering::Relaxed);
                 Ok(held)
             }
         }
+    }
+}
+
+/// A chunk record's bytes as read: in the thread's scratch buffer, or in a buffer of
+/// their own that a chunk decoded on demand can keep.
+enum Body<'a> {
+    Borrowed(&'a [u8]),
+    Owned(Vec<u8>),
+}
+
+impl McapFile {
+    /// Chunk number `chunk` from its record's `body`: decoded on demand when it was
+    /// checked before with this very record, else decoded whole and checked.
+    fn chunk_from(&self, chunk: u32, body: Body<'_>) -> Result<Held, ChunkError> {
+        let bytes: &[u8] = match &body {
+            Body::Borrowed(bytes) => bytes,
+            Body::Owned(bytes) => bytes,
+        };
+        let Ok(records::Record::Chunk { header, data }) = mcap::parse_record(op::CHUNK, bytes)
+        else {
+            return Err(ChunkError::NotAChunk);
+        };
+        // Only zstd chunks with a CRC: LZ4 decodes several times faster, and a chunk
+        // without a CRC is decoded whole every time so that damage anywhere in it
+        // rejects all of it.
+        let on_demand = header.compression == "zstd" && header.uncompressed_crc != 0;
+        // Over the whole record: header fields and compressed bytes.
+        let fingerprint = on_demand.then(|| crc32fast::hash(bytes));
+        if let Some(fingerprint) = fingerprint
+            && self.checked.holds(chunk, fingerprint)
+        {
+            // The compressed bytes borrow from the record as parsed.
+            let start = (data.as_ptr() as usize).wrapping_sub(bytes.as_ptr() as usize);
+            let range = start..start + data.len();
+            let partial = match body {
+                Body::Owned(record) => {
+                    PartialChunk::within(header.uncompressed_size, record, range)?
+                }
+                Body::Borrowed(_) => {
+                    let len = data.len();
+                    PartialChunk::within(header.uncompressed_size, data.into_owned(), 0..len)?
+                }
+            };
+            return Ok(Held::Partial(partial));
+        }
+        let decoded = decode_chunk(&header, &data)?;
+        if let Some(fingerprint) = fingerprint {
+            self.checked.insert(chunk, fingerprint);
+        }
+        self.decompressed
+            .bytes
+            .fetch_add(header.uncompressed_size, Ordering::Relaxed);
+        Ok(Held::Whole(decoded.messages))
     }
 }
 

@@ -338,6 +338,47 @@ impl McapFile {
         })
     }
 
+    /// The `len` bytes at `offset` (at most [`MAX_RECORD_BYTES`]) in a buffer of their
+    /// own that is not zeroed first: every byte is read into it before it is returned.
+    #[allow(unsafe_code)]
+    fn read_owned_at(&self, offset: u64, len: u64) -> Result<Vec<u8>, SourceError> {
+        use std::os::fd::AsRawFd;
+        let len = usize::try_from(len)
+            .unwrap_or(usize::MAX)
+            .min(MAX_RECORD_BYTES as usize);
+        let file = self.handle()?;
+        let mut buf = Vec::<u8>::with_capacity(len);
+        while buf.len() < len {
+            let filled = buf.len();
+            let spare = &mut buf.spare_capacity_mut()[..len - filled];
+            let at = offset.saturating_add(filled as u64);
+            let at = libc::off_t::try_from(at)
+                .map_err(|_| self.io(std::io::Error::from(std::io::ErrorKind::InvalidInput)))?;
+            // SAFETY: `pread` writes at most `spare.len()` bytes into `spare`, which is
+            // this vector's unused capacity, and reads the descriptor `file` keeps open.
+            let n = unsafe {
+                libc::pread(file.as_raw_fd(), spare.as_mut_ptr().cast(), spare.len(), at)
+            };
+            match n {
+                n if n < 0 => {
+                    let e = std::io::Error::last_os_error();
+                    if e.kind() != std::io::ErrorKind::Interrupted {
+                        return Err(self.io(e));
+                    }
+                }
+                0 => {
+                    return Err(self.io(std::io::Error::new(
+                        std::io::ErrorKind::UnexpectedEof,
+                        "failed to fill whole buffer",
+                    )));
+                }
+                // SAFETY: `pread` initialized the `n` bytes after the length.
+                n => unsafe { buf.set_len(filled + n as usize) },
+            }
+        }
+        Ok(buf)
+    }
+
     fn read_exact_at(&self, offset: u64, len: u64) -> Result<Vec<u8>, SourceError> {
         let mut buf = vec![
             0u8;

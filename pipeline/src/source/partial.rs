@@ -53,8 +53,11 @@ impl std::fmt::Debug for PartialChunk {
 /// How far a chunk is decoded.
 struct Progress {
     decoder: BlockDecoder,
-    /// The chunk's compressed records.
-    compressed: Vec<u8>,
+    /// The chunk record read from the file; its compressed records are
+    /// `record[data.clone()]` (kept where they were read, not copied out).
+    record: Vec<u8>,
+    /// Where the compressed records lie in `record`.
+    data: Range<usize>,
     /// Compressed bytes consumed.
     read: usize,
     /// Bytes decoded into the buffer.
@@ -72,7 +75,25 @@ struct Progress {
 impl PartialChunk {
     /// A chunk of `size` uncompressed bytes whose zstd frames are `compressed`, nothing
     /// decoded yet.
+    #[cfg(test)]
     pub(super) fn new(size: u64, compressed: Vec<u8>) -> Result<Self, ChunkError> {
+        let data = 0..compressed.len();
+        Self::within(size, compressed, data)
+    }
+
+    /// A chunk of `size` uncompressed bytes whose zstd frames are `record[data]` (the
+    /// chunk record as read), nothing decoded yet.
+    pub(super) fn within(
+        size: u64,
+        record: Vec<u8>,
+        data: Range<usize>,
+    ) -> Result<Self, ChunkError> {
+        if record.get(data.clone()).is_none() {
+            return Err(unreadable(std::io::Error::other(format!(
+                "compressed bytes {data:?} outside a record of {} bytes",
+                record.len()
+            ))));
+        }
         if size > MAX_RECORD_BYTES {
             return Err(ChunkError::ImplausibleSize { size });
         }
@@ -85,7 +106,8 @@ impl PartialChunk {
             size,
             progress: Mutex::new(Progress {
                 decoder: BlockDecoder::new().map_err(unreadable)?,
-                compressed,
+                record,
+                data,
                 read: 0,
                 out: 0,
                 framed: 0,
@@ -149,12 +171,14 @@ impl PartialChunk {
     fn decode_block(&self, progress: &mut Progress) -> Result<(), ChunkError> {
         let Progress {
             decoder,
-            compressed,
+            record,
+            data,
             read,
             out,
             finished,
             ..
         } = progress;
+        let compressed = &record[data.clone()];
         loop {
             let mut want = decoder.next_input();
             if want == 0 {
@@ -256,7 +280,34 @@ fn unreadable(source: std::io::Error) -> ChunkError {
 }
 
 /// A zstd context in buffer-less streaming mode (`ZSTD_decompressContinue`).
+///
+/// Contexts are reused: creating one allocates and clears libzstd's tables and
+/// buffers, which cost about as much as decoding a small block, and a sample opens a
+/// chunk decoder for every chunk it reads again. A dropped decoder goes back to
+/// [`IDLE_DECODERS`] (up to [`MAX_IDLE_DECODERS`]); [`BlockDecoder::new`] takes one
+/// from there and starts a frame on it, which resets whatever state it was left in.
 struct BlockDecoder(*mut zstd_sys::ZSTD_DCtx);
+
+/// Contexts of dropped decoders, for the next chunk.
+static IDLE_DECODERS: Mutex<Vec<IdleContext>> = Mutex::new(Vec::new());
+
+/// Idle contexts kept at most (each ~100 KiB); more are freed.
+const MAX_IDLE_DECODERS: usize = 64;
+
+/// A context no decoder holds.
+struct IdleContext(*mut zstd_sys::ZSTD_DCtx);
+
+// SAFETY: an idle context is reachable only through the pool's lock, and libzstd keeps
+// no thread-local state for it.
+#[allow(unsafe_code)]
+unsafe impl Send for IdleContext {}
+
+fn idle_decoders() -> std::sync::MutexGuard<'static, Vec<IdleContext>> {
+    // The list is consistent after any panic (single pushes and pops).
+    IDLE_DECODERS
+        .lock()
+        .unwrap_or_else(|poisoned| poisoned.into_inner())
+}
 
 // SAFETY: the context is used by one thread at a time (it lives behind the chunk's
 // lock) and libzstd keeps no thread-local state for it.
@@ -266,8 +317,12 @@ unsafe impl Send for BlockDecoder {}
 #[allow(unsafe_code)]
 impl BlockDecoder {
     fn new() -> std::io::Result<Self> {
-        // SAFETY: creates a context or returns null.
-        let context = unsafe { zstd_sys::ZSTD_createDCtx() };
+        let idle = idle_decoders().pop();
+        let context = match idle {
+            Some(IdleContext(context)) => context,
+            // SAFETY: creates a context or returns null.
+            None => unsafe { zstd_sys::ZSTD_createDCtx() },
+        };
         if context.is_null() {
             return Err(std::io::Error::other("ZSTD_createDCtx failed"));
         }
@@ -311,7 +366,13 @@ impl BlockDecoder {
 impl Drop for BlockDecoder {
     #[allow(unsafe_code)]
     fn drop(&mut self) {
-        // SAFETY: created by ZSTD_createDCtx, freed once, here.
+        let mut idle = idle_decoders();
+        if idle.len() < MAX_IDLE_DECODERS {
+            idle.push(IdleContext(self.0));
+            return;
+        }
+        drop(idle);
+        // SAFETY: created by ZSTD_createDCtx, held by this decoder only, freed once, here.
         unsafe {
             zstd_sys::ZSTD_freeDCtx(self.0);
         }
@@ -421,5 +482,36 @@ mod tests {
         // Garbage.
         let partial = PartialChunk::new(plain.len() as u64, vec![7; 300]).unwrap();
         assert!(partial.get(0, &decoded).is_err());
+    }
+    /// Decoders go back to the pool wherever their chunk stopped (mid-frame, after an
+    /// error): the next chunk decodes from a fresh frame all the same, and compressed
+    /// bytes inside a larger record are read where they lie.
+    #[test]
+    fn a_reused_decoder_starts_afresh_and_reads_inside_the_record() {
+        let decoded = AtomicU64::new(0);
+        for round in 0..3 {
+            let plain = records(30 + round);
+            let compressed = zstd::bulk::compress(&plain, 3).unwrap();
+            let whole = decode_chunk(&header(&plain, &compressed), &compressed).unwrap();
+            // Left mid-frame.
+            let stopped = PartialChunk::new(plain.len() as u64, compressed.clone()).unwrap();
+            assert!(stopped.get(5, &decoded).unwrap().is_some());
+            drop(stopped);
+            // Left after an error.
+            let garbage = PartialChunk::new(plain.len() as u64, vec![7; 300]).unwrap();
+            assert!(garbage.get(0, &decoded).is_err());
+            drop(garbage);
+            let mut record = vec![0xAB; 41];
+            record.extend_from_slice(&compressed);
+            record.extend_from_slice(&[0xCD; 17]);
+            let data = 41..41 + compressed.len();
+            let partial = PartialChunk::within(plain.len() as u64, record, data).unwrap();
+            for index in [29, 0, 13] {
+                let (h, data) = partial.get(index, &decoded).unwrap().unwrap();
+                let (wh, wdata) = whole.messages.get(index).unwrap();
+                assert_eq!((&h, data), (wh, wdata), "round {round}, message {index}");
+            }
+        }
+        assert!(PartialChunk::within(10, vec![0; 5], 2..9).is_err());
     }
 }
