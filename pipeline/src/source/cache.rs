@@ -9,16 +9,19 @@
 //! a chunk another is decompressing waits for it instead of decompressing it too.
 //!
 //! A chunk is decoded whole and checked against its CRC the first time the file is read
-//! there; a zstd chunk read again with the same record ([`CheckedChunks`]) is
-//! decoded only up to the messages asked for ([`PartialChunk`]): a sample needs only a
-//! part of the bytes of the chunks it touches.
+//! there; a zstd chunk read again with the same record
+//! ([`CheckedChunks`](super::tally::CheckedChunks)) is decoded only up to the messages
+//! asked for ([`PartialChunk`]): a sample needs only a part of the bytes of the chunks it
+//! touches.
 
 use super::chunk::{ChunkError, ChunkMessages, decode_chunk};
-use super::framing::record_len;
+use super::error::SourceError;
+use super::file::McapFile;
+use super::framing::{MAX_RECORD_BYTES, record_len};
+use super::message::{MessageLoc, MessageRef};
 use super::partial::PartialChunk;
-use super::{MAX_RECORD_BYTES, McapFile, MessageLoc, MessageRef, SourceError};
+use super::tally::Decompressed;
 use mcap::records::{self, op};
-use rustc_hash::FxHashMap;
 use std::collections::VecDeque;
 use std::os::unix::fs::FileExt;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -62,36 +65,6 @@ impl Held {
     }
 }
 
-/// The chunks this opening of a file has decoded whole and found to match their CRC,
-/// each with a CRC-32 of its record (header and compressed bytes): read again with the
-/// same record, a zstd chunk is decoded only as far as it is read ([`PartialChunk`]),
-/// since it decodes to the bytes its CRC was checked on.
-#[derive(Debug, Default)]
-pub(super) struct CheckedChunks(Mutex<FxHashMap<u32, u32>>);
-
-impl CheckedChunks {
-    fn lock(&self) -> std::sync::MutexGuard<'_, FxHashMap<u32, u32>> {
-        // The map is consistent after any panic (single inserts and reads).
-        self.0
-            .lock()
-            .unwrap_or_else(|poisoned| poisoned.into_inner())
-    }
-
-    /// Whether chunk `chunk` was checked with this record (`fingerprint`: a CRC-32 of it).
-    fn holds(&self, chunk: u32, fingerprint: u32) -> bool {
-        self.lock().get(&chunk) == Some(&fingerprint)
-    }
-
-    /// Whether chunk `chunk` was checked with any record.
-    fn contains(&self, chunk: u32) -> bool {
-        self.lock().contains_key(&chunk)
-    }
-
-    fn insert(&self, chunk: u32, fingerprint: u32) {
-        self.lock().insert(chunk, fingerprint);
-    }
-}
-
 /// Chunks the shared table keeps per thread of the pool, the oldest leaving first:
 /// enough for the threads building one sample to meet on its chunks, too few to keep a
 /// drive's chunks from one sample to the next (samples come in shuffled order; a real
@@ -101,23 +74,6 @@ const SHARED_CHUNKS_PER_THREAD: usize = 4;
 /// Decompressed bytes the shared table keeps at most (chunks of the usual 0.5–4 MiB
 /// leave by number first; larger ones by size).
 const SHARED_BYTES: usize = 64 << 20;
-
-/// What random access has decompressed from one file so far (all threads).
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub struct Decompressed {
-    /// Chunks decompressed (a chunk served from a cache is not counted again).
-    pub chunks: u64,
-    /// The bytes decompressed from them: a chunk's whole size the first time, as far as
-    /// it was read when read again.
-    pub bytes: u64,
-}
-
-/// The counters behind [`McapFile::decompressed`].
-#[derive(Debug, Default)]
-pub(super) struct DecompressCounters {
-    chunks: AtomicU64,
-    bytes: AtomicU64,
-}
 
 /// A chunk in the shared table: set once by the thread that decompresses it (`None` if
 /// that failed: each thread then reads it itself and reports its own error).

@@ -3,8 +3,7 @@
 //! every chunk is read the first time; a zstd chunk that passed is read again, with the
 //! same record (header and compressed bytes), only as far as its readers ask (`partial.rs`).
 
-use super::MAX_RECORD_BYTES;
-use super::framing::{FramingError, check_framing};
+use super::framing::{FramingError, MAX_RECORD_BYTES, check_framing};
 use mcap::records::{self, ChunkHeader};
 use std::io::Read;
 use std::ops::Range;

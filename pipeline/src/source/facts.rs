@@ -3,7 +3,11 @@
 //! describe the file: a file opened again with the same fingerprint gets its facts back
 //! ([`McapFile::restore`]) instead of a scan.
 
-use super::{ChunkLoc, Damage, McapFile, SchemaInfo, SourceError};
+use super::damage::Damage;
+use super::error::SourceError;
+use super::file::{ChunkLoc, McapFile};
+use super::framing::MAGIC;
+use super::message::SchemaInfo;
 use mcap::records::op;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -213,7 +217,7 @@ fn content_digest_of(file: &File, len: u64) -> std::io::Result<Option<u128>> {
     let footer = read(footer_start, FOOTER_LEN)?;
     let summary_start = u64_at(&footer, 9);
     if footer[0] != op::FOOTER
-        || &footer[29..] != super::MAGIC
+        || &footer[29..] != MAGIC
         || summary_start < 8 + 9
         || summary_start >= footer_start
         || footer_start - summary_start > MAX_FINGERPRINTED

@@ -2,6 +2,11 @@
 //! length from what remains unchecked (an overflow panic in debug builds, found by the
 //! fuzz target `mcap_drive`), so a run of records is walked here first.
 
+/// The 8 magic bytes at both ends of an MCAP file.
+pub const MAGIC: &[u8; 8] = b"\x89MCAP0\r\n";
+/// Largest chunk (uncompressed) or record accepted; a larger size is taken for corruption.
+pub const MAX_RECORD_BYTES: u64 = 1 << 30;
+
 /// A run of records that is not a run of whole records of the expected kinds. `at` is
 /// the offset of the offending record from the start of the run.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]

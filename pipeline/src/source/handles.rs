@@ -20,7 +20,7 @@
 //! for as long as the dataset holds it. A file replaced while it was closed is checked on
 //! reopening instead (the same content is read on; other content is refused).
 
-use super::SourceError;
+use super::error::SourceError;
 use std::collections::HashMap;
 use std::fs::File;
 use std::os::unix::fs::MetadataExt;

@@ -11,9 +11,8 @@
 //! the chunk's buffer; blocks refer back into the bytes before them, which stay where they
 //! are, so decoding resumes where it stopped when a later read needs more.
 
-use super::MAX_RECORD_BYTES;
 use super::chunk::{ChunkError, MESSAGE_HEADER_LEN};
-use super::framing::{FramingError, record_len};
+use super::framing::{FramingError, MAX_RECORD_BYTES, record_len};
 use mcap::records::{self, op};
 use std::ops::Range;
 use std::sync::Mutex;

@@ -3,11 +3,13 @@
 //! around; the summary's chunk index tells where to resume after a corrupt record.
 
 use super::chunk::decode_chunk;
+use super::damage::Damage;
+use super::error::SourceError;
+use super::file::{ChunkLoc, McapFile};
 use super::framing::record_len;
-use super::{
-    ChannelInfo, ChunkLoc, Damage, HandlePool, MAGIC, MAX_RECORD_BYTES, McapFile, MessageLoc,
-    MessageRef, SchemaInfo, SourceError,
-};
+use super::framing::{MAGIC, MAX_RECORD_BYTES};
+use super::handles::HandlePool;
+use super::message::{ChannelInfo, MessageLoc, MessageRef, SchemaInfo};
 use mcap::records::{self, ChunkHeader, op};
 use std::collections::{BTreeMap, HashMap};
 use std::os::unix::fs::FileExt;

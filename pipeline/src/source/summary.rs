@@ -1,8 +1,10 @@
 //! The summary section: its framing checked before mcap's `SummaryReader` reads it, then
 //! what the scan takes from it (schemas, channels, where chunks start, message counts).
 
-use super::framing::{FramingError, check_framing};
-use super::{Damage, MAX_RECORD_BYTES, McapFile, SourceError};
+use super::damage::Damage;
+use super::error::SourceError;
+use super::file::McapFile;
+use super::framing::{FramingError, MAX_RECORD_BYTES, check_framing};
 use mcap::records::op;
 use std::os::unix::fs::FileExt;
 

@@ -1,0 +1,222 @@
+//! [`McapFile`]: one MCAP file after its scan, and its reads through the shared
+//! [`HandlePool`]. What it does is split by concern over the folder's other files: the
+//! scan (`scan`, `summary`), random access (`cache`) and the stored facts (`facts`).
+
+use super::damage::Damage;
+use super::error::SourceError;
+use super::framing::MAX_RECORD_BYTES;
+use super::handles::{FileIdentity, HandlePool};
+use super::message::{ChannelInfo, SchemaInfo};
+use super::tally::{CheckedChunks, DecompressCounters};
+use std::collections::{BTreeMap, HashMap};
+use std::fs::File;
+use std::os::unix::fs::FileExt;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, Mutex, OnceLock, PoisonError};
+
+/// Where a chunk record is in its file.
+#[derive(Debug, Clone)]
+pub(super) struct ChunkLoc {
+    pub(super) offset: u64,
+    pub(super) record_len: u64,
+}
+
+/// An MCAP file after its scan: header, channels, chunk locations and damage.
+#[derive(Debug)]
+pub struct McapFile {
+    pub(super) path: PathBuf,
+    /// Unique to this opening of the file: what chunk caches key on (a file rewritten at
+    /// the same path and opened again never gets the old one's chunks).
+    pub(super) id: u64,
+    /// What the file on disk is: it is read through [`HandlePool::global`], which may
+    /// close it between reads and checks this on reopening. A file found replaced by a
+    /// copy of the same content ([`McapFile::same_content`]) becomes the new identity.
+    pub(super) identity: Mutex<FileIdentity>,
+    /// The file's content digest once computed ([`McapFile::content_digest`]).
+    pub(super) content: OnceLock<Option<u128>>,
+    /// The handle a scan holds while it reads the file through; `None` afterwards.
+    pub(super) scanning: Option<Arc<File>>,
+    pub(super) len: u64,
+    /// Header profile (`ros2`, `""`, ...).
+    pub profile: String,
+    /// Header library.
+    pub library: String,
+    pub(super) schemas: HashMap<u16, Arc<SchemaInfo>>,
+    pub(super) channels: BTreeMap<u16, Arc<ChannelInfo>>,
+    pub(super) chunks: Vec<ChunkLoc>,
+    /// What the scan had to work around.
+    pub damage: Vec<Damage>,
+    /// Messages read per channel id.
+    pub message_counts: BTreeMap<u16, u64>,
+    /// Chunks random access has decompressed.
+    pub(super) decompressed: DecompressCounters,
+    /// Chunks random access has checked against their CRC.
+    pub(super) checked: CheckedChunks,
+}
+
+impl McapFile {
+    /// The file's path.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// File size in bytes.
+    pub fn len(&self) -> u64 {
+        self.len
+    }
+
+    /// Whether the file is empty.
+    pub fn is_empty(&self) -> bool {
+        self.len == 0
+    }
+
+    /// Every channel, by id.
+    pub fn channels(&self) -> impl Iterator<Item = &Arc<ChannelInfo>> {
+        self.channels.values()
+    }
+
+    /// One channel.
+    pub fn channel(&self, id: u16) -> Option<&Arc<ChannelInfo>> {
+        self.channels.get(&id)
+    }
+
+    /// The open file, from the scan's own handle or the shared pool (reopened if closed).
+    pub(super) fn handle(&self) -> Result<Arc<File>, SourceError> {
+        match &self.scanning {
+            Some(file) => Ok(Arc::clone(file)),
+            None => HandlePool::global().get(self.id, &self.path, |file, found| {
+                self.check_reopened(file, found)
+            }),
+        }
+    }
+
+    /// Whether the file reopened at this path (`found`) may be read as this one: the same
+    /// file, or a copy of it with the same content (a re-sync writes new inodes). A file
+    /// whose content changed is [`SourceError::Replaced`].
+    fn check_reopened(&self, file: &File, found: &FileIdentity) -> Result<(), SourceError> {
+        let mut identity = self.identity.lock().unwrap_or_else(PoisonError::into_inner);
+        if *found == *identity {
+            return Ok(());
+        }
+        if self.same_content(file, found.len) {
+            tracing::info!(file = %self.path.display(), "the file was replaced by a copy of the same content; reading the copy");
+            *identity = *found;
+            return Ok(());
+        }
+        Err(SourceError::Replaced {
+            path: self.path.clone(),
+        })
+    }
+
+    pub(super) fn io(&self, source: std::io::Error) -> SourceError {
+        SourceError::Io {
+            path: self.path.clone(),
+            source,
+        }
+    }
+
+    /// `f` of the `len` bytes at `offset` (at most [`MAX_RECORD_BYTES`]), read into this
+    /// thread's scratch buffer: a chunk's compressed records are only decompressed, and
+    /// reusing the buffer spares zeroing a fresh one before each read. Reads
+    /// beyond [`SCRATCH_BYTES`] use a buffer of their own, so no thread keeps one huge.
+    pub(super) fn with_bytes_at<T>(
+        &self,
+        offset: u64,
+        len: u64,
+        f: impl FnOnce(&[u8]) -> T,
+    ) -> Result<T, SourceError> {
+        thread_local! {
+            static SCRATCH: std::cell::RefCell<Vec<u8>> = const { std::cell::RefCell::new(Vec::new()) };
+        }
+        let len = usize::try_from(len)
+            .unwrap_or(usize::MAX)
+            .min(MAX_RECORD_BYTES as usize);
+        if len > SCRATCH_BYTES {
+            return self
+                .read_exact_at(offset, len as u64)
+                .map(|bytes| f(&bytes));
+        }
+        SCRATCH.with(|cell| {
+            // `f` cannot reach this buffer again, but a nested read would find it taken:
+            // it then reads into a buffer of its own.
+            let Ok(mut scratch) = cell.try_borrow_mut() else {
+                return self
+                    .read_exact_at(offset, len as u64)
+                    .map(|bytes| f(&bytes));
+            };
+            // Grown, never shrunk (below the cap): only new bytes are zeroed.
+            if scratch.len() < len {
+                scratch.resize(len, 0);
+            }
+            let buf = &mut scratch[..len];
+            self.handle()?
+                .read_exact_at(buf, offset)
+                .map_err(|e| self.io(e))?;
+            Ok(f(buf))
+        })
+    }
+
+    /// The `len` bytes at `offset` (at most [`MAX_RECORD_BYTES`]) in a buffer of their
+    /// own that is not zeroed first: every byte is read into it before it is returned.
+    #[allow(unsafe_code)]
+    pub(super) fn read_owned_at(&self, offset: u64, len: u64) -> Result<Vec<u8>, SourceError> {
+        use std::os::fd::AsRawFd;
+        let len = usize::try_from(len)
+            .unwrap_or(usize::MAX)
+            .min(MAX_RECORD_BYTES as usize);
+        let file = self.handle()?;
+        let mut buf = Vec::<u8>::with_capacity(len);
+        while buf.len() < len {
+            let filled = buf.len();
+            let spare = &mut buf.spare_capacity_mut()[..len - filled];
+            let at = offset.saturating_add(filled as u64);
+            let at = libc::off_t::try_from(at)
+                .map_err(|_| self.io(std::io::Error::from(std::io::ErrorKind::InvalidInput)))?;
+            // SAFETY: `pread` writes at most `spare.len()` bytes into `spare`, which is
+            // this vector's unused capacity, and reads the descriptor `file` keeps open.
+            let n = unsafe {
+                libc::pread(file.as_raw_fd(), spare.as_mut_ptr().cast(), spare.len(), at)
+            };
+            match n {
+                n if n < 0 => {
+                    let e = std::io::Error::last_os_error();
+                    if e.kind() != std::io::ErrorKind::Interrupted {
+                        return Err(self.io(e));
+                    }
+                }
+                0 => {
+                    return Err(self.io(std::io::Error::new(
+                        std::io::ErrorKind::UnexpectedEof,
+                        "failed to fill whole buffer",
+                    )));
+                }
+                // SAFETY: `pread` initialized the `n` bytes after the length.
+                n => unsafe { buf.set_len(filled + n as usize) },
+            }
+        }
+        Ok(buf)
+    }
+
+    pub(super) fn read_exact_at(&self, offset: u64, len: u64) -> Result<Vec<u8>, SourceError> {
+        let mut buf = vec![
+            0u8;
+            usize::try_from(len)
+                .unwrap_or(usize::MAX)
+                .min(MAX_RECORD_BYTES as usize)
+        ];
+        self.handle()?
+            .read_exact_at(&mut buf, offset)
+            .map_err(|e| self.io(e))?;
+        Ok(buf)
+    }
+}
+
+impl Drop for McapFile {
+    /// Closes the file (once no reader holds it): its number is never asked for again.
+    fn drop(&mut self) {
+        HandlePool::global().forget(self.id);
+    }
+}
+
+/// The largest read [`McapFile::with_bytes_at`] makes in a thread's reused buffer.
+const SCRATCH_BYTES: usize = 16 << 20;
