@@ -8,7 +8,7 @@
 //! after a `: `.
 
 use crate::inputs::InputError;
-use crate::probe::error::ProbeError;
+use crate::probe_error::ProbeError;
 use crate::vit::WeightsError;
 use burn::store::RecordError;
 use std::path::PathBuf;

@@ -29,7 +29,8 @@
 //! command line's [`Overrides`](config::Overrides); [`device`] turns a backend name into
 //! a device; [`init`] draws the seeded initial weights; [`check`] compares backends on one
 //! batch; [`probe`] scores a backbone downstream (its pipeline-fed half behind the `probe`
-//! feature); [`error`] holds [`TrainerError`](error::TrainerError), the library's error.
+//! feature, its error [`probe_error`]); [`error`] holds [`TrainerError`](error::TrainerError),
+//! the library's error.
 //! The binary (`src/bin/superflow-trainer/`) only parses flags and dispatches.
 //!
 //! ```no_run
@@ -70,6 +71,7 @@ pub mod lr_schedule;
 pub mod metrics;
 pub mod model;
 pub mod probe;
+pub mod probe_error;
 pub mod rows;
 pub mod run;
 pub mod stream;

@@ -5,11 +5,11 @@ use crate::checkpoint;
 use crate::config::TrainerConfig;
 use crate::error::TrainerError;
 use crate::model::SuperFlowModel;
-use crate::probe::error::ProbeError;
 use crate::probe::linear::{
     self as probe, ConfusionMatrix, KeyframeTime, LinearProbe, PointCounts, ProbeReport,
     ProbeTraining, SplitCounts,
 };
+use crate::probe_error::ProbeError;
 use crate::rows::RowOps;
 use crate::sweep_input::SweepInput;
 use crate::unet::SparseUNet;

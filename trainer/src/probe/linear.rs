@@ -13,7 +13,7 @@
 //! * [`ProbeReport`]: what `superflow-trainer probe --json` prints.
 
 use crate::error::TrainerError;
-use crate::probe::error::ProbeError;
+use crate::probe_error::ProbeError;
 use crate::rows::RowOps;
 use burn::module::Module;
 use burn::nn::loss::CrossEntropyLossConfig;

@@ -23,12 +23,11 @@
 //! `probe` cargo feature, on by default) reads the drives with the pipeline and runs the
 //! protocols.
 
-pub mod error;
 #[cfg(feature = "probe")]
 pub mod evaluate;
 pub mod linear;
 
-pub use error::ProbeError;
+pub use crate::probe_error::ProbeError;
 
 #[cfg(feature = "probe")]
 pub use evaluate::{

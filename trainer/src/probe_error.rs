@@ -1,4 +1,6 @@
-//! [`ProbeError`]: why a probe cannot run or score.
+//! [`ProbeError`]: why a probe cannot run or score. It stands beside the [`probe`](crate::probe)
+//! folder, not in it: [`TrainerError`](crate::error::TrainerError) carries it, and the probe's
+//! files return that.
 
 /// Why a probe cannot run or score.
 #[derive(Debug, thiserror::Error)]
