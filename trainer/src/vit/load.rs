@@ -2,9 +2,10 @@
 //! tensor names ([`Naming`]) and the shape read off the tensors; what can be wrong with the
 //! file is a [`WeightsError`].
 
+use super::config::{VitConfig, VitPreset};
 use super::error::WeightsError;
+use super::network::DinoVit;
 use super::weights::{BlockWeight, WeightKey, WeightSource};
-use super::{DinoVit, VitConfig};
 use burn::tensor::{Device, bf16, f16};
 use safetensors::{Dtype, SafeTensors};
 use std::path::Path;
@@ -18,7 +19,7 @@ impl DinoVit {
     /// As [`load_safetensors`](Self::load_safetensors).
     pub fn frozen(
         image_weights: Option<&Path>,
-        preset: super::VitPreset,
+        preset: VitPreset,
         seed: u64,
         device: &Device,
     ) -> Result<Self, WeightsError> {

@@ -2,7 +2,7 @@
 //! Hugging Face's `Dinov2Embeddings.interpolate_pos_encoding`, as a separable pair of
 //! `[output, input]` weight matrices.
 
-use super::DinoVit;
+use super::network::DinoVit;
 use burn::tensor::{Device, Tensor, TensorData};
 
 impl DinoVit {

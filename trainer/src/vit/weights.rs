@@ -2,13 +2,30 @@
 //! init) and how they become layers: [`DinoVit::build`] assembles the network from them.
 
 use super::blocks::Block;
+use super::config::VitConfig;
 use super::error::WeightsError;
-use super::{DinoVit, VitConfig};
+use super::network::DinoVit;
 use burn::module::{Module, Param};
 use burn::nn::{LayerNorm, LayerNormConfig, Linear};
 use burn::tensor::{Device, Tensor, TensorData};
 
 impl DinoVit {
+    /// A network with seeded random weights: the same `seed` gives the same weights on every
+    /// device. Matrices, tokens and position embeddings are drawn from a normal distribution
+    /// with standard deviation 0.02 truncated at 2σ; biases are zero, LayerNorms identity and
+    /// LayerScales one (so that every block contributes).
+    ///
+    /// # Panics
+    ///
+    /// Panics if `config` does not pass [`VitConfig::validate`].
+    pub fn random(config: &VitConfig, seed: u64, device: &Device) -> Self {
+        if let Err(error) = config.validate() {
+            panic!("DinoVit::random: {error}");
+        }
+        Self::build(config, device, &mut RandomInit::new(seed))
+            .expect("random init produces every weight at the requested shape")
+    }
+
     /// Assembles the network from `source`, which hands out each weight in PyTorch's layout.
     pub(super) fn build(
         config: &VitConfig,

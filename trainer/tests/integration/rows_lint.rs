@@ -52,13 +52,13 @@ const ALLOWED: &[(&str, &str, usize, &str)] = &[
     ("vit/blocks.rs", "fc1.forward(", 1, "frozen ViT (above)"),
     ("vit/blocks.rs", "fc2.forward(", 1, "frozen ViT (above)"),
     (
-        "vit/mod.rs",
+        "vit/network.rs",
         "patch_embed.forward(",
         1,
         "frozen ViT (above)",
     ),
     (
-        "vit/mod.rs",
+        "vit/network.rs",
         ".repeat_dim(0,",
         1,
         "the class token repeated once per image (a few hundred at most), frozen ViT",
