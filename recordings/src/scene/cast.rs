@@ -2,7 +2,9 @@
 //! the ground plane, and the materials of what was hit. A [`Snapshot`] holds the boxes'
 //! poses at one instant for the many rays of a camera frame.
 
-use super::{Hit, ROAD_HALF_WIDTH, SIDEWALK_EDGE, Scene, SceneBox, class};
+use super::classes::class;
+use super::objects::{Hit, Scene, SceneBox};
+use super::street::{ROAD_HALF_WIDTH, SIDEWALK_EDGE};
 use nalgebra::{Point3, Vector3};
 
 /// A box at one instant: its centre, the sine and cosine of its heading and the radius of
