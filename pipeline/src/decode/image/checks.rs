@@ -8,7 +8,7 @@ use superflow_schemas::sensor::Image;
 
 use super::codec::Codec;
 use super::decoded::Decoded;
-use super::error::ImageError;
+use super::error::{ImageError, Rejection};
 use crate::decode::context::Ctx;
 
 /// Largest decoded image accepted, in bytes (512 MiB). Checked before allocating, on the
@@ -18,7 +18,7 @@ pub const MAX_IMAGE_BYTES: u64 = 512 * 1024 * 1024;
 /// The image decoders' errors and checks about the message being decoded.
 impl Ctx<'_> {
     /// [`ImageError::Corrupt`]: `codec` rejected the data.
-    pub(super) fn corrupt(&self, codec: Codec, reason: impl Into<String>) -> ImageError {
+    pub(super) fn corrupt(&self, codec: Codec, reason: impl Into<Rejection>) -> ImageError {
         ImageError::Corrupt {
             frame_id: self.id(),
             stamp: self.stamp,

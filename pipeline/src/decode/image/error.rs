@@ -61,7 +61,8 @@ pub enum ImageError {
         /// The codec that failed.
         codec: Codec,
         /// What the codec reported.
-        reason: String,
+        #[source]
+        reason: Rejection,
     },
     /// The magic bytes and the format string name different codecs, and neither decodes.
     #[error(
@@ -196,4 +197,31 @@ pub enum ImageError {
         /// The sensor model's complaint.
         source: SensorError,
     },
+}
+
+/// Why a codec rejected an image's data ([`ImageError::Corrupt`]): the decoder's own
+/// error, or what the data gets wrong where no decoder error stands behind it.
+#[derive(Debug, thiserror::Error)]
+pub enum Rejection {
+    /// libjpeg-turbo's error.
+    #[error("libjpeg-turbo: {0}")]
+    Jpeg(#[source] turbojpeg::Error),
+    /// The png crate's error.
+    #[error("{0}")]
+    Png(#[source] png::DecodingError),
+    /// What is wrong with the data, in words.
+    #[error("{0}")]
+    Invalid(String),
+}
+
+impl From<String> for Rejection {
+    fn from(reason: String) -> Self {
+        Self::Invalid(reason)
+    }
+}
+
+impl From<&str> for Rejection {
+    fn from(reason: &str) -> Self {
+        Self::Invalid(reason.to_string())
+    }
 }

@@ -162,7 +162,7 @@ impl Compressed<'_> {
             Err(ImageError::Corrupt { reason, .. })
                 if *declared != Declared::Codec(sniffed) && *declared != Declared::Unspecified =>
             {
-                reason
+                reason.to_string()
             }
             other => return other,
         };
@@ -177,7 +177,7 @@ impl Compressed<'_> {
             sniffed,
             sniffed_reason,
             declared_reason: match declared_error {
-                ImageError::Corrupt { reason, .. } => reason,
+                ImageError::Corrupt { reason, .. } => reason.to_string(),
                 ImageError::UnsupportedFormat { .. } => "not a supported codec".to_string(),
                 other => other.to_string(),
             },

@@ -13,7 +13,7 @@ use turbojpeg::{DecompressHeader, ScalingFactor};
 
 use super::codec::Codec;
 use super::decoded::Decoded;
-use super::error::ImageError;
+use super::error::{ImageError, Rejection};
 use super::scale::Scale;
 use super::target::Target;
 use crate::decode::context::Ctx;
@@ -81,7 +81,7 @@ pub(super) fn decode_jpeg(
             Some(d) => d,
             None => {
                 let made = Decompressor::new()
-                    .map_err(|e| ctx.corrupt(Codec::Jpeg, format!("libjpeg-turbo: {e}")))?;
+                    .map_err(|e| ctx.corrupt(Codec::Jpeg, Rejection::Jpeg(e)))?;
                 slot.insert(made)
             }
         };
@@ -102,7 +102,8 @@ fn decode_with(
     ctx: Ctx<'_>,
 ) -> Result<Decoded, ImageError> {
     let corrupt = |reason: String| ctx.corrupt(Codec::Jpeg, reason);
-    let header = tj.read_header(data).map_err(|e| corrupt(e.to_string()))?;
+    let tj_err = |e: turbojpeg::Error| ctx.corrupt(Codec::Jpeg, Rejection::Jpeg(e));
+    let header = tj.read_header(data).map_err(tj_err)?;
     let (format, tj_format) = match (target, header.colorspace) {
         (Target::Rgb, Colorspace::YCbCr | Colorspace::RGB | Colorspace::Gray) => {
             (PixelFormat::Rgb8, TjFormat::RGB)
@@ -127,7 +128,6 @@ fn decode_with(
         Target::Rgb => scale_for(&header, scale),
         Target::Mono => ScalingFactor::ONE,
     };
-    let tj_err = |e: turbojpeg::Error| corrupt(format!("libjpeg-turbo: {e}"));
     tj.set_scaling_factor(factor).map_err(tj_err)?;
     tj.set_scan_limit(SCAN_LIMIT).map_err(tj_err)?;
     let out = header.scaled(factor);

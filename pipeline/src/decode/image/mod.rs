@@ -107,6 +107,6 @@ pub use dialect::{
     decode_foxglove_compressed, decode_foxglove_compressed_scaled, decode_foxglove_raw,
     decode_ros2_compressed, decode_ros2_compressed_scaled, decode_ros2_raw,
 };
-pub use error::ImageError;
+pub use error::{ImageError, Rejection};
 pub use scale::{Scale, ScaledImage};
 pub use target::Target;

@@ -11,7 +11,7 @@ use superflow_schemas::sensor::PixelFormat;
 use super::checks::MAX_IMAGE_BYTES;
 use super::codec::Codec;
 use super::decoded::Decoded;
-use super::error::ImageError;
+use super::error::{ImageError, Rejection};
 use super::target::Target;
 use crate::decode::context::Ctx;
 
@@ -83,7 +83,7 @@ fn png_error(ctx: Ctx<'_>, e: png::DecodingError) -> ImageError {
             Codec::Png,
             format!("the decoder needs more than {MAX_IMAGE_BYTES} bytes of buffers"),
         ),
-        e => ctx.corrupt(Codec::Png, e.to_string()),
+        e => ctx.corrupt(Codec::Png, Rejection::Png(e)),
     }
 }
 
