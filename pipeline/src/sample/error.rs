@@ -1,7 +1,9 @@
 //! Why a sample (or a plan) cannot be built: [`SampleError`].
 
+use crate::decode::DecodeError;
 use crate::drive::TfError;
 use crate::drive::{IngestError, ReadError};
+use crate::source::SourceError;
 use superflow_common::InvalidSetting;
 use superflow_schemas::Stamp;
 
@@ -23,7 +25,7 @@ pub enum SampleError {
         /// The lookup error.
         source: Box<TfError>,
     },
-    /// A class map that cannot serve as superpixels.
+    /// A class map (or a sidecar's SLIC labels) that cannot serve as superpixels.
     #[error("{files}: {topic} at {stamp}: {reason}")]
     Superpixels {
         /// The drive's files.
@@ -32,8 +34,9 @@ pub enum SampleError {
         topic: String,
         /// The image stamp.
         stamp: Stamp,
-        /// What is wrong.
-        reason: String,
+        /// What is wrong (boxed: the error stays small).
+        #[source]
+        reason: Box<SuperpixelsFault>,
     },
     /// An image that does not match its calibration.
     #[error("{files}: {topic} at {stamp}: {reason}")]
@@ -75,4 +78,28 @@ pub enum SampleError {
         /// Keyframes in the plan.
         len: usize,
     },
+}
+
+/// Why a class map or a sidecar's SLIC labels cannot serve as superpixels
+/// ([`SampleError::Superpixels`]).
+#[derive(Debug, thiserror::Error)]
+pub enum SuperpixelsFault {
+    /// The sidecar's message could not be read.
+    #[error("{0}")]
+    Read(#[source] SourceError),
+    /// The sidecar's message did not decode.
+    #[error("{0}")]
+    Decode(#[source] DecodeError),
+    /// The stored labels' PNG did not decode.
+    #[error("{0}")]
+    Png(#[source] png::DecodingError),
+    /// What is wrong with the labels, in words.
+    #[error("{0}")]
+    Invalid(String),
+}
+
+impl From<String> for SuperpixelsFault {
+    fn from(reason: String) -> Self {
+        Self::Invalid(reason)
+    }
 }

@@ -76,7 +76,7 @@ impl SampleContext<'_> {
                 files: self.drive.file_list(),
                 topic: stream.topic.clone(),
                 stamp: raw.frame.stamp,
-                reason,
+                reason: Box::new(reason),
             })?;
             if flipped {
                 image_ops::flip_horizontal(&mut labels, cfg.image_width as usize, 1);
@@ -216,7 +216,7 @@ impl SampleContext<'_> {
             files: self.drive.file_list(),
             topic: topic.clone(),
             stamp,
-            reason,
+            reason: Box::new(reason.into()),
         };
         let class_frame = nearest(&camera.superpixels, stamp)
             .filter(|f| f.stamp.nanos_since(stamp).abs() <= CLASS_MAP_TOLERANCE_NANOS)

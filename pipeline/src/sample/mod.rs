@@ -60,7 +60,7 @@ pub mod voxel;
 pub use augment::Augmentation;
 pub use builder::SampleBuilder;
 pub use epochs::EpochMix;
-pub use error::SampleError;
+pub use error::{SampleError, SuperpixelsFault};
 pub use images::CLASS_MAP_TOLERANCE_NANOS;
 pub use plan::{KeyframeRef, Plan};
 pub use recipe::SampleConfig;

@@ -14,6 +14,7 @@
 //! image would give nearly — not exactly — the mirrored segmentation (SLIC is not
 //! mirror-symmetric); unflipped images get exactly the labels SLIC gives.
 
+use super::error::SuperpixelsFault;
 use super::recipe::SampleConfig;
 use super::slic::slic;
 use crate::decode::foxglove::{CompressedImage, Timestamp, decode};
@@ -42,7 +43,7 @@ pub enum SuperpixelsError {
     /// An image could not be read or decoded.
     #[error(transparent)]
     Read(#[from] crate::drive::ReadError),
-    /// An image is not what its calibration says.
+    /// An image that cannot be segmented, or whose labels cannot be stored.
     #[error("{file}: {topic} at {stamp_ns} ns: {reason}")]
     Image {
         /// The drive's files.
@@ -52,16 +53,49 @@ pub enum SuperpixelsError {
         /// Image stamp.
         stamp_ns: i64,
         /// What is wrong.
-        reason: String,
+        #[source]
+        reason: ImageFailure,
     },
     /// Writing the sidecar failed.
-    #[error("writing {path}: {reason}")]
+    #[error("writing {path}: {source}")]
     Write {
         /// The sidecar.
         path: PathBuf,
         /// What failed.
-        reason: String,
+        #[source]
+        source: WriteFailure,
     },
+}
+
+/// Why an image cannot be segmented or its labels stored ([`SuperpixelsError::Image`]).
+#[derive(Debug, thiserror::Error)]
+pub enum ImageFailure {
+    /// The image did not decode to RGB.
+    #[error("not decoded as RGB")]
+    NotRgb,
+    /// A label that does not fit the PNG's 16-bit samples.
+    #[error("label {0} does not fit 16 bits")]
+    Label(u32),
+    /// The PNG encoder.
+    #[error(transparent)]
+    Png(#[from] png::EncodingError),
+    /// A stamp that a `foxglove.CompressedImage` cannot hold.
+    #[error("stamp before 1970 or after 2106")]
+    Stamp,
+}
+
+/// What failed writing a sidecar ([`SuperpixelsError::Write`]).
+#[derive(Debug, thiserror::Error)]
+pub enum WriteFailure {
+    /// Creating, writing or renaming the file.
+    #[error(transparent)]
+    Io(#[from] std::io::Error),
+    /// The MCAP writer.
+    #[error(transparent)]
+    Mcap(#[from] mcap::McapError),
+    /// The message type has no schema to register.
+    #[error("no schema for foxglove.CompressedImage")]
+    NoSchema,
 }
 
 /// The settings a sidecar's labels depend on, as stored in its channel metadata.
@@ -129,17 +163,17 @@ fn resized_image(
             file: drive.file_list(),
             topic: camera.image_topic.clone(),
             stamp_ns: frame.stamp.nanos(),
-            reason: "not decoded as RGB".into(),
+            reason: ImageFailure::NotRgb,
         });
     }
     Ok(config.resized_rgb(&image, false))
 }
 
 /// `labels` (`width × height`, each below 2¹⁶) as a 16-bit grey PNG.
-fn encode_labels(labels: &[u32], width: u32, height: u32) -> Result<Vec<u8>, String> {
+fn encode_labels(labels: &[u32], width: u32, height: u32) -> Result<Vec<u8>, ImageFailure> {
     let mut samples = Vec::with_capacity(labels.len() * 2);
     for &l in labels {
-        let l = u16::try_from(l).map_err(|_| format!("label {l} does not fit 16 bits"))?;
+        let l = u16::try_from(l).map_err(|_| ImageFailure::Label(l))?;
         samples.extend_from_slice(&l.to_be_bytes());
     }
     let mut out = Vec::new();
@@ -150,34 +184,40 @@ fn encode_labels(labels: &[u32], width: u32, height: u32) -> Result<Vec<u8>, Str
     // choice picks Paeth, whose unfiltering is sequential (each byte waits for its left
     // neighbour), which makes reading a map slow.
     encoder.set_filter(png::Filter::Up);
-    let mut writer = encoder.write_header().map_err(|e| e.to_string())?;
-    writer
-        .write_image_data(&samples)
-        .map_err(|e| e.to_string())?;
-    writer.finish().map_err(|e| e.to_string())?;
+    let mut writer = encoder.write_header()?;
+    writer.write_image_data(&samples)?;
+    writer.finish()?;
     Ok(out)
 }
 
 /// Decodes a label map written by [`encode_labels`]: the labels and their count
 /// (largest + 1). `Err` says what is wrong.
-fn decode_labels(png_bytes: &[u8], width: u32, height: u32) -> Result<(Vec<u32>, u32), String> {
+fn decode_labels(
+    png_bytes: &[u8],
+    width: u32,
+    height: u32,
+) -> Result<(Vec<u32>, u32), SuperpixelsFault> {
     let decoder = png::Decoder::new(Cursor::new(png_bytes));
-    let mut reader = decoder.read_info().map_err(|e| e.to_string())?;
+    let mut reader = decoder.read_info().map_err(SuperpixelsFault::Png)?;
     let info = reader.info();
     if (info.color_type, info.bit_depth) != (png::ColorType::Grayscale, png::BitDepth::Sixteen) {
         return Err(format!(
             "a {:?} {}-bit PNG, not 16-bit grey labels",
             info.color_type, info.bit_depth as u8
-        ));
+        )
+        .into());
     }
     if (info.width, info.height) != (width, height) {
         return Err(format!(
             "labels are {}x{}, the recipe's images {width}x{height}",
             info.width, info.height
-        ));
+        )
+        .into());
     }
     let mut samples = vec![0u8; 2 * width as usize * height as usize];
-    reader.next_frame(&mut samples).map_err(|e| e.to_string())?;
+    reader
+        .next_frame(&mut samples)
+        .map_err(SuperpixelsFault::Png)?;
     let mut labels = Vec::with_capacity(samples.len() / 2);
     let mut largest = None;
     for b in samples.chunks_exact(2) {
@@ -196,16 +236,20 @@ pub fn read_labels(
     stamp: superflow_schemas::Stamp,
     (width, height): (u32, u32),
     cache: &mut ChunkCache,
-) -> Result<(Vec<u32>, u32), String> {
+) -> Result<(Vec<u32>, u32), SuperpixelsFault> {
     let i = stream.frames.partition_point(|f| f.stamp < stamp);
     let frame = stream
         .frames
         .get(i)
         .filter(|f| f.stamp == stamp)
-        .ok_or_else(|| "no precomputed SLIC labels for this image".to_string())?;
-    let message = drive.read_raw(frame, cache).map_err(|e| e.to_string())?;
+        .ok_or_else(|| {
+            SuperpixelsFault::from("no precomputed SLIC labels for this image".to_string())
+        })?;
+    let message = drive
+        .read_raw(frame, cache)
+        .map_err(SuperpixelsFault::Read)?;
     let msg: CompressedImage =
-        decode("foxglove.CompressedImage", message.data).map_err(|e| e.to_string())?;
+        decode("foxglove.CompressedImage", message.data).map_err(SuperpixelsFault::Decode)?;
     decode_labels(&msg.data, width, height)
 }
 
@@ -217,9 +261,9 @@ pub fn write_sidecar(
     path: &Path,
     progress: &(dyn Fn() + Sync),
 ) -> Result<SidecarSummary, SuperpixelsError> {
-    let write_error = |reason: String| SuperpixelsError::Write {
+    let write_error = |source: WriteFailure| SuperpixelsError::Write {
         path: path.to_path_buf(),
-        reason,
+        source,
     };
     // Every image of every camera, in time order.
     let mut work: Vec<(usize, FrameRef)> = drive
@@ -231,7 +275,7 @@ pub fn write_sidecar(
     work.sort_by_key(|(c, f)| (f.stamp, *c));
 
     let tmp = path.with_extension("mcap.partial");
-    let file = std::fs::File::create(&tmp).map_err(|e| write_error(e.to_string()))?;
+    let file = std::fs::File::create(&tmp).map_err(|e| write_error(e.into()))?;
     let mut writer = mcap::WriteOptions::new()
         .profile("")
         .library(format!("superflow-pipeline/{}", env!("CARGO_PKG_VERSION")))
@@ -239,12 +283,12 @@ pub fn write_sidecar(
         // its bytes instead of decompressing a chunk of a hundred.
         .compression(None)
         .create(BufWriter::new(file))
-        .map_err(|e| write_error(e.to_string()))?;
-    let schema = CompressedImage::get_schema()
-        .ok_or_else(|| write_error("no schema for foxglove.CompressedImage".into()))?;
+        .map_err(|e| write_error(e.into()))?;
+    let schema =
+        CompressedImage::get_schema().ok_or_else(|| write_error(WriteFailure::NoSchema))?;
     let schema_id = writer
         .add_schema(&schema.name, &schema.encoding, &schema.data)
-        .map_err(|e| write_error(e.to_string()))?;
+        .map_err(|e| write_error(e.into()))?;
     let settings = settings_key(config);
     let mut channels = Vec::with_capacity(drive.cameras.len());
     for cam in &drive.cameras {
@@ -256,7 +300,7 @@ pub fn write_sidecar(
         channels.push(
             writer
                 .add_channel(schema_id, &topic, "protobuf", &metadata)
-                .map_err(|e| write_error(e.to_string()))?,
+                .map_err(|e| write_error(e.into()))?,
         );
     }
     let mut sequences = vec![0u32; channels.len()];
@@ -294,12 +338,12 @@ pub fn write_sidecar(
                     },
                     &data,
                 )
-                .map_err(|e| write_error(e.to_string()))?;
+                .map_err(|e| write_error(e.into()))?;
         }
     }
-    writer.finish().map_err(|e| write_error(e.to_string()))?;
+    writer.finish().map_err(|e| write_error(e.into()))?;
     drop(writer);
-    std::fs::rename(&tmp, path).map_err(|e| write_error(e.to_string()))?;
+    std::fs::rename(&tmp, path).map_err(|e| write_error(e.into()))?;
     let bytes = std::fs::metadata(path).map_or(0, |m| m.len());
     Ok(SidecarSummary {
         path: path.to_path_buf(),
@@ -323,7 +367,7 @@ fn labelled_image(
         Err(e) => return Ok(Err(e.to_string())),
     };
     let (width, height) = (config.image_width, config.image_height);
-    let image_error = |reason: String| SuperpixelsError::Image {
+    let image_error = |reason: ImageFailure| SuperpixelsError::Image {
         file: drive.file_list(),
         topic: camera.image_topic.clone(),
         stamp_ns: frame.stamp.nanos(),
@@ -335,7 +379,7 @@ fn labelled_image(
     let timestamp = u32::try_from(sec)
         .ok()
         .and_then(|sec| Timestamp::new_checked(sec, nsec))
-        .ok_or_else(|| image_error("stamp before 1970 or after 2106".into()))?;
+        .ok_or_else(|| image_error(ImageFailure::Stamp))?;
     Ok(Ok(CompressedImage {
         timestamp: Some(timestamp),
         frame_id: camera.frame_id.clone(),
@@ -356,10 +400,16 @@ mod tests {
         let (back, count) = decode_labels(&png, 6, 4).unwrap();
         assert_eq!(back, labels);
         assert_eq!(count, labels.iter().max().unwrap() + 1);
-        assert!(decode_labels(&png, 4, 6).unwrap_err().contains("6x4"));
+        assert!(
+            decode_labels(&png, 4, 6)
+                .unwrap_err()
+                .to_string()
+                .contains("6x4")
+        );
         assert!(
             encode_labels(&[70_000], 1, 1)
                 .unwrap_err()
+                .to_string()
                 .contains("70000")
         );
         assert!(decode_labels(&png[..png.len() / 2], 6, 4).is_err());
