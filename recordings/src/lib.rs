@@ -18,7 +18,8 @@
 //! The drive is then written in one of two real-world dialects ([`Dialect`]) — the
 //! nuScenes-converter Foxglove protobuf layout or a ROS 2 rosbag2 layout — together with
 //! a [`truth::GroundTruth`] JSON. Everything is a pure function of the code: running
-//! `superflow-recordings --out recordings` reproduces the committed files byte for byte.
+//! `superflow-recordings --out recordings` reproduces the committed files byte for byte;
+//! [`cli`] turns that command line into the generator's settings and writes the files.
 //!
 //! ```no_run
 //! let drive = superflow_recordings::generate(superflow_recordings::Dialect::Ros2)?;
@@ -26,6 +27,7 @@
 //! # Ok::<(), Box<dyn std::error::Error>>(())
 //! ```
 
+pub mod cli;
 pub mod damaged;
 pub mod dialect;
 pub mod drive;
