@@ -280,9 +280,8 @@ fn unreadable(source: std::io::Error) -> ChunkError {
 
 /// A zstd context in buffer-less streaming mode (`ZSTD_decompressContinue`).
 ///
-/// Contexts are reused: creating one allocates and clears libzstd's tables and
-/// buffers, which cost about as much as decoding a small block, and a sample opens a
-/// chunk decoder for every chunk it reads again. A dropped decoder goes back to
+/// Contexts are reused: creating one allocates and initialises libzstd's tables and
+/// buffers, and a sample opens a chunk decoder for every chunk it reads again. A dropped decoder goes back to
 /// [`IDLE_DECODERS`] (up to [`MAX_IDLE_DECODERS`]); [`BlockDecoder::new`] takes one
 /// from there and starts a frame on it, which resets whatever state it was left in.
 struct BlockDecoder(*mut zstd_sys::ZSTD_DCtx);
