@@ -130,9 +130,9 @@ fn samples_read_slic_from_the_sidecar_as_slic_would_give_it() {
     let mut cache = superflow_pipeline::source::ChunkCache::new(2);
     let stamp = camera.frames[0].stamp;
     let e = read_labels(&dataset.drives[0], stream, stamp, (224, 112), &mut cache).unwrap_err();
-    assert!(e.contains("448x224"), "{e}");
+    assert!(e.to_string().contains("448x224"), "{e}");
     let missing = superflow_schemas::Stamp::from_nanos(stamp.nanos() + 1);
     let e = read_labels(&dataset.drives[0], stream, missing, (448, 224), &mut cache).unwrap_err();
-    assert!(e.contains("no precomputed"), "{e}");
+    assert!(e.to_string().contains("no precomputed"), "{e}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
