@@ -22,6 +22,7 @@ use super::message::{MessageLoc, MessageRef};
 use super::partial::PartialChunk;
 use super::tally::Decompressed;
 use mcap::records::{self, op};
+use std::borrow::Cow;
 use std::collections::VecDeque;
 use std::os::unix::fs::FileExt;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -292,16 +293,22 @@ impl McapFile {
         if let Some(fingerprint) = fingerprint
             && self.checked.holds(chunk, fingerprint)
         {
-            // The compressed bytes borrow from the record as parsed.
-            let start = (data.as_ptr() as usize).wrapping_sub(bytes.as_ptr() as usize);
-            let range = start..start + data.len();
+            // Where the compressed bytes, borrowed from the record as parsed, lie in it.
+            let inside = match &data {
+                Cow::Borrowed(slice) => (slice.as_ptr() as usize)
+                    .checked_sub(bytes.as_ptr() as usize)
+                    .map(|start| start..start + slice.len())
+                    .filter(|range| range.end <= bytes.len()),
+                Cow::Owned(_) => None,
+            };
+            let size = header.uncompressed_size;
             let partial = match body {
-                Body::Owned(record) => {
-                    PartialChunk::within(header.uncompressed_size, record, range)?
+                Body::Owned(record) if inside.is_some() => {
+                    PartialChunk::within(size, record, inside.unwrap_or(0..0))?
                 }
-                Body::Borrowed(_) => {
+                _ => {
                     let len = data.len();
-                    PartialChunk::within(header.uncompressed_size, data.into_owned(), 0..len)?
+                    PartialChunk::within(size, data.into_owned(), 0..len)?
                 }
             };
             return Ok(Held::Partial(partial));
