@@ -5,7 +5,9 @@
 //! `cargo bench -p superflow-pipeline --bench speed` (options: `-- --samples N` (48),
 //! `--slic-samples N` (12), `--sizes 800x450,1600x900`, `--ros2-sizes 800x450`,
 //! `--columns N` (LiDAR columns a sweep, 1084: ~33 k returns; 700 gives the ~21 k of a
-//! nuScenes sweep), `--regenerate`).
+//! nuScenes sweep), `--kernel-maps none` (the recipe's `kernel_maps`: level-0 voxels
+//! only, for networks that build their own maps; `unet`, every level's, by default),
+//! `--regenerate`).
 //!
 //! `--loop N` builds N class-map samples of the first size one after the other on one
 //! thread (after a warm-up epoch) and prints ms a sample and its stages, nothing else:
@@ -54,7 +56,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 use superflow_pipeline::batch::{BatchPlan, BatchShape};
 use superflow_pipeline::drive::{Dataset, IngestConfig};
-use superflow_pipeline::sample::recipe::SuperpixelSource;
+use superflow_pipeline::sample::recipe::{KernelMaps, SuperpixelSource};
 use superflow_pipeline::sample::sidecar;
 use superflow_pipeline::sample::{Sample, SampleBuilder, SampleConfig};
 use superflow_recordings::{Dialect, DriveOptions, GENERATOR_VERSION, generate_with};
@@ -256,13 +258,14 @@ fn parse_size(size: &str) -> anyhow::Result<(u32, u32)> {
 
 /// `--loop N`: `n` class-map samples of the drive at `path` one after the other on one
 /// thread, after a warm-up epoch; prints ms a sample and its stages.
-fn profile_loop(path: &std::path::Path, n: usize) -> anyhow::Result<()> {
+fn profile_loop(path: &std::path::Path, n: usize, maps: KernelMaps) -> anyhow::Result<()> {
     let dataset = Dataset::open(
         std::slice::from_ref(&path.to_path_buf()),
         &IngestConfig::default(),
     )?;
     let config = SampleConfig {
         superpixels: SuperpixelSource::Channel,
+        kernel_maps: maps,
         ..SampleConfig::default()
     };
     let builder = SampleBuilder::new(&dataset, config)?;
@@ -292,15 +295,24 @@ fn main() -> anyhow::Result<()> {
     let ros2_sizes = arg_value("--ros2-sizes").unwrap_or_else(|| "800x450".into());
     let regenerate = flag("--regenerate");
     let columns = arg_count("--columns")?;
+    let maps = match arg_value("--kernel-maps").as_deref() {
+        None | Some("unet") => KernelMaps::Unet,
+        Some("none") => KernelMaps::None,
+        Some(other) => anyhow::bail!("--kernel-maps {other}: expected unet or none"),
+    };
     if let Some(n) = arg_count("--loop")? {
         let size = sizes.split(',').next().unwrap_or_default();
         let (w, h) = parse_size(size)?;
         let path = drive(Dialect::Foxglove, w, h, columns, regenerate)?;
-        return profile_loop(&path, n);
+        return profile_loop(&path, n, maps);
     }
     let cores = cores();
+    let recipe = match maps {
+        KernelMaps::Unet => "default recipe",
+        KernelMaps::None => "default recipe but kernel_maps = \"none\" (level-0 voxels, no map)",
+    };
     println!(
-        "nuScenes-sized drives (nuscenes2mcap layout; ROS 2: rosbag2 CDR, raw sweeps with a time per point, distorted images), default recipe; {} rounds of {n} samples on 1 core then {cores} ({n_slic} with SLIC), load average {} at start",
+        "nuScenes-sized drives (nuscenes2mcap layout; ROS 2: rosbag2 CDR, raw sweeps with a time per point, distorted images), {recipe}; {} rounds of {n} samples on 1 core then {cores} ({n_slic} with SLIC), load average {} at start",
         sample::ROUNDS,
         load_average(3)
     );
@@ -346,6 +358,7 @@ fn main() -> anyhow::Result<()> {
         for (source, count, data, label) in rows {
             let config = SampleConfig {
                 superpixels: source,
+                kernel_maps: maps,
                 ..SampleConfig::default()
             };
             let builder = SampleBuilder::new(data, config)?;

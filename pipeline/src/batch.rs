@@ -8,9 +8,9 @@
 //! samples ([`Dims`]); [`BatchPlan::write`] fills each [`Section`], the table checking the
 //! element type of every write.
 
-use crate::sample::SampleConfig;
 use crate::sample::kernel_maps::KernelMap;
 use crate::sample::{Cloud, Sample};
+use crate::sample::{KernelMaps, SampleConfig};
 use superflow_schemas::batch::{
     BatchError, BatchLayout, BatchMeta, BatchWriter, Dims, LevelDims, Section,
 };
@@ -24,6 +24,8 @@ pub struct BatchShape {
     pub width: usize,
     /// UNet levels.
     pub levels: usize,
+    /// Which maps the samples carry; with none, the batch has level 0's voxels only.
+    pub maps: KernelMaps,
 }
 
 impl BatchShape {
@@ -33,6 +35,7 @@ impl BatchShape {
             height: config.image_height as usize,
             width: config.image_width as usize,
             levels: config.unet_levels as usize,
+            maps: config.kernel_maps,
         }
     }
 }
@@ -83,7 +86,11 @@ impl BatchPlan {
     pub fn new(samples: &[Sample], shape: BatchShape) -> Result<Self, BatchError> {
         let dims = dims(samples, shape)?;
         let mut layout = BatchLayout::new();
-        for section in Section::in_order(shape.levels) {
+        let sections: Box<dyn Iterator<Item = Section>> = match shape.maps {
+            KernelMaps::Unet => Box::new(Section::in_order(shape.levels)),
+            KernelMaps::None => Box::new(Section::in_order_unmapped()),
+        };
+        for section in sections {
             layout.add_section(section, &dims.shape(section)?)?;
         }
         Ok(Self { layout, shape })
@@ -110,8 +117,14 @@ impl BatchPlan {
         write_images(samples, self.shape, &mut w)?;
         let point_offsets = write_points(samples, &mut w)?;
         write_pairings(samples, &point_offsets, &mut w)?;
-        for l in 0..self.shape.levels {
-            write_level(samples, l, l + 1 < self.shape.levels, &mut w)?;
+        match self.shape.maps {
+            KernelMaps::Unet => {
+                for l in 0..self.shape.levels {
+                    write_level_cells(samples, l, &mut w)?;
+                    write_level_maps(samples, l, l + 1 < self.shape.levels, &mut w)?;
+                }
+            }
+            KernelMaps::None => write_level_cells(samples, 0, &mut w)?,
         }
         Ok(())
     }
@@ -145,7 +158,12 @@ fn dims(samples: &[Sample], shape: BatchShape) -> Result<Dims, BatchError> {
         }
     }
     let all_clouds = || samples.iter().flat_map(clouds);
-    let levels = (0..shape.levels)
+    let voxels = all_clouds().map(|c| c.voxels.coords.len()).sum();
+    let mapped = match shape.maps {
+        KernelMaps::Unet => shape.levels,
+        KernelMaps::None => 0,
+    };
+    let mut levels = (0..mapped)
         .map(|l| {
             let mut level_dims = LevelDims::default();
             for cloud in all_clouds() {
@@ -159,6 +177,9 @@ fn dims(samples: &[Sample], shape: BatchShape) -> Result<Dims, BatchError> {
             Ok(level_dims)
         })
         .collect::<Result<Vec<_>, BatchError>>()?;
+    if shape.maps == KernelMaps::None {
+        levels.push(LevelDims { voxels, pairs: 0 });
+    }
     Ok(Dims {
         samples: samples.len(),
         frames: f,
@@ -167,7 +188,7 @@ fn dims(samples: &[Sample], shape: BatchShape) -> Result<Dims, BatchError> {
         width: shape.width,
         points: all_clouds().map(|c| c.xyz.len()).sum(),
         pairings: all_clouds().map(|c| c.pairings.len()).sum(),
-        voxels: all_clouds().map(|c| c.voxels.coords.len()).sum(),
+        voxels,
         levels,
     })
 }
@@ -418,25 +439,41 @@ fn write_pairings(
     Ok(())
 }
 
-/// The sections of level `l`: coordinates, cloud offsets, neighbour map and, unless it
-/// is the coarsest level (`down` false), the map down to level `l + 1`.
-fn write_level(
+/// The cells of level `l` of a cloud: the voxels at level 0 (built with or without
+/// maps), else the level's own.
+fn level_cells(cloud: &Cloud, l: usize) -> &[[i32; 3]] {
+    match l {
+        0 => &cloud.voxels.coords,
+        _ => &cloud.levels[l].coords,
+    }
+}
+
+/// The first row of each cloud at level `l`, and the total.
+fn level_rows(samples: &[Sample], l: usize) -> Vec<usize> {
+    offsets(
+        samples
+            .iter()
+            .flat_map(clouds)
+            .map(|c| level_cells(c, l).len()),
+    )
+}
+
+/// The cell sections of level `l`: coordinates and cloud offsets.
+fn write_level_cells(
     samples: &[Sample],
     l: usize,
-    down: bool,
     w: &mut BatchWriter<'_>,
 ) -> Result<(), BatchError> {
     let all_clouds = || samples.iter().flat_map(clouds);
-    let rows = offsets(all_clouds().map(|c| c.levels[l].coords.len()));
     let out = w.take_section::<i32>(Section::LevelCoords(l))?;
     concat(
         out,
         4,
-        all_clouds().map(|c| c.levels[l].coords.len()),
+        all_clouds().map(|c| level_cells(c, l).len()),
         |ci, dst| {
             for (d, x) in dst
                 .chunks_exact_mut(4)
-                .zip(&cloud_at(samples, ci).levels[l].coords)
+                .zip(level_cells(cloud_at(samples, ci), l))
             {
                 d.copy_from_slice(&[ci as i32, x[0], x[1], x[2]]);
             }
@@ -444,8 +481,21 @@ fn write_level(
     );
     fill(
         w.take_section::<u32>(Section::LevelClouds(l))?,
-        rows.iter().map(|&o| o as u32),
+        level_rows(samples, l).iter().map(|&o| o as u32),
     );
+    Ok(())
+}
+
+/// The map sections of level `l`: its neighbour map and, unless it is the coarsest level
+/// (`down` false), the map down to level `l + 1`.
+fn write_level_maps(
+    samples: &[Sample],
+    l: usize,
+    down: bool,
+    w: &mut BatchWriter<'_>,
+) -> Result<(), BatchError> {
+    let all_clouds = || samples.iter().flat_map(clouds);
+    let rows = level_rows(samples, l);
     let maps: Vec<&KernelMap> = all_clouds().map(|c| &c.levels[l].neighbours).collect();
     let starts = merge(
         w.take_section::<u32>(Section::LevelNbr(l))?,
@@ -455,7 +505,7 @@ fn write_level(
     )?;
     w.write_section(Section::LevelNbrStarts(l), &starts)?;
     if down {
-        let coarse = offsets(all_clouds().map(|c| c.levels[l + 1].coords.len()));
+        let coarse = level_rows(samples, l + 1);
         let maps = all_clouds()
             .map(|c| {
                 c.levels[l]

@@ -201,6 +201,7 @@ impl PipelineConfig {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::sample::KernelMaps;
     use std::path::PathBuf;
 
     #[test]
@@ -225,6 +226,13 @@ mod tests {
         .unwrap();
         assert_eq!(recipe.sample.frame_offsets(), [-1, 0]);
         assert!(recipe.sample.augment.shared && recipe.sample.augment.scale_min == 0.95);
+        assert_eq!(recipe.sample.kernel_maps, KernelMaps::Unet);
+        let bare: PipelineConfig = toml::from_str("[sample]\nkernel_maps = \"none\"\n").unwrap();
+        assert_eq!(bare.sample.kernel_maps, KernelMaps::None);
+        let e = toml::from_str::<PipelineConfig>("[sample]\nkernel_maps = \"level0\"\n")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("unet") && e.contains("none"), "{e}");
         assert!(recipe.validate().is_ok());
         let mut bad = PipelineConfig::default();
         bad.sample.temporal_frames = 4;

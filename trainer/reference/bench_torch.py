@@ -363,10 +363,13 @@ def long(a) -> torch.Tensor:
     return torch.from_numpy(np.asarray(a, dtype=np.int64).copy())
 
 
-def prepare(arr: dict, pixel_stride: int = 1, patch: int = 14) -> dict:
+def prepare(arr: dict, pixel_stride: int = 1, patch: int = 14, maps_needed: bool = True) -> dict:
+    """Tensors of a batch for the reference: ``maps_needed=False`` for a 3D network that
+    builds its own maps (a batch of ``kernel_maps = "none"`` has none)."""
     images = arr["images"]
     levels = sum(1 for name in arr if name.endswith("_nbr_starts"))
-    maps = {"rows": [], "nbr": [], "down": [], "up": []}
+    maps = {"rows": [int(arr["l0_coords"].shape[0])] if not levels else [],
+            "nbr": [], "down": [], "up": []}
     for l in range(levels):
         maps["rows"].append(int(arr[f"l{l}_coords"].shape[0]))
         nbr, starts = arr[f"l{l}_nbr"].astype(np.int64), arr[f"l{l}_nbr_starts"].astype(np.int64)
@@ -376,7 +379,7 @@ def prepare(arr: dict, pixel_stride: int = 1, patch: int = 14) -> dict:
             child, parent, ds = long(dn[:, 0]), long(dn[:, 1]), [int(v) for v in ds]
             maps["down"].append((child, parent, ds))
             maps["up"].append((parent, child, ds))
-    if levels != 5:
+    if maps_needed and levels != 5:
         raise ValueError(f"the UNet needs 5 levels of maps, the batch has {levels}")
 
     ix = prepare_losses(arr, pixel_stride)

@@ -300,6 +300,14 @@ fn host_levels<'a>(view: &BatchView<'a>, at: At) -> Result<Vec<HostLevel<'a>>, I
     while view.has(Section::LevelCoords(levels.len())) {
         let l = levels.len();
         let rows = view.section::<i32>(Section::LevelCoords(l))?.shape()[0];
+        if !view.has(Section::LevelNbr(l)) {
+            return Err(at.invalid(format!(
+                "no kernel maps: the batch carries level {l}'s voxels only (the pipeline's \
+                 recipe has kernel_maps = \"none\", for networks that build their own \
+                 maps); this trainer's UNet runs on the batch's maps: set kernel_maps = \
+                 \"unet\" in the pipeline's [sample]"
+            )));
+        }
         let nbr = view.section::<u32>(Section::LevelNbr(l))?;
         let starts = view.section::<u32>(Section::LevelNbrStarts(l))?;
         check_map(nbr.data, starts.data, 27, rows, rows)
@@ -403,16 +411,20 @@ mod tests {
     use std::path::Path;
     use superflow_pipeline::batch::{BatchPlan, BatchShape};
     use superflow_pipeline::drive::{Dataset, IngestConfig};
-    use superflow_pipeline::sample::{SampleBuilder, SampleConfig};
+    use superflow_pipeline::sample::{KernelMaps, SampleBuilder, SampleConfig};
     use superflow_schemas::batch::{BatchHeader, BatchMeta};
 
     /// Two samples of the ROS 2 street drive (default recipe) as one batch, epoch 3 step 7.
     fn street_batch() -> (BatchHeader, Vec<u64>) {
+        street_batch_of(SampleConfig::default())
+    }
+
+    /// [`street_batch`] built with `config`.
+    fn street_batch_of(config: SampleConfig) -> (BatchHeader, Vec<u64>) {
         let drive =
             Path::new(env!("CARGO_MANIFEST_DIR")).join("../recordings/drives/street_ros2.mcap");
         let dataset =
             Dataset::open(std::slice::from_ref(&drive), &IngestConfig::default()).unwrap();
-        let config = SampleConfig::default();
         let builder = SampleBuilder::new(&dataset, config.clone()).unwrap();
         let samples: Vec<_> = (0..2).map(|i| builder.build(0, i).unwrap()).collect();
         let plan = BatchPlan::new(&samples, BatchShape::of(&config)).unwrap();
@@ -466,6 +478,24 @@ mod tests {
                 .starts_with("batch 3/7: l2_nbr: pair (4294967295, "),
             "{err}"
         );
+    }
+
+    /// A batch of a recipe without kernel maps is refused with the setting to change, not
+    /// as a missing section.
+    #[test]
+    fn a_batch_without_kernel_maps_names_the_setting() {
+        let config = SampleConfig {
+            kernel_maps: KernelMaps::None,
+            ..SampleConfig::default()
+        };
+        let (header, storage) = street_batch_of(config);
+        let view = BatchView::new(&header, bytemuck::cast_slice(&storage)).unwrap();
+        let device = Device::flex();
+        let err = StepInputs::from_view(&view, &device, &device, 4).unwrap_err();
+        assert!(matches!(err, InputError::Invalid { .. }), "{err:?}");
+        let text = err.to_string();
+        assert!(text.starts_with("batch 3/7: no kernel maps"), "{text}");
+        assert!(text.contains("kernel_maps = \"unet\""), "{text}");
     }
 
     /// A lost batch is refused by name, not as a missing section.

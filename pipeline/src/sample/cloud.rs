@@ -8,6 +8,7 @@ use super::image_ops;
 use super::kernel_maps::build_levels_keyed;
 use super::load::{LoadedSweep, SampleContext, elapsed};
 use super::project::{CameraView, pair_points};
+use super::recipe::KernelMaps;
 use super::rng::{Purpose, SampleRng};
 use super::types::{Cloud, Pair, SampleImage, StageTimes};
 use super::voxel::voxelize_keyed;
@@ -137,7 +138,13 @@ impl SampleContext<'_> {
                 [x, y, z, cloud.intensity[i as usize]]
             })
             .collect();
-        let levels = build_levels_keyed(&voxels.coords, voxel_keys, cfg.unet_levels as usize);
+        let levels = match cfg.kernel_maps {
+            KernelMaps::Unet => {
+                build_levels_keyed(&voxels.coords, voxel_keys, cfg.unet_levels as usize)
+            }
+            // The batch's level-0 voxels are then `voxels.coords` themselves.
+            KernelMaps::None => Vec::new(),
+        };
         times.voxels += elapsed(t);
         let cloud = Cloud {
             xyz,

@@ -63,5 +63,5 @@ pub use epochs::EpochMix;
 pub use error::{SampleError, SuperpixelsFault};
 pub use images::CLASS_MAP_TOLERANCE_NANOS;
 pub use plan::{KeyframeRef, Plan};
-pub use recipe::SampleConfig;
+pub use recipe::{KernelMaps, SampleConfig};
 pub use types::{Cloud, Frame, Pair, Sample, SampleId, SampleImage, StageTimes};

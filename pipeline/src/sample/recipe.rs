@@ -58,6 +58,20 @@ pub enum SuperpixelSource {
     Slic,
 }
 
+/// Which sparse-convolution maps a batch carries.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum KernelMaps {
+    /// Every UNet level's coordinates, 3×3×3 neighbour map and stride-2 map: what the
+    /// burn trainer and a network run on the batch's own maps read.
+    #[default]
+    Unet,
+    /// Level-0 voxels only (`l0_coords`, `l0_clouds`), no map: for a 3D network that
+    /// builds its own on the GPU (spconv, torchsparse, MinkowskiEngine). The maps are most
+    /// of a sample's CPU time after decoding and most of a batch's bytes.
+    None,
+}
+
 /// 3D augmentation, applied to each cloud after its points are paired with pixels.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -141,6 +155,9 @@ pub struct SampleConfig {
     pub voxel: VoxelGrid,
     /// Resolutions of the 3D UNet (5: strides 1 to 16).
     pub unet_levels: u32,
+    /// Which maps are built and sent (`"unet"`: every level's; `"none"`: level-0 voxels
+    /// only, for networks that build their own maps).
+    pub kernel_maps: KernelMaps,
     /// Seed of every random choice: with (epoch, index) it fixes a sample.
     pub seed: u64,
 }
@@ -167,6 +184,7 @@ impl Default for SampleConfig {
             augment: AugmentConfig::default(),
             voxel: VoxelGrid::default(),
             unet_levels: 5,
+            kernel_maps: KernelMaps::Unet,
             seed: 0,
         }
     }

@@ -64,7 +64,8 @@ pub struct Cloud {
     pub voxels: Voxelized,
     /// Features of each voxel's representative point: x, y, z, intensity.
     pub voxel_features: Vec<[f32; 4]>,
-    /// Sparse-convolution maps per UNet level (level 0 = `voxels.coords`).
+    /// Sparse-convolution maps per UNet level (level 0 = `voxels.coords`); empty when the
+    /// recipe builds none (`kernel_maps = "none"`).
     pub levels: Vec<Level>,
 }
 

@@ -314,6 +314,14 @@ impl Section {
         Section::BATCH.into_iter().chain(per_level)
     }
 
+    /// Every section of a batch that carries level 0's voxels and no kernel map (a recipe
+    /// with `kernel_maps = "none"`, for a 3D network that builds its own maps), in payload
+    /// order: `l0_coords` and `l0_clouds` after the batch's sections.
+    pub fn in_order_unmapped() -> impl Iterator<Item = Section> {
+        let cells = Section::of_level(0).into_iter().take(2);
+        Section::BATCH.into_iter().chain(cells)
+    }
+
     /// The section's row of the table.
     pub const fn spec(self) -> &'static SectionSpec {
         let index = match self {
@@ -519,6 +527,22 @@ pub fn markdown() -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A batch without maps is a batch with them cut before `l0_nbr`, for any level count.
+    #[test]
+    fn the_unmapped_sections_begin_every_mapped_batch() {
+        let unmapped: Vec<Section> = Section::in_order_unmapped().collect();
+        assert_eq!(unmapped.len(), 23 + 2);
+        assert_eq!(
+            unmapped[23..],
+            [Section::LevelCoords(0), Section::LevelClouds(0)]
+        );
+        for levels in 1..=8 {
+            let mapped: Vec<Section> = Section::in_order(levels).collect();
+            assert_eq!(mapped[..unmapped.len()], unmapped[..]);
+            assert_eq!(mapped[unmapped.len()], Section::LevelNbr(0));
+        }
+    }
 
     #[test]
     fn every_section_has_its_row_and_parses_back() {

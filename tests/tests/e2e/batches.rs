@@ -9,7 +9,7 @@
 
 use superflow_pipeline::batch::{BatchPlan, BatchShape};
 use superflow_pipeline::drive::{Dataset, IngestConfig};
-use superflow_pipeline::sample::{Sample, SampleBuilder, SampleConfig};
+use superflow_pipeline::sample::{KernelMaps, Sample, SampleBuilder, SampleConfig};
 use superflow_recordings::Dialect;
 use superflow_schemas::batch::{BatchMeta, BatchView, Section};
 use superflow_tests::{fleet_drives, sample_dataset, sample_drive};
@@ -52,6 +52,7 @@ fn check_batch(samples: &[Sample]) {
         height: 224,
         width: 448,
         levels: 5,
+        maps: KernelMaps::Unet,
     };
     let plan = BatchPlan::new(samples, shape).unwrap();
     let layout = plan.layout();
@@ -259,4 +260,64 @@ fn a_superpixel_id_beyond_16_bits_is_an_error_not_a_wrap() {
     let e = plan.write(&samples, &mut payload).unwrap_err().to_string();
     assert!(e.contains("superpixels"), "{e}");
     assert!(e.contains("65539") && e.contains(&camera), "{e}");
+}
+
+/// `kernel_maps = "none"` (for a 3D network that builds its own maps): the same samples,
+/// every section byte for byte what the default recipe's batch holds, level 0's voxels
+/// included, and no map (the payload is the default one cut before `l0_nbr`); a batch planned with maps from samples built without them is
+/// refused, not written short.
+#[test]
+fn a_recipe_without_kernel_maps_sends_the_same_batch_less_its_maps() {
+    let ds = sample_dataset(&sample_drive(Dialect::Foxglove).unwrap()).unwrap();
+    let with = SampleConfig::default();
+    let without = SampleConfig {
+        kernel_maps: KernelMaps::None,
+        ..with.clone()
+    };
+    let write = |config: &SampleConfig| {
+        let builder = SampleBuilder::new(&ds, config.clone()).unwrap();
+        let samples: Vec<Sample> = (0..2).map(|i| builder.build(1, i).unwrap()).collect();
+        let plan = BatchPlan::new(&samples, BatchShape::of(config)).unwrap();
+        let mut payload = vec![0u8; plan.layout().payload_len()];
+        plan.write(&samples, &mut payload).unwrap();
+        let meta = BatchMeta {
+            run: "maps-test".into(),
+            sample_count: samples.len() as u32,
+            ..BatchMeta::default()
+        };
+        (plan.layout().header(&meta).unwrap(), payload, samples)
+    };
+    let (full_header, full_bytes, _) = write(&with);
+    let (bare_header, bare_bytes, bare_samples) = write(&without);
+    assert!(
+        bare_samples.iter().all(
+            |s| s.dense.levels.is_empty() && s.frames.iter().all(|f| f.cloud.levels.is_empty())
+        )
+    );
+    let full = BatchView::new(&full_header, &full_bytes).unwrap();
+    let bare = BatchView::new(&bare_header, &bare_bytes).unwrap();
+    let names: Vec<&str> = bare.section_names().collect();
+    let expected: Vec<String> = Section::in_order_unmapped()
+        .map(|s| s.name().into_owned())
+        .collect();
+    assert_eq!(names, expected);
+    assert_eq!(names[names.len() - 2..], ["l0_coords", "l0_clouds"]);
+    for name in names {
+        assert!(
+            full.bytes(name).unwrap() == bare.bytes(name).unwrap(),
+            "section {name} differs"
+        );
+    }
+    // The maps' sections come last, so the whole payload is the default one cut short.
+    let (full_len, bare_len) = (full_bytes.len(), bare_bytes.len());
+    assert!(bare_len < full_len);
+    assert!(full_bytes[..bare_len] == bare_bytes[..]);
+    eprintln!("2 samples: {full_len} bytes with the maps, {bare_len} without");
+
+    let builder = SampleBuilder::new(&ds, without).unwrap();
+    let samples = vec![builder.build(0, 0).unwrap()];
+    let e = BatchPlan::new(&samples, BatchShape::of(&with))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("no level 0"), "{e}");
 }

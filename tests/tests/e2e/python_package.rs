@@ -326,15 +326,21 @@ fn python_epochs_end_and_the_stream_stops_after_the_last() {
     no_shared_memory_left(&p);
 }
 
-/// `superflow.torch.spconv_tensor` with the CPU `spconv` package (the `[spconv]` extra):
-/// the indices are the batch's level-0 coordinates shifted to be non-negative, in the
-/// batch's row order, `batch_size` the clouds, the features the batch's own memory; a
-/// `SubMConv3d` forward keeps the rows. Beside it, `examples/train_spconv.py` on the same
-/// batch: the spconv MinkUNet's forward pass and the SuperFlow losses, then it stops,
-/// saying why (spconv's CPU build has no backward).
+/// `superflow.torch.spconv_tensor` with the CPU `spconv` package (the `[spconv]` extra),
+/// on the stream of a pipeline whose recipe builds no kernel maps (`kernel_maps =
+/// "none"`, what a spconv user sets: spconv finds its own): the batch has level 0's
+/// voxels and no map; the indices are its level-0 coordinates shifted to be
+/// non-negative, in the batch's row order, `batch_size` the clouds, the features the
+/// batch's own memory; a `SubMConv3d` forward keeps the rows. Beside it,
+/// `examples/train_spconv.py` on the same batch: the spconv MinkUNet's forward pass and
+/// the SuperFlow losses, then it stops, saying why (spconv's CPU build has no backward).
 #[test]
 fn python_spconv_tensor_holds_the_batch_voxels_and_runs_a_submanifold_convolution() {
     let p = prefix("pyspconv");
+    let dir = Path::new(env!("CARGO_TARGET_TMPDIR")).join("pyspconv");
+    std::fs::create_dir_all(&dir).unwrap();
+    let config = dir.join("no-maps.toml");
+    std::fs::write(&config, "[sample]\nkernel_maps = \"none\"\n").unwrap();
     let python = scenario(&p, &["spconv", "--run", "pyspconv"], &[]);
     let example = superflow_tests::process::spawn(
         Command::new(package_python())
@@ -349,11 +355,20 @@ fn python_spconv_tensor_holds_the_batch_voxels_and_runs_a_submanifold_convolutio
     let pipe = pipeline(
         &p,
         "pyspconv",
-        &["--batch-size", "2", "--epochs", "1", "--subscribers", "2"],
+        &[
+            "--config",
+            config.to_str().unwrap(),
+            "--batch-size",
+            "2",
+            "--epochs",
+            "1",
+            "--subscribers",
+            "2",
+        ],
     );
     let out = succeeded(python);
     let checks = out[0]["checks"].as_object().unwrap();
-    assert_eq!(checks.len(), 8, "{out:?}");
+    assert_eq!(checks.len(), 9, "{out:?}");
     assert!(checks.values().all(|v| v == true), "{out:?}");
     assert!(out[0]["voxels"].as_u64().unwrap() > 1000, "{out:?}");
     let trained = succeeded(example);

@@ -4,8 +4,11 @@ their own maps from the batch's level-0 coordinates), the frozen ViT, the 2D hea
 the spatial, temporal and dense-to-sparse contrastive losses are the PyTorch reference of
 the Rust trainer (trainer/reference/bench_torch.py).
 
-    superflow-pipeline --mcap recordings/drives --run exp1 --batch-size 2 &
+    printf '[sample]\nkernel_maps = "none"\n' > no-maps.toml   # spconv finds its own maps
+    superflow-pipeline --mcap recordings/drives --run exp1 --batch-size 2 --config no-maps.toml &
     python trainer/python/examples/train_spconv.py --run exp1 --steps 20
+
+(It reads a batch with the maps too: it does not use them.)
 
 Trains on a GPU (``pip install spconv-cu120`` or the build of your CUDA, and torch with
 CUDA). On a CPU (``pip install "./trainer/python[spconv]"``: spconv's CPU build) it runs
@@ -115,7 +118,9 @@ def main() -> int:
         started = time.perf_counter()
         with batch:
             arrays = {name: np.asarray(batch[name]) for name in batch.names()}
-            inputs = ref.prepare(arrays, args.pixel_stride)  # copies what the losses index
+            # Copies what the losses index; spconv finds its own maps, so the batch's (if the
+            # pipeline sent any: kernel_maps = "unet") are not read.
+            inputs = ref.prepare(arrays, args.pixel_stride, maps_needed=False)
             x = sft.spconv_tensor(batch, device=device)  # features: the batch's memory on a CPU
             position = (batch.epoch, batch.step)
             del arrays

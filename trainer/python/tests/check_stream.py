@@ -285,6 +285,9 @@ def spconv(args: argparse.Namespace) -> int:
         "forward rows": tuple(y.features.shape) == (len(coords), 8),
         "forward indices": bool(torch.equal(y.indices, x.indices)),
         "forward finite": bool(torch.isfinite(y.features).all()),
+        # Run with kernel_maps = "none": level 0's voxels, no map, no coarser level.
+        "no maps": not any(name.endswith(("_nbr", "_down")) or name.startswith("l1_")
+                           for name in batch.names()),
     }
     emit({"checks": checks, "voxels": len(coords), "clouds": x.batch_size,
           "spatial_shape": list(x.spatial_shape)})
