@@ -24,6 +24,9 @@ def spconv_coordinates(batch: Batch, level: int = 0) -> tuple[np.ndarray, list[i
     row order, the cell shifted by its per-axis minimum so that it is non-negative;
     ``spatial_shape`` the extent of the shifted cells; ``batch_size`` the clouds of the
     batch (``B·C``: each cloud is one spconv sample). A copy (the shift)."""
+    if f"l{level}_coords" not in batch:
+        raise ValueError(f"the batch has no level {level} (l{level}_coords): a pipeline whose "
+                         'recipe has kernel_maps = "none" sends level 0 only')
     coords = np.asarray(batch[f"l{level}_coords"])
     clouds = len(batch[f"l{level}_clouds"]) - 1
     if coords.ndim != 2 or coords.shape[1] != 4:

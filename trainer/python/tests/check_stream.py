@@ -35,6 +35,7 @@ import sys
 import threading
 import time
 import warnings
+from typing import Any
 
 import numpy as np
 
@@ -256,6 +257,15 @@ def epochs(args: argparse.Namespace) -> int:
     return 0
 
 
+def _refused(call: Any, words: str) -> bool:
+    """Whether ``call()`` raises a ValueError whose text holds ``words``."""
+    try:
+        call()
+    except ValueError as e:
+        return words in str(e)
+    return False
+
+
 def spconv(args: argparse.Namespace) -> int:
     """superflow.torch.spconv_tensor of a batch: indices equal the batch's coordinates
     (shifted), rows in order, features shared with the batch; a SubMConv3d forward on it
@@ -285,9 +295,11 @@ def spconv(args: argparse.Namespace) -> int:
         "forward rows": tuple(y.features.shape) == (len(coords), 8),
         "forward indices": bool(torch.equal(y.indices, x.indices)),
         "forward finite": bool(torch.isfinite(y.features).all()),
-        # Run with kernel_maps = "none": level 0's voxels, no map, no coarser level.
+        # Run with kernel_maps = "none": level 0's voxels, no map, no coarser level, and
+        # asking for one says why.
         "no maps": not any(name.endswith(("_nbr", "_down")) or name.startswith("l1_")
-                           for name in batch.names()),
+                           for name in batch.names())
+        and _refused(lambda: sft.spconv_coordinates(batch, 1), "kernel_maps"),
     }
     emit({"checks": checks, "voxels": len(coords), "clouds": x.batch_size,
           "spatial_shape": list(x.spatial_shape)})
