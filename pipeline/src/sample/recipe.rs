@@ -67,8 +67,9 @@ pub enum KernelMaps {
     #[default]
     Unet,
     /// Level-0 voxels only (`l0_coords`, `l0_clouds`), no map: for a 3D network that
-    /// builds its own on the GPU (spconv, torchsparse, MinkowskiEngine). The maps are most
-    /// of a sample's CPU time after decoding and most of a batch's bytes.
+    /// builds its own on the GPU (spconv, torchsparse, MinkowskiEngine). Building the maps
+    /// is the largest share of a sample's work after decoding, and they are a large share
+    /// of a batch's bytes.
     None,
 }
 
