@@ -120,11 +120,13 @@ impl BatchPlan {
         match self.shape.maps {
             KernelMaps::Unet => {
                 for l in 0..self.shape.levels {
-                    write_level_cells(samples, l, &mut w)?;
-                    write_level_maps(samples, l, l + 1 < self.shape.levels, &mut w)?;
+                    let rows = write_level_cells(samples, l, &mut w)?;
+                    write_level_maps(samples, l, &rows, l + 1 < self.shape.levels, &mut w)?;
                 }
             }
-            KernelMaps::None => write_level_cells(samples, 0, &mut w)?,
+            KernelMaps::None => {
+                write_level_cells(samples, 0, &mut w)?;
+            }
         }
         Ok(())
     }
@@ -159,27 +161,23 @@ fn dims(samples: &[Sample], shape: BatchShape) -> Result<Dims, BatchError> {
     }
     let all_clouds = || samples.iter().flat_map(clouds);
     let voxels = all_clouds().map(|c| c.voxels.coords.len()).sum();
-    let mapped = match shape.maps {
-        KernelMaps::Unet => shape.levels,
-        KernelMaps::None => 0,
+    let levels = match shape.maps {
+        KernelMaps::Unet => (0..shape.levels)
+            .map(|l| {
+                let mut level_dims = LevelDims::default();
+                for cloud in all_clouds() {
+                    let level = cloud
+                        .levels
+                        .get(l)
+                        .ok_or_else(|| err("levels", format!("a cloud has no level {l}")))?;
+                    level_dims.voxels += level.coords.len();
+                    level_dims.pairs += level.neighbours.pairs.len();
+                }
+                Ok(level_dims)
+            })
+            .collect::<Result<Vec<_>, BatchError>>()?,
+        KernelMaps::None => vec![LevelDims { voxels, pairs: 0 }],
     };
-    let mut levels = (0..mapped)
-        .map(|l| {
-            let mut level_dims = LevelDims::default();
-            for cloud in all_clouds() {
-                let level = cloud
-                    .levels
-                    .get(l)
-                    .ok_or_else(|| err("levels", format!("a cloud has no level {l}")))?;
-                level_dims.voxels += level.coords.len();
-                level_dims.pairs += level.neighbours.pairs.len();
-            }
-            Ok(level_dims)
-        })
-        .collect::<Result<Vec<_>, BatchError>>()?;
-    if shape.maps == KernelMaps::None {
-        levels.push(LevelDims { voxels, pairs: 0 });
-    }
     Ok(Dims {
         samples: samples.len(),
         frames: f,
@@ -458,12 +456,13 @@ fn level_rows(samples: &[Sample], l: usize) -> Vec<usize> {
     )
 }
 
-/// The cell sections of level `l`: coordinates and cloud offsets.
+/// The cell sections of level `l`: coordinates and cloud offsets; returns the offsets
+/// (the first row of each cloud, and the total).
 fn write_level_cells(
     samples: &[Sample],
     l: usize,
     w: &mut BatchWriter<'_>,
-) -> Result<(), BatchError> {
+) -> Result<Vec<usize>, BatchError> {
     let all_clouds = || samples.iter().flat_map(clouds);
     let out = w.take_section::<i32>(Section::LevelCoords(l))?;
     concat(
@@ -479,28 +478,29 @@ fn write_level_cells(
             }
         },
     );
+    let rows = level_rows(samples, l);
     fill(
         w.take_section::<u32>(Section::LevelClouds(l))?,
-        level_rows(samples, l).iter().map(|&o| o as u32),
+        rows.iter().map(|&o| o as u32),
     );
-    Ok(())
+    Ok(rows)
 }
 
-/// The map sections of level `l`: its neighbour map and, unless it is the coarsest level
-/// (`down` false), the map down to level `l + 1`.
+/// The map sections of level `l` (`rows`: its clouds' first rows): its neighbour map and,
+/// unless it is the coarsest level (`down` false), the map down to level `l + 1`.
 fn write_level_maps(
     samples: &[Sample],
     l: usize,
+    rows: &[usize],
     down: bool,
     w: &mut BatchWriter<'_>,
 ) -> Result<(), BatchError> {
     let all_clouds = || samples.iter().flat_map(clouds);
-    let rows = level_rows(samples, l);
     let maps: Vec<&KernelMap> = all_clouds().map(|c| &c.levels[l].neighbours).collect();
     let starts = merge(
         w.take_section::<u32>(Section::LevelNbr(l))?,
         &maps,
-        (&rows, &rows),
+        (rows, rows),
         27,
     )?;
     w.write_section(Section::LevelNbrStarts(l), &starts)?;
@@ -517,7 +517,7 @@ fn write_level_maps(
         let starts = merge(
             w.take_section::<u32>(Section::LevelDown(l))?,
             &maps,
-            (&rows, &coarse),
+            (rows, &coarse),
             8,
         )?;
         w.write_section(Section::LevelDownStarts(l), &starts)?;

@@ -264,8 +264,8 @@ fn a_superpixel_id_beyond_16_bits_is_an_error_not_a_wrap() {
 
 /// `kernel_maps = "none"` (for a 3D network that builds its own maps): the same samples,
 /// every section byte for byte what the default recipe's batch holds, level 0's voxels
-/// included, and no map (the payload is the default one cut before `l0_nbr`); a batch planned with maps from samples built without them is
-/// refused, not written short.
+/// included, and no map (the payload is the default one cut before `l0_nbr`); a batch
+/// planned with maps from samples built without them is refused, not written short.
 #[test]
 fn a_recipe_without_kernel_maps_sends_the_same_batch_less_its_maps() {
     let ds = sample_dataset(&sample_drive(Dialect::Foxglove).unwrap()).unwrap();
