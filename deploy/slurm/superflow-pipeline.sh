@@ -12,6 +12,8 @@ export SUPERFLOW_HOST_COUNT="${SLURM_NNODES:?run under srun}"
 world="${SUPERFLOW_LOCAL_WORLD_SIZE:?set by superflow-ddp.sbatch}"
 bin="${SUPERFLOW_BIN:?}"
 restarts="${SUPERFLOW_PIPELINE_RESTARTS:-5}"
+# Paths or object-store URLs (s3://...): a store's credentials (AWS_*) come with srun's
+# environment.
 read -r -a drives <<< "${SUPERFLOW_DRIVES:?}"
 
 pipeline=""

@@ -4,6 +4,7 @@
 
 pub mod bench;
 pub mod process;
+pub mod s3;
 
 use anyhow::{Context as _, bail};
 use std::collections::BTreeMap;

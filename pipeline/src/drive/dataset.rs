@@ -119,6 +119,7 @@ impl Dataset {
             return Err(IngestError::NoFiles);
         }
         crate::source::HandlePool::global().set_limit(config.max_open_files());
+        crate::source::remote::configure(config.remote_settings());
         let cache = config.index_cache();
         if let Some(cache) = &cache {
             cache.prepare()?;
@@ -126,7 +127,7 @@ impl Dataset {
         let files: Vec<&PathBuf> = groups.iter().flatten().collect();
         let bytes_total: u64 = files
             .par_iter()
-            .map(|f| std::fs::metadata(f).map_or(0, |m| m.len()))
+            .map(|f| crate::source::size_of(f).unwrap_or(0))
             .sum();
         let files_total = files.len();
         let bytes_done = AtomicU64::new(0);
@@ -176,34 +177,51 @@ impl Dataset {
             .collect();
         // Each drive is joined as soon as its files are indexed, so that the indexes of
         // files never all live at once (memory, and the time to fault it in).
-        let results: Vec<Opened> = groups
-            .par_iter()
-            .zip(&starts)
-            // One drive, and within it one file, per task: files differ too much in size
-            // to share out in runs.
-            .with_max_len(1)
-            .map(|(group, &start)| {
-                let files: Vec<_> = group
-                    .par_iter()
-                    .enumerate()
-                    .with_max_len(1)
-                    .map(|(k, path)| index_one(start + k, path))
-                    .collect();
-                let mut indexed = Vec::with_capacity(files.len());
-                for file in files {
-                    match file {
-                        Some(Ok(file)) => indexed.push(file),
-                        Some(Err(e)) => return Opened::Failed(e),
-                        None => return Opened::Skipped,
+        let index_all = || -> Vec<Opened> {
+            groups
+                .par_iter()
+                .zip(&starts)
+                // One drive, and within it one file, per task: files differ too much in size
+                // to share out in runs.
+                .with_max_len(1)
+                .map(|(group, &start)| {
+                    let files: Vec<_> = group
+                        .par_iter()
+                        .enumerate()
+                        .with_max_len(1)
+                        .map(|(k, path)| index_one(start + k, path))
+                        .collect();
+                    let mut indexed = Vec::with_capacity(files.len());
+                    for file in files {
+                        match file {
+                            Some(Ok(file)) => indexed.push(file),
+                            Some(Err(e)) => return Opened::Failed(e),
+                            None => return Opened::Skipped,
+                        }
                     }
-                }
-                if first_failed.load(Ordering::Relaxed) < start {
-                    return Opened::Skipped; // an earlier drive's error returns
-                }
-                let by = indexed.iter().map(|f| (f.by, f.file.len())).collect();
-                Opened::Joined(Box::new(Drive::join(indexed, config)), by)
+                    if first_failed.load(Ordering::Relaxed) < start {
+                        return Opened::Skipped; // an earlier drive's error returns
+                    }
+                    let by = indexed.iter().map(|f| (f.by, f.file.len())).collect();
+                    Opened::Joined(Box::new(Drive::join(indexed, config)), by)
+                })
+                .collect()
+        };
+        // Files in an object store wait on the network, not the CPUs: more at once.
+        let threads = crate::source::index_parallelism(&files);
+        let wider = (threads > rayon::current_num_threads())
+            .then(|| {
+                rayon::ThreadPoolBuilder::new()
+                    .num_threads(threads)
+                    .thread_name(|i| format!("index-{i}"))
+                    .build()
+                    .ok()
             })
-            .collect();
+            .flatten();
+        let results = match wider {
+            Some(pool) => pool.install(index_all),
+            None => index_all(),
+        };
         let mut indexed = IndexStats::default();
         let mut drives = Vec::with_capacity(groups.len());
         for result in results {

@@ -49,6 +49,18 @@ pub struct IngestConfig {
     /// The most megabytes of entries the index cache keeps; the least recently used are
     /// evicted beyond it (default 8192).
     pub index_cache_max_mb: Option<u64>,
+    /// Retries of one object-store request (503 SlowDown, 429, 5xx, timeouts, resets,
+    /// bodies cut short), with exponential backoff and jitter, before the read fails
+    /// (default 10).
+    pub remote_retries: Option<usize>,
+    /// The longest one object-store request may take, body included, in seconds; four
+    /// times it bounds the retries of one request (default 30).
+    pub remote_timeout_secs: Option<u64>,
+    /// Object-store requests in flight at once, reads and prefetches (default 32).
+    pub remote_concurrency: Option<usize>,
+    /// Megabytes of chunks read from an object store ahead of the samples that need
+    /// them (default 256; 0 turns prefetching off).
+    pub remote_prefetch_mb: Option<u64>,
 }
 
 impl IngestConfig {
@@ -76,6 +88,25 @@ impl IngestConfig {
         }
     }
 
+    /// How this process talks to object stores (`remote_*`), defaults filled in.
+    pub fn remote_settings(&self) -> crate::source::remote::RemoteSettings {
+        let default = crate::source::remote::RemoteSettings::default();
+        crate::source::remote::RemoteSettings {
+            retries: self.remote_retries.unwrap_or(default.retries),
+            request_timeout: self
+                .remote_timeout_secs
+                .map_or(default.request_timeout, std::time::Duration::from_secs),
+            concurrency: self
+                .remote_concurrency
+                .unwrap_or(default.concurrency)
+                .max(1),
+            prefetch_bytes: self
+                .remote_prefetch_mb
+                .map_or(default.prefetch_bytes, |mb| mb.saturating_mul(1 << 20)),
+            part_bytes: default.part_bytes,
+        }
+    }
+
     /// [`max_open_files`](Self::max_open_files), or its default.
     pub fn max_open_files(&self) -> usize {
         self.max_open_files
@@ -96,6 +127,10 @@ impl Default for IngestConfig {
             index_cache_mode: None,
             index_cache_owner: None,
             index_cache_max_mb: None,
+            remote_retries: None,
+            remote_timeout_secs: None,
+            remote_concurrency: None,
+            remote_prefetch_mb: None,
         }
     }
 }

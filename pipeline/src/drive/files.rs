@@ -1,13 +1,17 @@
 //! Finding the files of each drive among the inputs: `.mcap` files, directories of them,
 //! rosbag2 directories (one drive in parts) and sidecars (`<name>.<tag>.mcap` joining the
-//! drive of `<name>.mcap`).
+//! drive of `<name>.mcap`). Inputs may be object URLs (`s3://bucket/prefix/`): a
+//! prefix holds every `.mcap` object under it, and its sidecars are the objects beside
+//! it (see [`crate::source::mcap_files_in`]).
 
 use super::error::IngestError;
+use crate::source::{self, SourceError};
 use std::path::{Path, PathBuf};
 
 /// Groups the inputs into drives: a rosbag2 directory (it holds `metadata.yaml`) is one
 /// drive made of its `.mcap` files in name order; any other directory contributes each
-/// of its `.mcap` files as a drive of its own; a file is a drive. A sidecar —
+/// of its `.mcap` files as a drive of its own; a file is a drive. Under a prefix of an
+/// object store, each "directory" with a `metadata.yaml` is one rosbag2 drive. A sidecar —
 /// `<name>.<tag>.mcap` next to `<name>.mcap`, e.g. `drive.superpixels.mcap` with class
 /// maps computed offline — joins the drive of `<name>.mcap` (found next to it even when
 /// only the drive is named) instead of being a drive of its own; so does
@@ -17,24 +21,41 @@ pub fn drive_groups(inputs: &[PathBuf]) -> Result<Vec<Vec<PathBuf>>, IngestError
     let mut listings = Listings::default();
     for input in inputs {
         let files = mcap_files(std::slice::from_ref(input))?;
-        if input.is_dir() && input.join("metadata.yaml").is_file() {
-            groups.push(files);
-        } else {
-            for file in files {
-                if sidecar_base(&file).is_some_and(|base| base.is_file()) {
-                    continue; // joins its base drive below
-                }
-                let mut group = vec![file.clone()];
-                group.extend(listings.sidecars_of(&file));
-                groups.push(group);
+        if !source::is_dir(input) {
+            files_to_drives(files, &mut listings, &mut groups);
+            continue;
+        }
+        listings.seed(&files);
+        let mut bags: std::collections::BTreeMap<PathBuf, Vec<PathBuf>> = Default::default();
+        let mut rest = Vec::new();
+        for file in files {
+            let dir = file.parent().map(Path::to_path_buf).unwrap_or_default();
+            if listings.is_bag(&dir) {
+                bags.entry(dir).or_default().push(file);
+            } else {
+                rest.push(file);
             }
         }
+        groups.extend(bags.into_values());
+        files_to_drives(rest, &mut listings, &mut groups);
     }
     for group in &mut groups {
         let mut seen = std::collections::BTreeSet::new();
         group.retain(|f| seen.insert(f.clone()));
     }
     Ok(groups)
+}
+
+/// Each of `files` a drive with its sidecars; the sidecars themselves join their base.
+fn files_to_drives(files: Vec<PathBuf>, listings: &mut Listings, groups: &mut Vec<Vec<PathBuf>>) {
+    for file in files {
+        if sidecar_base(&file).is_some_and(|base| listings.is_file(&base)) {
+            continue; // joins its base drive below
+        }
+        let mut group = vec![file.clone()];
+        group.extend(listings.sidecars_of(&file));
+        groups.push(group);
+    }
 }
 
 /// The tag of a labels sidecar: `<drive>.labels.mcap` holds point clouds parallel to
@@ -60,11 +81,52 @@ fn sidecar_base(file: &Path) -> Option<PathBuf> {
 }
 
 /// The `.mcap` file names of each directory, sorted, listed once: a directory of
-/// thousands of drives is not listed again for each drive's sidecars.
+/// thousands of drives (or a prefix of thousands of objects) is not listed again for
+/// each drive's sidecars.
 #[derive(Default)]
-struct Listings(std::collections::HashMap<PathBuf, Vec<String>>);
+struct Listings {
+    names: std::collections::HashMap<PathBuf, Vec<String>>,
+    bags: std::collections::HashMap<PathBuf, bool>,
+}
 
 impl Listings {
+    /// Takes in what listing an input found, directory by directory.
+    fn seed(&mut self, files: &[PathBuf]) {
+        for file in files {
+            let (Some(dir), Some(name)) = (file.parent(), file.file_name()) else {
+                continue;
+            };
+            let names = self.names.entry(dir.to_path_buf()).or_default();
+            names.push(name.to_string_lossy().into_owned());
+        }
+        for names in self.names.values_mut() {
+            names.sort();
+            names.dedup();
+        }
+    }
+
+    /// Whether `dir` is a rosbag2 directory (it holds `metadata.yaml`), asked once.
+    fn is_bag(&mut self, dir: &Path) -> bool {
+        *self
+            .bags
+            .entry(dir.to_path_buf())
+            .or_insert_with(|| source::is_file(&dir.join("metadata.yaml")))
+    }
+
+    /// Whether the `.mcap` file `file` exists (from a listing when its directory was
+    /// listed).
+    fn is_file(&mut self, file: &Path) -> bool {
+        match (file.parent(), file.file_name()) {
+            (Some(dir), Some(name)) if self.names.contains_key(dir) => {
+                let name = name.to_string_lossy();
+                self.names[dir]
+                    .binary_search_by(|n| n.as_str().cmp(&name))
+                    .is_ok()
+            }
+            _ => source::is_file(file),
+        }
+    }
+
     /// Sidecars next to `file` (`<stem>.<tag>.mcap`), in name order.
     fn sidecars_of(&mut self, file: &Path) -> Vec<PathBuf> {
         let (Some(dir), Some(stem)) = (file.parent(), file.file_stem().and_then(|s| s.to_str()))
@@ -76,15 +138,13 @@ impl Listings {
         } else {
             dir
         };
-        let names = self.0.entry(dir.to_path_buf()).or_insert_with(|| {
-            let mut names: Vec<String> = std::fs::read_dir(dir)
-                .map(|entries| {
-                    entries
-                        .filter_map(|e| e.ok()?.file_name().into_string().ok())
-                        .filter(|n| n.ends_with(".mcap"))
-                        .collect()
-                })
-                .unwrap_or_default();
+        let names = self.names.entry(dir.to_path_buf()).or_insert_with(|| {
+            let mut names: Vec<String> = source::mcap_files_in(dir)
+                .unwrap_or_default()
+                .into_iter()
+                .filter(|p| p.parent() == Some(dir))
+                .filter_map(|p| Some(p.file_name()?.to_str()?.to_string()))
+                .collect();
             names.sort();
             names
         });
@@ -103,17 +163,11 @@ impl Listings {
 pub fn mcap_files(inputs: &[PathBuf]) -> Result<Vec<PathBuf>, IngestError> {
     let mut files = Vec::new();
     for input in inputs {
-        if input.is_dir() {
-            let io = |source| IngestError::Io {
-                path: input.clone(),
-                source,
-            };
-            let mut found: Vec<PathBuf> = std::fs::read_dir(input)
-                .map_err(io)?
-                .filter_map(|e| e.ok().map(|e| e.path()))
-                .filter(|p| p.extension().is_some_and(|e| e == "mcap"))
-                .collect();
-            found.sort();
+        if source::is_dir(input) {
+            let found = source::mcap_files_in(input).map_err(|e| match e {
+                SourceError::Io { path, source } => IngestError::Io { path, source },
+                other => IngestError::Source(other),
+            })?;
             files.extend(found);
         } else {
             files.push(input.clone());

@@ -54,7 +54,14 @@ impl DatasetGroup {
         let (name, rest) = text
             .split_once('=')
             .ok_or_else(|| invalid("must be NAME=PATH[,PATH...][:REPEAT]"))?;
+        // `https://host:9000` ends in a port, not a repeat.
+        let port = |paths: &str| {
+            let last = paths.rsplit(',').next().unwrap_or_default();
+            last.split_once("://")
+                .is_some_and(|(_, rest)| !rest.contains('/'))
+        };
         let (paths, repeat) = match rest.rsplit_once(':') {
+            Some((paths, _)) if port(paths) => (rest, 1.0),
             Some((paths, r)) => match r.trim().parse::<f64>() {
                 Ok(repeat) => (paths, repeat),
                 Err(_) => (rest, 1.0),
@@ -75,10 +82,12 @@ impl DatasetGroup {
         Ok(group)
     }
 
-    /// Relative paths made relative to `dir` (a configuration file's directory).
+    /// Relative paths made relative to `dir` (a configuration file's directory); object
+    /// URLs stay as they are.
     pub fn relative_to(mut self, dir: &Path) -> Self {
         for path in &mut self.mcap {
-            if path.is_relative() {
+            // An object URL parses as a relative path; it names the same object anywhere.
+            if path.is_relative() && !crate::source::is_remote(path) {
                 *path = dir.join(&*path);
             }
         }

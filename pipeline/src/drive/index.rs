@@ -287,13 +287,14 @@ impl Drive {
             return Err(IngestError::NoFiles);
         }
         crate::source::HandlePool::global().set_limit(config.max_open_files());
+        crate::source::remote::configure(config.remote_settings());
         let cache = config.index_cache();
         if let Some(cache) = &cache {
             cache.prepare()?;
         }
         let total_bytes: u64 = files
             .iter()
-            .map(|f| std::fs::metadata(f).map_or(0, |m| m.len()))
+            .map(|f| crate::source::size_of(f).unwrap_or(0))
             .sum();
         let mut indexed = Vec::with_capacity(files.len());
         let mut before = 0u64;

@@ -158,6 +158,9 @@ impl Metrics {
         out.push_str(&format!(
             "# HELP superflow_skipped_messages Messages skipped while indexing\n# TYPE superflow_skipped_messages gauge\nsuperflow_skipped_messages {skipped}\n"
         ));
+        // Object-store requests, bytes, retries by cause, latency and prefetch (empty
+        // for a run over local drives only).
+        out.push_str(&crate::source::remote::stats::prometheus());
         out
     }
 }

@@ -47,6 +47,11 @@ pub(super) struct Producer<'a> {
     pub said: Mutex<HashSet<String>>,
 }
 
+/// Batches of each stream whose reads are requested ahead of their building
+/// ([`SampleBuilder::will_read`]): enough to cover the latency of an object store, few
+/// enough that the prefetch budget holds them.
+const READ_AHEAD_BATCHES: u64 = 2;
+
 /// The most distinct failures remembered in [`Producer::said`].
 const SAID_FAILURES: usize = 4096;
 
@@ -57,6 +62,7 @@ impl Producer<'_> {
         let mut orders: HashMap<u64, Vec<u32>> = HashMap::new();
         let mut finished = vec![false; streams];
         let mut stream = 0usize;
+        let mut advised: HashSet<(usize, u64, u64)> = HashSet::new();
         while !self.stop.load(Ordering::SeqCst) {
             let (epoch, step, generation) = self.cursors.position(stream);
             if self.config.epochs > 0 && epoch >= self.config.epochs {
@@ -90,6 +96,22 @@ impl Producer<'_> {
                 self.cursors.advance(stream, generation, (epoch + 1, 0));
                 continue;
             };
+            // What the next batches read is requested now, while this one is built.
+            for ahead in 1..=READ_AHEAD_BATCHES {
+                if advised.insert((stream, epoch, step + ahead)) {
+                    for &(keyframe, index) in self
+                        .schedule
+                        .batch(order, epoch, stream, step + ahead)
+                        .iter()
+                        .flatten()
+                    {
+                        self.builder.will_read(keyframe as usize, epoch, index);
+                    }
+                }
+            }
+            if advised.len() > 4096 {
+                advised.retain(|&(_, e, s)| e == epoch && s > step);
+            }
             let samples = self.build(&slots, stream, epoch, step);
             // Advance this stream unless a resume moved it meanwhile. A batch whose
             // samples all failed goes too: left out, its subscribers would wait forever

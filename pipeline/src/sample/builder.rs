@@ -126,6 +126,12 @@ impl<'d> SampleBuilder<'d> {
         self.mix.order(self.config.seed, epoch)
     }
 
+    /// Where drive `drive`'s superpixels come from: its class maps, its SLIC sidecar
+    /// (else SLIC runs per image).
+    pub(super) fn superpixel_sources(&self, drive: usize) -> (bool, bool) {
+        (self.class_superpixels[drive], self.slic_sidecar[drive])
+    }
+
     /// Sample `index` of `epoch` (the epoch's shuffled keyframe order).
     pub fn build(&self, epoch: u64, index: u64) -> Result<Sample, SampleError> {
         let len = self.epoch_len();

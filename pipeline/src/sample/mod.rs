@@ -33,6 +33,7 @@
 //! * [`export`]: a sample as `.npy` arrays, `sample.json` and overlay PNGs (and
 //!   `crate::view`: as an MCAP file that Foxglove opens).
 
+mod ahead;
 pub mod augment;
 pub mod builder;
 mod cellkey;

@@ -24,7 +24,6 @@ use super::tally::Decompressed;
 use mcap::records::{self, op};
 use std::borrow::Cow;
 use std::collections::VecDeque;
-use std::os::unix::fs::FileExt;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
 
@@ -211,10 +210,8 @@ impl McapFile {
         match key {
             CacheKey::Direct(offset) => {
                 let mut head = [0u8; 9];
-                self.handle()
-                    .map_err(LoadError::Source)?
-                    .read_exact_at(&mut head, offset)
-                    .map_err(|e| LoadError::Source(self.io(e)))?;
+                self.read_into(&mut head, offset)
+                    .map_err(LoadError::Source)?;
                 let body_len = record_len(&head);
                 if head[0] != op::MESSAGE || body_len > MAX_RECORD_BYTES {
                     return Err(LoadError::Missing);

@@ -44,12 +44,23 @@ pub enum SourceError {
     /// header, summary or chunks differ, or it has no summary to compare): its index
     /// would point at the wrong bytes.
     #[error(
-        "{path}: the file was replaced on disk by one of other content since it was \
-         indexed; its samples are skipped until the dataset is opened again"
+        "{path}: the file was replaced (on disk, or in its object store) by one of other \
+         content since it was indexed; its samples are skipped until the dataset is opened \
+         again"
     )]
     Replaced {
         /// The file.
         path: PathBuf,
+    },
+    /// An object store refused or failed a request past its retries (credentials,
+    /// a missing object, a store that stayed unreachable). The reason never holds a
+    /// credential.
+    #[error("{path}: {reason}")]
+    Remote {
+        /// The object's URL.
+        path: PathBuf,
+        /// What the store said, in words.
+        reason: String,
     },
     /// The process ran out of file descriptors opening the file.
     #[error(

@@ -146,7 +146,7 @@ impl McapFile {
             .collect();
         self.damage.clone_from(&facts.damage);
         self.message_counts.clone_from(&facts.message_counts);
-        self.scanning = None;
+        self.end_scan();
         self
     }
 
@@ -158,7 +158,24 @@ impl McapFile {
     /// original's — is never taken for it. `None` for a file without a usable footer and
     /// summary (a recording cut short, or written without a summary): its content has no
     /// cheap fingerprint, so it is scanned at every opening.
+    ///
+    /// An object in a store is fingerprinted by its URL, ETag and size, read from its
+    /// listing: no byte of it is read, so a warm start costs the listing alone. An
+    /// object without an ETag has no fingerprint.
     pub fn fingerprint(&self) -> Result<Option<u128>, SourceError> {
+        if let Some(object) = &self.remote {
+            let (url, etag, size) = object.version();
+            let Some(etag) = etag else {
+                return Ok(None);
+            };
+            let mut hash = Xxh3::new();
+            hash.update(b"object\0");
+            hash.update(url.as_os_str().as_encoded_bytes());
+            hash.update(b"\0");
+            hash.update(etag.as_bytes());
+            hash.update(&size.to_le_bytes());
+            return Ok(Some(hash.digest128()));
+        }
         let Some(content) = self.content_digest()? else {
             return Ok(None);
         };
@@ -187,6 +204,10 @@ impl McapFile {
     pub fn content_digest(&self) -> Result<Option<u128>, SourceError> {
         if let Some(digest) = self.content.get() {
             return Ok(*digest);
+        }
+        if self.remote.is_some() {
+            // An object is never compared by content: its ETag pins every read.
+            return Ok(*self.content.get_or_init(|| None));
         }
         let digest =
             content_digest_of(self.handle()?.as_ref(), self.len).map_err(|e| self.io(e))?;

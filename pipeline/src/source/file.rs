@@ -7,6 +7,7 @@ use super::error::SourceError;
 use super::framing::MAX_RECORD_BYTES;
 use super::handles::{FileIdentity, HandlePool};
 use super::message::{ChannelInfo, SchemaInfo};
+use super::remote::RemoteObject;
 use super::tally::{CheckedChunks, DecompressCounters};
 use std::collections::{BTreeMap, HashMap};
 use std::fs::File;
@@ -36,6 +37,9 @@ pub struct McapFile {
     pub(super) content: OnceLock<Option<u128>>,
     /// The handle a scan holds while it reads the file through; `None` afterwards.
     pub(super) scanning: Option<Arc<File>>,
+    /// The object a file in an object store is read from (`None`: a local file, read
+    /// through the handle pool).
+    pub(super) remote: Option<Arc<RemoteObject>>,
     pub(super) len: u64,
     /// Header profile (`ros2`, `""`, ...).
     pub profile: String,
@@ -108,6 +112,55 @@ impl McapFile {
         })
     }
 
+    /// Fills `buf` with the bytes at `offset`: every read of the file's bytes comes
+    /// here, from a local file or an object.
+    pub(super) fn read_into(&self, buf: &mut [u8], offset: u64) -> Result<(), SourceError> {
+        match &self.remote {
+            Some(object) => object.read_into(buf, offset),
+            None => self
+                .handle()?
+                .read_exact_at(buf, offset)
+                .map_err(|e| self.io(e)),
+        }
+    }
+
+    /// Ends the scan: the scan's handle closes (later reads go through the pool, which
+    /// may close the file between them) and an object stops reading ahead.
+    pub(super) fn end_scan(&mut self) {
+        self.scanning = None;
+        if let Some(object) = &self.remote {
+            object.set_sequential(false);
+        }
+    }
+
+    /// Starts reading the records that hold the messages at `locs` (what a sample is
+    /// about to read) ahead of their use: an object prefetches them within the prefetch
+    /// budget, a local file asks the kernel to read them into the page cache.
+    pub fn will_read(&self, locs: impl IntoIterator<Item = super::MessageLoc>) {
+        let mut ranges: Vec<std::ops::Range<u64>> = locs
+            .into_iter()
+            .filter_map(|loc| match loc {
+                super::MessageLoc::Chunk { chunk, .. } => {
+                    let c = self.chunks.get(chunk as usize)?;
+                    Some(c.offset..c.offset.saturating_add(c.record_len))
+                }
+                // A message outside chunks is read head first, then body: not worth it.
+                super::MessageLoc::Direct { .. } => None,
+            })
+            .collect();
+        ranges.sort_by_key(|r| r.start);
+        ranges.dedup();
+        match &self.remote {
+            Some(object) => super::remote::start_prefetch(object, ranges),
+            None => {
+                let Ok(file) = self.handle() else { return };
+                for r in ranges {
+                    advise_will_need(&file, r);
+                }
+            }
+        }
+    }
+
     pub(super) fn io(&self, source: std::io::Error) -> SourceError {
         SourceError::Io {
             path: self.path.clone(),
@@ -149,9 +202,7 @@ impl McapFile {
                 scratch.resize(len, 0);
             }
             let buf = &mut scratch[..len];
-            self.handle()?
-                .read_exact_at(buf, offset)
-                .map_err(|e| self.io(e))?;
+            self.read_into(buf, offset)?;
             Ok(f(buf))
         })
     }
@@ -164,6 +215,13 @@ impl McapFile {
         let len = usize::try_from(len)
             .unwrap_or(usize::MAX)
             .min(MAX_RECORD_BYTES as usize);
+        if self.remote.is_some() {
+            // A network read dwarfs zeroing the buffer; this way it can come from the
+            // prefetch.
+            let mut buf = vec![0u8; len];
+            self.read_into(&mut buf, offset)?;
+            return Ok(buf);
+        }
         let file = self.handle()?;
         let mut buf = Vec::<u8>::with_capacity(len);
         while buf.len() < len {
@@ -204,10 +262,24 @@ impl McapFile {
                 .unwrap_or(usize::MAX)
                 .min(MAX_RECORD_BYTES as usize)
         ];
-        self.handle()?
-            .read_exact_at(&mut buf, offset)
-            .map_err(|e| self.io(e))?;
+        self.read_into(&mut buf, offset)?;
         Ok(buf)
+    }
+}
+
+/// Asks the kernel to read `range` of `file` into the page cache now.
+#[allow(unsafe_code)]
+fn advise_will_need(file: &File, range: std::ops::Range<u64>) {
+    use std::os::fd::AsRawFd;
+    let (Ok(offset), Ok(len)) = (
+        libc::off_t::try_from(range.start),
+        libc::off_t::try_from(range.end.saturating_sub(range.start)),
+    ) else {
+        return;
+    };
+    // SAFETY: an advisory call on a descriptor `file` keeps open; it touches no memory.
+    unsafe {
+        libc::posix_fadvise(file.as_raw_fd(), offset, len, libc::POSIX_FADV_WILLNEED);
     }
 }
 

@@ -38,7 +38,7 @@ const MIN_DEFAULT: usize = 16;
 /// modification time (`touch -r`, `rsync --inplace`) cannot set back, on file systems
 /// that keep it (ext4, XFS, Btrfs, NFS); on vfat, exFAT and many FUSE object stores it is
 /// settable or absent, and a same-size rewrite with its times restored goes unseen.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct FileIdentity {
     /// Device.
     pub dev: u64,

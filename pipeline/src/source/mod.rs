@@ -17,8 +17,9 @@
 //! them), `chunk` (decompressing and splitting one chunk), `partial` (a zstd chunk decoded
 //! only as far as it is read), `cache` (random access), `tally` (what random access did),
 //! `damage` (what a scan worked around), `facts` (what a scan learned, to be stored, and
-//! the fingerprint that says when it still holds) and `handles` (the bounded pool of open
-//! files every read goes through).
+//! the fingerprint that says when it still holds), `handles` (the bounded pool of open
+//! files every read goes through), `remote` (files in object stores: a URL where a path
+//! goes) and `place` (directories, files and sizes of local paths and URLs alike).
 
 mod cache;
 mod chunk;
@@ -30,6 +31,8 @@ mod framing;
 mod handles;
 mod message;
 mod partial;
+mod place;
+pub mod remote;
 mod scan;
 mod summary;
 mod tally;
@@ -43,6 +46,8 @@ pub use file::McapFile;
 pub use framing::{FramingError, MAGIC, MAX_RECORD_BYTES};
 pub use handles::{FileIdentity, HandlePool, default_max_open_files, raise_open_file_limit};
 pub use message::{ChannelInfo, MessageLoc, MessageRef, SchemaInfo};
+pub use place::{index_parallelism, is_dir, is_file, mcap_files_in, size_of};
+pub use remote::is_remote;
 pub use tally::Decompressed;
 
 #[cfg(test)]

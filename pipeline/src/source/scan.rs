@@ -8,10 +8,12 @@ use super::error::SourceError;
 use super::file::{ChunkLoc, McapFile};
 use super::framing::record_len;
 use super::framing::{MAGIC, MAX_RECORD_BYTES};
-use super::handles::HandlePool;
+use super::handles::{FileIdentity, HandlePool};
 use super::message::{ChannelInfo, MessageLoc, MessageRef, SchemaInfo};
+use super::remote::RemoteObject;
 use mcap::records::{self, ChunkHeader, op};
 use std::collections::{BTreeMap, HashMap};
+use std::fs::File;
 use std::os::unix::fs::FileExt;
 use std::path::Path;
 use std::sync::Arc;
@@ -49,8 +51,7 @@ impl McapFile {
         mut progress: impl FnMut(u64, u64),
     ) -> Result<McapFile, SourceError> {
         let scanned = self.scan_opened(&mut visit, &mut progress);
-        // Later reads go through the pool, which may close the file between them.
-        self.scanning = None;
+        self.end_scan();
         scanned.map(|()| self)
     }
 
@@ -61,6 +62,16 @@ impl McapFile {
         progress: &mut impl FnMut(u64, u64),
     ) -> Result<(), SourceError> {
         let this = self;
+        if this.remote.is_some() {
+            // A local file's magic was checked on opening; an object's is read here,
+            // with the first bytes the scan reads anyway.
+            let mut magic = [0u8; 8];
+            if this.len < 8 || this.read_into(&mut magic, 0).is_err() || &magic != MAGIC {
+                return Err(SourceError::NotMcap {
+                    path: this.path.clone(),
+                });
+            }
+        }
         let summary = this.checked_summary();
         let resume_points = match &summary {
             Ok(summary) => this.take_summary(summary),
@@ -78,9 +89,22 @@ impl McapFile {
 
     /// Opens `path` through the pool after checking its magic; nothing else read yet.
     /// The file holds its handle until it is scanned or [restored](Self::restore).
+    /// An object URL ([`is_remote`](super::is_remote)) opens the object as listed (or
+    /// after one HEAD), reading nothing: its magic is checked when it is scanned.
     pub fn open(path: &Path) -> Result<McapFile, SourceError> {
         static OPENED: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
         let id = OPENED.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+        if super::remote::is_remote(path) {
+            let object = RemoteObject::open(path)?;
+            object.set_sequential(true);
+            let identity = FileIdentity {
+                len: object.size(),
+                ..FileIdentity::default()
+            };
+            let mut file = McapFile::new(path, id, identity, None);
+            file.remote = Some(Arc::new(object));
+            return Ok(file);
+        }
         let pool = HandlePool::global();
         let (file, identity) = pool.open_new(id, path)?;
         let len = identity.len;
@@ -91,13 +115,18 @@ impl McapFile {
                 path: path.to_path_buf(),
             });
         }
-        Ok(McapFile {
+        Ok(McapFile::new(path, id, identity, Some(file)))
+    }
+
+    fn new(path: &Path, id: u64, identity: FileIdentity, scanning: Option<Arc<File>>) -> Self {
+        McapFile {
             path: path.to_path_buf(),
             id,
             identity: std::sync::Mutex::new(identity),
             content: std::sync::OnceLock::new(),
-            scanning: Some(file),
-            len,
+            scanning,
+            remote: None,
+            len: identity.len,
             profile: String::new(),
             library: String::new(),
             schemas: HashMap::new(),
@@ -107,7 +136,7 @@ impl McapFile {
             message_counts: BTreeMap::new(),
             decompressed: Default::default(),
             checked: Default::default(),
-        })
+        }
     }
 
     /// Reads the data section record by record, from after the magic to the footer (or
@@ -163,9 +192,7 @@ impl McapFile {
             return Ok(Next::End);
         }
         let mut head = [0u8; 9];
-        self.handle()?
-            .read_exact_at(&mut head, pos)
-            .map_err(|e| self.io(e))?;
+        self.read_into(&mut head, pos)?;
         let opcode = head[0];
         let body_len = record_len(&head);
         let plausible =

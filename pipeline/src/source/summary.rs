@@ -6,7 +6,6 @@ use super::error::SourceError;
 use super::file::McapFile;
 use super::framing::{FramingError, MAX_RECORD_BYTES, check_framing};
 use mcap::records::op;
-use std::os::unix::fs::FileExt;
 
 /// Why a file's summary section cannot be used.
 #[derive(Debug, thiserror::Error)]
@@ -96,13 +95,13 @@ impl McapFile {
                 .with_file_size(self.len)
                 .with_record_length_limit(MAX_RECORD_BYTES as usize),
         );
-        let file = self.handle().ok()?;
         let mut pos = 0u64;
         while let Some(event) = reader.next_event() {
             match event.ok()? {
                 SummaryReadEvent::ReadRequest(need) => {
                     let buf = reader.insert(need);
-                    let n = file.read_at(buf, pos).ok()?;
+                    let n = buf.len().min(self.len.saturating_sub(pos) as usize);
+                    self.read_into(&mut buf[..n], pos).ok()?;
                     pos += n as u64;
                     reader.notify_read(n);
                 }
