@@ -120,6 +120,7 @@ impl Dataset {
         }
         crate::source::HandlePool::global().set_limit(config.max_open_files());
         crate::source::remote::configure(config.remote_settings());
+        crate::source::remote::configure_disk_cache(config.remote_cache());
         let cache = config.index_cache();
         if let Some(cache) = &cache {
             cache.prepare()?;

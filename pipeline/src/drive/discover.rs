@@ -61,6 +61,13 @@ pub struct IngestConfig {
     /// Megabytes of chunks read from an object store ahead of the samples that need
     /// them (default 256; 0 turns prefetching off).
     pub remote_prefetch_mb: Option<u64>,
+    /// A local directory that keeps the chunks read from object stores, keyed by URL,
+    /// ETag and byte range, so that later epochs (and later runs) read them from disk;
+    /// private to this user (made `0700`). Off by default.
+    pub remote_cache_dir: Option<PathBuf>,
+    /// The most bytes [`remote_cache_dir`](Self::remote_cache_dir) keeps, the least
+    /// recently used evicted first (default 16 GiB). A read larger than it goes through.
+    pub remote_cache_bytes: Option<u64>,
 }
 
 impl IngestConfig {
@@ -107,6 +114,16 @@ impl IngestConfig {
         }
     }
 
+    /// The local chunk cache of remote reads, when `remote_cache_dir` is set.
+    pub fn remote_cache(&self) -> Option<crate::source::remote::DiskCacheSettings> {
+        self.remote_cache_dir
+            .as_ref()
+            .map(|dir| crate::source::remote::DiskCacheSettings {
+                dir: dir.clone(),
+                max_bytes: self.remote_cache_bytes.unwrap_or(16 << 30),
+            })
+    }
+
     /// [`max_open_files`](Self::max_open_files), or its default.
     pub fn max_open_files(&self) -> usize {
         self.max_open_files
@@ -131,6 +148,8 @@ impl Default for IngestConfig {
             remote_timeout_secs: None,
             remote_concurrency: None,
             remote_prefetch_mb: None,
+            remote_cache_dir: None,
+            remote_cache_bytes: None,
         }
     }
 }

@@ -12,11 +12,13 @@
 //! * `listing`: listing prefixes (every page) and what a listing learned of each object,
 //!   so that opening a listed object costs no request.
 //! * `prefetch`: reads issued ahead of the samples that need them, bounded in bytes.
+//! * `disk`: the optional local chunk cache, bounded in bytes, least recently used out.
 //! * `stats`, `connector`: what every request did, for the Prometheus endpoint.
 //!
 //! [`McapFile`]: super::McapFile
 
 mod connector;
+mod disk;
 mod listing;
 mod object;
 mod prefetch;
@@ -24,6 +26,7 @@ pub mod stats;
 mod store;
 mod url;
 
+pub use disk::{DiskCacheSettings, configure as configure_disk_cache};
 pub use listing::{list_dir, object_size};
 pub(super) use object::RemoteObject;
 pub(super) use prefetch::start as start_prefetch;

@@ -195,7 +195,16 @@ impl RemoteObject {
         let path = self.path.clone();
         let url = self.url.clone();
         let part = settings().part_bytes.max(1 << 20);
+        let cached = super::disk::object_key(&self.path, self.etag.as_deref());
+        tracing::trace!(object = %self.path.display(), start = range.start, end = range.end, "read");
         async move {
+            if let Some(object) = cached {
+                let wanted = range.clone();
+                let held = tokio::task::spawn_blocking(move || super::disk::get(object, &wanted));
+                if let Ok(Some(bytes)) = held.await {
+                    return Ok(bytes);
+                }
+            }
             let parts: Vec<Range<u64>> = (range.start..range.end)
                 .step_by(part as usize)
                 .map(|s| s..(s + part).min(range.end))
@@ -230,14 +239,19 @@ impl RemoteObject {
             let parts = futures::future::try_join_all(gets)
                 .await
                 .map_err(|e| super::source_error(&path, &url, e))?;
-            Ok(match parts.len() {
+            let bytes = match parts.len() {
                 1 => parts.into_iter().next().unwrap_or_default(),
                 _ => {
                     let mut whole = Vec::with_capacity((range.end - range.start) as usize);
                     parts.iter().for_each(|p| whole.extend_from_slice(p));
                     Bytes::from(whole)
                 }
-            })
+            };
+            if let Some(object) = cached {
+                let kept = bytes.clone();
+                tokio::task::spawn_blocking(move || super::disk::put(object, &range, &kept));
+            }
+            Ok(bytes)
         }
     }
 }

@@ -59,6 +59,8 @@ struct Counters {
     prefetch_misses: AtomicU64,
     prefetch_bytes: AtomicU64,
     prefetch_unused_bytes: AtomicU64,
+    disk_hit_bytes: AtomicU64,
+    disk_stored_bytes: AtomicU64,
 }
 
 static COUNTERS: Counters = Counters {
@@ -74,6 +76,8 @@ static COUNTERS: Counters = Counters {
     prefetch_misses: AtomicU64::new(0),
     prefetch_bytes: AtomicU64::new(0),
     prefetch_unused_bytes: AtomicU64::new(0),
+    disk_hit_bytes: AtomicU64::new(0),
+    disk_stored_bytes: AtomicU64::new(0),
 };
 
 /// The kind of an HTTP request, from its method and query.
@@ -136,6 +140,16 @@ pub(super) fn count_prefetch_unused(bytes: u64) {
         .fetch_add(bytes, Ordering::Relaxed);
 }
 
+/// Bytes the local chunk cache served (`hit`) or took in.
+pub(super) fn count_disk_cache(hit: bool, bytes: u64) {
+    let counter = if hit {
+        &COUNTERS.disk_hit_bytes
+    } else {
+        &COUNTERS.disk_stored_bytes
+    };
+    counter.fetch_add(bytes, Ordering::Relaxed);
+}
+
 /// A snapshot of the counters.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
 pub struct RemoteStats {
@@ -160,6 +174,10 @@ pub struct RemoteStats {
     pub prefetch_bytes: u64,
     /// Bytes fetched ahead and dropped unread (budget or end of run).
     pub prefetch_unused_bytes: u64,
+    /// Bytes the local chunk cache served instead of the store.
+    pub disk_hit_bytes: u64,
+    /// Bytes written into the local chunk cache.
+    pub disk_stored_bytes: u64,
 }
 
 impl RemoteStats {
@@ -177,6 +195,8 @@ impl RemoteStats {
             prefetch_misses: load(&COUNTERS.prefetch_misses),
             prefetch_bytes: load(&COUNTERS.prefetch_bytes),
             prefetch_unused_bytes: load(&COUNTERS.prefetch_unused_bytes),
+            disk_hit_bytes: load(&COUNTERS.disk_hit_bytes),
+            disk_stored_bytes: load(&COUNTERS.disk_stored_bytes),
         }
     }
 
@@ -190,7 +210,7 @@ impl RemoteStats {
 /// (a run over local drives only shows nothing of it).
 pub fn prometheus() -> String {
     let s = RemoteStats::now();
-    if s.requests == 0 {
+    if s.requests == 0 && s.disk_hit_bytes == 0 {
         return String::new();
     }
     let mut out = String::new();
@@ -235,6 +255,16 @@ pub fn prometheus() -> String {
         "superflow_remote_prefetch_unused_bytes_total",
         "Bytes fetched ahead and dropped unread",
         s.prefetch_unused_bytes,
+    );
+    counter(
+        "superflow_remote_cache_hit_bytes_total",
+        "Object bytes served by the local chunk cache",
+        s.disk_hit_bytes,
+    );
+    counter(
+        "superflow_remote_cache_stored_bytes_total",
+        "Object bytes written into the local chunk cache",
+        s.disk_stored_bytes,
     );
     out.push_str(
         "# HELP superflow_remote_retries_total Failed attempts, retried within the bound\n\
