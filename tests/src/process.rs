@@ -108,16 +108,28 @@ pub fn spawn(command: &mut Command) -> Proc {
 /// from the workspace root, its stderr piped; `subscriber` is the test's
 /// `env!("CARGO_BIN_EXE_superflow-subscriber")` (the pipeline binary lies beside it).
 pub fn pipeline(subscriber: &str, drive: &str, prefix: &str, run: &str, args: &[&str]) -> Proc {
-    spawn(
-        Command::new(crate::pipeline_binary(subscriber))
-            .args(["--mcap", drive, "--run", run])
-            .args(args)
-            .env("SUPERFLOW_IOX_PREFIX", prefix)
-            .env("RUST_LOG", "info")
-            .current_dir(crate::workspace_root())
-            .stdout(std::process::Stdio::null())
-            .stderr(std::process::Stdio::piped()),
-    )
+    spawn(&mut pipeline_command(subscriber, drive, prefix, run, args))
+}
+
+/// The command [`pipeline`] spawns, for a caller that adds to it (an environment)
+/// before spawning it.
+pub fn pipeline_command(
+    subscriber: &str,
+    drive: &str,
+    prefix: &str,
+    run: &str,
+    args: &[&str],
+) -> Command {
+    let mut command = Command::new(crate::pipeline_binary(subscriber));
+    command
+        .args(["--mcap", drive, "--run", run])
+        .args(args)
+        .env("SUPERFLOW_IOX_PREFIX", prefix)
+        .env("RUST_LOG", "info")
+        .current_dir(crate::workspace_root())
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped());
+    command
 }
 
 /// `superflow-subscriber --run run args…` under the iceoryx2 prefix `prefix`, its output
@@ -132,6 +144,59 @@ pub fn subscriber(subscriber: &str, prefix: &str, run: &str, args: &[&str]) -> P
             .stdout(std::process::Stdio::piped())
             .stderr(std::process::Stdio::piped()),
     )
+}
+
+/// The batches a `superflow-subscriber` printed (its JSON lines with a `sequence`; a lost
+/// batch has `"lost":true` and no sample).
+pub fn batches(stdout: &str) -> Vec<serde_json::Value> {
+    stdout
+        .lines()
+        .map(|l| serde_json::from_str::<serde_json::Value>(l).unwrap())
+        .filter(|v| v.get("sequence").is_some())
+        .collect()
+}
+
+/// `(epoch, keyframe)` of every sample of `batches` (as [`batches`] returns them).
+pub fn sample_keys(batches: &[serde_json::Value]) -> Vec<(u64, u64)> {
+    batches
+        .iter()
+        .flat_map(|b| b["samples"].as_array().unwrap().clone())
+        .map(|s| (s[0].as_u64().unwrap(), s[2].as_u64().unwrap()))
+        .collect()
+}
+
+/// A free TCP port of 127.0.0.1 (for a server a child process starts: a metrics
+/// endpoint, a rendezvous).
+pub fn free_port() -> String {
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    listener.local_addr().unwrap().port().to_string()
+}
+
+/// One `GET /metrics` of the Prometheus endpoint at `addr`: the whole response, status
+/// line and headers included.
+pub fn scrape(addr: &str) -> std::io::Result<String> {
+    use std::io::{Read as _, Write as _};
+    let mut stream = std::net::TcpStream::connect(addr)?;
+    stream.set_read_timeout(Some(Duration::from_secs(30)))?;
+    stream.write_all(b"GET /metrics HTTP/1.1\r\nHost: x\r\n\r\n")?;
+    let mut text = String::new();
+    stream.read_to_string(&mut text)?;
+    Ok(text)
+}
+
+/// The value of the Prometheus counter `name` in `text`, summed over its labelled series
+/// (`name{cause="…"} n`); 0 when absent.
+pub fn counter(text: &str, name: &str) -> u64 {
+    text.lines()
+        .filter_map(|l| {
+            let rest = l.strip_prefix(name)?;
+            let value = match rest.strip_prefix('{') {
+                Some(labelled) => labelled.split_once('}')?.1,
+                None => rest.strip_prefix(' ')?,
+            };
+            value.trim().parse::<u64>().ok()
+        })
+        .sum()
 }
 
 /// Fails unless, in each of `epochs`, the ranks' `(epoch, keyframe)` samples cover every

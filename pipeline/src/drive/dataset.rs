@@ -98,6 +98,8 @@ impl Dataset {
         config: &IngestConfig,
         progress: impl Fn(IndexProgress) + Sync,
     ) -> Result<Dataset, IngestError> {
+        // Before the first request: listing the inputs is one.
+        config.configure_remote();
         let mut groups = Vec::new();
         let mut drive_groups_of = Vec::with_capacity(listed.len());
         for group in listed {
@@ -119,8 +121,6 @@ impl Dataset {
             return Err(IngestError::NoFiles);
         }
         crate::source::HandlePool::global().set_limit(config.max_open_files());
-        crate::source::remote::configure(config.remote_settings());
-        crate::source::remote::configure_disk_cache(config.remote_cache());
         let cache = config.index_cache();
         if let Some(cache) = &cache {
             cache.prepare()?;

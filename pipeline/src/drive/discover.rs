@@ -114,6 +114,13 @@ impl IngestConfig {
         }
     }
 
+    /// Sets how this process talks to object stores (`remote_*`); before its first
+    /// request, which builds the store's client.
+    pub fn configure_remote(&self) {
+        crate::source::remote::configure(self.remote_settings());
+        crate::source::remote::configure_disk_cache(self.remote_cache());
+    }
+
     /// The local chunk cache of remote reads, when `remote_cache_dir` is set.
     pub fn remote_cache(&self) -> Option<crate::source::remote::DiskCacheSettings> {
         self.remote_cache_dir

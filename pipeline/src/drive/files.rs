@@ -139,8 +139,15 @@ impl Listings {
             dir
         };
         let names = self.names.entry(dir.to_path_buf()).or_insert_with(|| {
-            let mut names: Vec<String> = source::mcap_files_in(dir)
-                .unwrap_or_default()
+            let listed = source::mcap_files_in(dir).unwrap_or_else(|e| {
+                // A store may allow GET but refuse LIST: the drive is still read.
+                tracing::warn!(
+                    "{e}: sidecars beside {} cannot be looked for",
+                    file.display()
+                );
+                Vec::new()
+            });
+            let mut names: Vec<String> = listed
                 .into_iter()
                 .filter(|p| p.parent() == Some(dir))
                 .filter_map(|p| Some(p.file_name()?.to_str()?.to_string()))

@@ -57,8 +57,9 @@ impl DatasetGroup {
         // `https://host:9000` ends in a port, not a repeat.
         let port = |paths: &str| {
             let last = paths.rsplit(',').next().unwrap_or_default();
-            last.split_once("://")
-                .is_some_and(|(_, rest)| !rest.contains('/'))
+            last.split_once("://").is_some_and(|(scheme, rest)| {
+                scheme.to_ascii_lowercase().starts_with("http") && !rest.contains('/')
+            })
         };
         let (paths, repeat) = match rest.rsplit_once(':') {
             Some((paths, _)) if port(paths) => (rest, 1.0),

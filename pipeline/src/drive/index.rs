@@ -287,8 +287,7 @@ impl Drive {
             return Err(IngestError::NoFiles);
         }
         crate::source::HandlePool::global().set_limit(config.max_open_files());
-        crate::source::remote::configure(config.remote_settings());
-        crate::source::remote::configure_disk_cache(config.remote_cache());
+        config.configure_remote();
         let cache = config.index_cache();
         if let Some(cache) = &cache {
             cache.prepare()?;

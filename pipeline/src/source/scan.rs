@@ -66,7 +66,12 @@ impl McapFile {
             // A local file's magic was checked on opening; an object's is read here,
             // with the first bytes the scan reads anyway.
             let mut magic = [0u8; 8];
-            if this.len < 8 || this.read_into(&mut magic, 0).is_err() || &magic != MAGIC {
+            if this.len >= 8 {
+                // A read that fails is its own error (a store that refuses, a replaced
+                // object), not a verdict on the bytes.
+                this.read_into(&mut magic, 0)?;
+            }
+            if this.len < 8 || &magic != MAGIC {
                 return Err(SourceError::NotMcap {
                     path: this.path.clone(),
                 });

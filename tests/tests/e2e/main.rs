@@ -18,6 +18,7 @@ mod fleet;
 mod index_cache;
 mod ingest_layouts;
 mod labels;
+mod object_store;
 mod projection;
 mod python_package;
 mod python_reference;

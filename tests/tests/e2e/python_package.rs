@@ -24,7 +24,9 @@ use std::process::{Command, Stdio};
 use std::sync::OnceLock;
 use std::time::Duration;
 use superflow_recordings::Dialect;
-use superflow_tests::process::{self, Proc, finish, no_shared_memory_left, prefix, send_signal};
+use superflow_tests::process::{
+    self, Proc, finish, free_port, no_shared_memory_left, prefix, send_signal,
+};
 use superflow_tests::{one_camera_rig, rig_drive, two_camera_rig, workspace_root};
 
 const DRIVE: &str = "recordings/drives/street_ros2.mcap";
@@ -785,12 +787,6 @@ fn python_data_loader_workers_get_a_clear_error_and_lose_nothing() {
     let (ok, _, err) = finish(pipe, LIMIT);
     assert!(ok, "{err}");
     no_shared_memory_left(&p);
-}
-
-/// A free TCP port on this machine for a torch.distributed rendezvous.
-fn free_port() -> String {
-    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
-    listener.local_addr().unwrap().port().to_string()
 }
 
 /// The ranks of `torchrun --nnodes 2 --nproc-per-node 2`, simulated on one machine: each

@@ -6,11 +6,11 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
 
-use serde_json::Value;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 use superflow_tests::process::{
-    self, Proc, finish, lines_of, no_shared_memory_left, prefix, send_signal,
+    self, Proc, batches, counter, finish, lines_of, no_shared_memory_left, prefix, sample_keys,
+    scrape, send_signal,
 };
 use superflow_tests::workspace_root;
 
@@ -35,24 +35,6 @@ fn subscriber(prefix: &str, run: &str, args: &[&str]) -> Proc {
         run,
         args,
     )
-}
-
-/// The batches a subscriber printed.
-fn batches(stdout: &str) -> Vec<Value> {
-    stdout
-        .lines()
-        .map(|l| serde_json::from_str::<Value>(l).unwrap())
-        .filter(|v| v.get("sequence").is_some())
-        .collect()
-}
-
-/// (epoch, keyframe) of every sample of `batches`.
-fn sample_keys(batches: &[Value]) -> Vec<(u64, u64)> {
-    batches
-        .iter()
-        .flat_map(|b| b["samples"].as_array().unwrap().clone())
-        .map(|s| (s[0].as_u64().unwrap(), s[2].as_u64().unwrap()))
-        .collect()
 }
 
 const LIMIT: Duration = Duration::from_secs(180);
@@ -371,18 +353,10 @@ fn a_restarted_pipeline_continues_where_the_subscriber_is() {
     no_shared_memory_left(&p);
 }
 
-fn counter(text: &str, name: &str) -> u64 {
-    text.lines()
-        .find_map(|l| l.strip_prefix(&format!("{name} ")))
-        .and_then(|v| v.trim().parse().ok())
-        .unwrap_or(0)
-}
-
 /// `--metrics-addr` serves Prometheus text; SIGTERM stops the pipeline cleanly (exit 0,
 /// shared memory released) even while it waits for subscribers.
 #[test]
 fn metrics_endpoint_and_sigterm() {
-    use std::io::{Read, Write};
     let p = prefix("metrics");
     let port = 20_000 + (std::process::id() % 20_000) as u16;
     let addr = format!("127.0.0.1:{port}");
@@ -397,12 +371,7 @@ fn metrics_endpoint_and_sigterm() {
     // The pipeline now waits for a subscriber for its next batch: scrape it.
     let started = Instant::now();
     let text = loop {
-        let attempt = std::net::TcpStream::connect(&addr).and_then(|mut s| {
-            s.write_all(b"GET /metrics HTTP/1.1\r\nHost: x\r\n\r\n")?;
-            let mut text = String::new();
-            s.read_to_string(&mut text)?;
-            Ok(text)
-        });
+        let attempt = scrape(&addr);
         match attempt {
             Ok(text) if counter(&text, "superflow_batches_total") >= 1 => break text,
             _ if started.elapsed() > Duration::from_secs(60) => {
