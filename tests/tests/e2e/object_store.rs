@@ -107,25 +107,35 @@ fn pipeline(args: &[&str], env: &[(String, String)]) -> (bool, String, String) {
 /// `superflow-pipeline … batch --index 0 --batch-size 2` of `input` into `out`, no
 /// index cache; the batch's bytes.
 fn batch(input: &str, out: &Path, env: &[(String, String)]) -> Vec<u8> {
+    batch_with(&[], input, out, env).0
+}
+
+/// [`batch`] with `options` (e.g. `--config FILE`) first; the batch's bytes and the
+/// pipeline's stderr.
+fn batch_with(
+    options: &[&str],
+    input: &str,
+    out: &Path,
+    env: &[(String, String)],
+) -> (Vec<u8>, String) {
     let out_arg = out.to_str().unwrap();
-    let (ok, _, err) = pipeline(
-        &[
-            "--index-cache",
-            "off",
-            "batch",
-            "--index",
-            "0",
-            "--batch-size",
-            "2",
-            "--out",
-            out_arg,
-            "--mcap",
-            input,
-        ],
-        env,
-    );
+    let mut args = options.to_vec();
+    args.extend([
+        "--index-cache",
+        "off",
+        "batch",
+        "--index",
+        "0",
+        "--batch-size",
+        "2",
+        "--out",
+        out_arg,
+        "--mcap",
+        input,
+    ]);
+    let (ok, _, err) = pipeline(&args, env);
     assert!(ok, "batch of {input} failed:\n{err}");
-    std::fs::read(out).unwrap()
+    (std::fs::read(out).unwrap(), err)
 }
 
 /// The line `name   value` of `index`'s summary, its value.
@@ -831,27 +841,8 @@ fn a_local_chunk_cache_serves_a_second_pass_without_a_get() {
         (config, chunks)
     };
     let run = |config: &Path, out: &str| {
-        let out = dir.join(out);
-        let (ok, _, err) = pipeline(
-            &[
-                "--config",
-                config.to_str().unwrap(),
-                "--index-cache",
-                "off",
-                "batch",
-                "--index",
-                "0",
-                "--batch-size",
-                "2",
-                "--out",
-                out.to_str().unwrap(),
-                "--mcap",
-                &url,
-            ],
-            &env,
-        );
-        assert!(ok, "{err}");
-        (std::fs::read(out).unwrap(), err)
+        let config = ["--config", config.to_str().unwrap()];
+        batch_with(&config, &url, &dir.join(out), &env)
     };
     let ranges = |chunks: &Path| {
         std::fs::read_dir(chunks)
