@@ -175,6 +175,16 @@ pub fn mcap_files(inputs: &[PathBuf]) -> Result<Vec<PathBuf>, IngestError> {
                 SourceError::Io { path, source } => IngestError::Io { path, source },
                 other => IngestError::Source(other),
             })?;
+            if found.is_empty() && source::is_remote(input) {
+                // A mistyped prefix lists nothing rather than failing: say which.
+                return Err(IngestError::Io {
+                    path: input.clone(),
+                    source: std::io::Error::new(
+                        std::io::ErrorKind::NotFound,
+                        "no .mcap object under this prefix",
+                    ),
+                });
+            }
             files.extend(found);
         } else {
             files.push(input.clone());

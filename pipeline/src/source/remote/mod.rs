@@ -38,24 +38,28 @@ use std::path::Path;
 /// The text of an object store's error with anything secret taken out: query strings
 /// (SAS tokens, signatures) and the values of the credential variables.
 fn redact(text: &str) -> String {
+    // The query string of every URL (up to the next blank or quote).
     let mut out = String::with_capacity(text.len());
-    // Query strings of URLs: everything from `?` to the next blank or quote.
-    let mut in_query = false;
-    for c in text.chars() {
-        if c == '?' {
-            in_query = true;
-            out.push_str("?…");
-            continue;
-        }
-        if in_query {
-            if c.is_whitespace() || c == '"' || c == '\'' || c == ')' || c == ',' {
-                in_query = false;
-            } else {
-                continue;
+    let mut rest = text;
+    while let Some(at) = rest.find("://") {
+        let start = rest[..at]
+            .rfind(|c: char| c.is_whitespace() || c == '"' || c == '\'' || c == '(')
+            .map_or(0, |i| i + 1);
+        let end = rest[at..]
+            .find(|c: char| c.is_whitespace() || c == '"' || c == '\'' || c == ')')
+            .map_or(rest.len(), |i| at + i);
+        out.push_str(&rest[..start]);
+        let url = &rest[start..end];
+        match url.split_once('?') {
+            Some((base, _)) => {
+                out.push_str(base);
+                out.push_str("?…");
             }
+            None => out.push_str(url),
         }
-        out.push(c);
+        rest = &rest[end..];
     }
+    out.push_str(rest);
     for key in SECRET_VARIABLES {
         if let Ok(value) = std::env::var(key)
             && value.len() >= 4
@@ -146,5 +150,7 @@ mod tests {
         let out = redact(text);
         assert!(!out.contains("sig=abc"), "{out}");
         assert!(out.contains("k.mcap?… failed: 403"), "{out}");
+        let xml = "404: <?xml version=\"1.0\"?><Code>NoSuchBucket</Code>";
+        assert_eq!(redact(xml), xml);
     }
 }
