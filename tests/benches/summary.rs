@@ -33,7 +33,8 @@ use superflow_pipeline::config::PipelineConfig;
 use superflow_pipeline::drive::Dataset;
 use superflow_pipeline::sample::{SampleBuilder, SampleConfig};
 use superflow_tests::bench::common::{
-    self, DRIVES, arg_count, arg_value, cores, drive_path, flag, load_average, percentile,
+    self, DRIVES, arg_count, arg_value, cores, cpu_model, drive_path, flag, load_average, now_utc,
+    percentile,
 };
 use superflow_tests::bench::train::{self, BATCH_SIZE, BatchFile, DRIVE};
 use superflow_tests::bench::transport::{self, KIB, MIB};
@@ -128,29 +129,6 @@ impl Table {
             unit,
         });
     }
-}
-
-/// The CPU model (first `model name` of /proc/cpuinfo).
-fn cpu_model() -> String {
-    std::fs::read_to_string("/proc/cpuinfo")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find_map(|l| l.strip_prefix("model name"))
-                .map(|v| v.trim_start_matches([' ', '\t', ':']).trim().to_owned())
-        })
-        .unwrap_or_else(|| "unknown CPU".into())
-}
-
-/// `date -u`, to the minute.
-fn now_utc() -> String {
-    std::process::Command::new("date")
-        .args(["-u", "+%Y-%m-%d %H:%M UTC"])
-        .output()
-        .ok()
-        .filter(|o| o.status.success())
-        .map(|o| String::from_utf8_lossy(&o.stdout).trim().to_owned())
-        .unwrap_or_else(|| "unknown date".into())
 }
 
 fn pipeline(args: &Args, cores: usize, table: &mut Table) -> anyhow::Result<()> {

@@ -1,5 +1,5 @@
 //! What every benchmark needs: where the drives are, command-line values, medians and
-//! percentiles, the load average.
+//! percentiles, the machine (CPU model, load average) and the date.
 //!
 //! Compiled into `superflow_tests::bench` and, through `#[path]`, into the benches of
 //! `superflow-pipeline` and `superflow-trainer` (which cannot depend on this crate
@@ -84,4 +84,27 @@ pub fn load_average(n: usize) -> String {
 /// The cores this process may use.
 pub fn cores() -> usize {
     std::thread::available_parallelism().map_or(1, |c| c.get())
+}
+
+/// The CPU model (first `model name` of /proc/cpuinfo).
+pub fn cpu_model() -> String {
+    std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find_map(|l| l.strip_prefix("model name"))
+                .map(|v| v.trim_start_matches([' ', '\t', ':']).trim().to_owned())
+        })
+        .unwrap_or_else(|| "unknown CPU".into())
+}
+
+/// `date -u`, to the minute.
+pub fn now_utc() -> String {
+    std::process::Command::new("date")
+        .args(["-u", "+%Y-%m-%d %H:%M UTC"])
+        .output()
+        .ok()
+        .filter(|o| o.status.success())
+        .map(|o| String::from_utf8_lossy(&o.stdout).trim().to_owned())
+        .unwrap_or_else(|| "unknown date".into())
 }
