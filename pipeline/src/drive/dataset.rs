@@ -209,20 +209,7 @@ impl Dataset {
                 .collect()
         };
         // Files in an object store wait on the network, not the CPUs: more at once.
-        let threads = crate::source::index_parallelism(&files);
-        let wider = (threads > rayon::current_num_threads())
-            .then(|| {
-                rayon::ThreadPoolBuilder::new()
-                    .num_threads(threads)
-                    .thread_name(|i| format!("index-{i}"))
-                    .build()
-                    .ok()
-            })
-            .flatten();
-        let results = match wider {
-            Some(pool) => pool.install(index_all),
-            None => index_all(),
-        };
+        let results = crate::source::on_read_pool(files.iter().map(|f| f.as_path()), index_all);
         let mut indexed = IndexStats::default();
         let mut drives = Vec::with_capacity(groups.len());
         for result in results {

@@ -97,7 +97,8 @@ impl Producer<'_> {
                 continue;
             };
             // What the next batches read is requested now, while this one is built.
-            for ahead in 1..=READ_AHEAD_BATCHES {
+            // (This batch's own reads too, the first time: they then go out at once.)
+            for ahead in 0..=READ_AHEAD_BATCHES {
                 if advised.insert((stream, epoch, step + ahead)) {
                     for &(keyframe, index) in self
                         .schedule

@@ -282,15 +282,22 @@ impl Plan {
 
     /// [`Plan::new`], and where its camera scans came from.
     pub fn with_counts(dataset: &Dataset, config: &SampleConfig) -> (Plan, ScanCounts) {
-        let drives: Vec<DrivePlan> = dataset
+        let paths = dataset
             .drives
-            .par_iter()
-            .enumerate()
-            // One drive per task: a drive whose scan is measured takes far longer than
-            // one whose scan is read.
-            .with_max_len(1)
-            .map(|(d, drive)| plan_drive(d, drive, config))
-            .collect();
+            .iter()
+            .flat_map(|d| d.files.iter().map(|f| f.path()));
+        // A measured scan reads a sweep: of a drive in an object store, over the network.
+        let drives: Vec<DrivePlan> = crate::source::on_read_pool(paths, || {
+            dataset
+                .drives
+                .par_iter()
+                .enumerate()
+                // One drive per task: a drive whose scan is measured takes far longer
+                // than one whose scan is read.
+                .with_max_len(1)
+                .map(|(d, drive)| plan_drive(d, drive, config))
+                .collect()
+        });
         let mut plan = Plan {
             keyframes: Vec::with_capacity(drives.iter().map(|p| p.keyframes.len()).sum()),
             skipped_at_edges: 0,

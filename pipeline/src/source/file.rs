@@ -141,8 +141,9 @@ impl McapFile {
             .into_iter()
             .filter_map(|loc| match loc {
                 super::MessageLoc::Chunk { chunk, .. } => {
+                    // The record's body: what a read of the chunk asks for.
                     let c = self.chunks.get(chunk as usize)?;
-                    Some(c.offset..c.offset.saturating_add(c.record_len))
+                    Some(c.offset.saturating_add(9)..c.offset.saturating_add(c.record_len))
                 }
                 // A message outside chunks is read head first, then body: not worth it.
                 super::MessageLoc::Direct { .. } => None,

@@ -46,7 +46,7 @@ pub use file::McapFile;
 pub use framing::{FramingError, MAGIC, MAX_RECORD_BYTES};
 pub use handles::{FileIdentity, HandlePool, default_max_open_files, raise_open_file_limit};
 pub use message::{ChannelInfo, MessageLoc, MessageRef, SchemaInfo};
-pub use place::{index_parallelism, is_dir, is_file, mcap_files_in, size_of};
+pub use place::{is_dir, is_file, mcap_files_in, on_read_pool, size_of};
 pub use remote::is_remote;
 pub use tally::Decompressed;
 

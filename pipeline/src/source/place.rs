@@ -57,13 +57,24 @@ pub fn mcap_files_in(dir: &Path) -> Result<Vec<PathBuf>, SourceError> {
     Ok(found)
 }
 
-/// How many files to index at once: local files keep the CPUs busy; objects wait on
-/// the network, so as many as may be requested at once.
-pub fn index_parallelism(paths: &[&PathBuf]) -> usize {
-    let cpus = rayon::current_num_threads();
-    if paths.iter().any(|p| remote::is_remote(p)) {
-        cpus.max(remote::settings().concurrency)
-    } else {
-        cpus
+/// Runs `f`, whose rayon jobs read the files at `paths`, on a pool as wide as reads of
+/// them should go: the current pool for local files (they keep the CPUs busy), one of
+/// [`remote_concurrency`](super::remote::RemoteSettings::concurrency) threads when an
+/// object is among them (its reads wait on the network).
+pub fn on_read_pool<'p, T: Send>(
+    mut paths: impl Iterator<Item = &'p Path>,
+    f: impl FnOnce() -> T + Send,
+) -> T {
+    let threads = remote::settings().concurrency;
+    if threads <= rayon::current_num_threads() || !paths.any(remote::is_remote) {
+        return f();
+    }
+    match rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .thread_name(|i| format!("read-{i}"))
+        .build()
+    {
+        Ok(pool) => pool.install(f),
+        Err(_) => f(),
     }
 }

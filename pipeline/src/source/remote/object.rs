@@ -156,6 +156,7 @@ impl RemoteObject {
         stats::count_prefetch_hit(false);
         let bytes = self.fetch(offset..end)?;
         buf.copy_from_slice(&bytes);
+        prefetch::keep(&key, offset..end, bytes);
         Ok(())
     }
 
