@@ -1137,12 +1137,7 @@ fn main() -> anyhow::Result<()> {
         },
     )?;
     print!("\n{out}");
-    let target = std::env::var_os("CARGO_TARGET_DIR")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| common::root().join("target"));
-    let path = target.join("bench-object-store.md");
-    std::fs::write(&path, &out).with_context(|| format!("writing {}", path.display()))?;
-    eprintln!("written to {}", path.display());
+    common::write_report("bench-object-store.md", &out)?;
     anyhow::ensure!(left.is_empty(), "left in /dev/shm: {left:?}");
     Ok(())
 }

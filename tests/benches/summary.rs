@@ -327,17 +327,7 @@ fn main() -> anyhow::Result<()> {
         },
     )?;
     print!("\n{out}");
-    let target = std::env::var_os("CARGO_TARGET_DIR")
-        .map(std::path::PathBuf::from)
-        .unwrap_or_else(|| common::root().join("target"));
-    let path = target.join("bench-summary.md");
-    std::fs::write(&path, &out).with_context(|| format!("writing {}", path.display()))?;
-    eprintln!(
-        "written to {}",
-        path.canonicalize()
-            .unwrap_or_else(|_| path.clone())
-            .display()
-    );
+    common::write_report("bench-summary.md", &out)?;
     anyhow::ensure!(left.is_empty(), "left in /dev/shm: {left:?}");
     Ok(())
 }

@@ -86,6 +86,24 @@ pub fn cores() -> usize {
     std::thread::available_parallelism().map_or(1, |c| c.get())
 }
 
+/// Writes a bench's report to `target/<file>` (or under `CARGO_TARGET_DIR`) and says
+/// where on stderr.
+pub fn write_report(file: &str, text: &str) -> std::io::Result<PathBuf> {
+    let target = std::env::var_os("CARGO_TARGET_DIR")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| root().join("target"));
+    let path = target.join(file);
+    std::fs::write(&path, text)
+        .map_err(|e| std::io::Error::new(e.kind(), format!("writing {}: {e}", path.display())))?;
+    eprintln!(
+        "written to {}",
+        path.canonicalize()
+            .unwrap_or_else(|_| path.clone())
+            .display()
+    );
+    Ok(path)
+}
+
 /// The CPU model (first `model name` of /proc/cpuinfo).
 pub fn cpu_model() -> String {
     std::fs::read_to_string("/proc/cpuinfo")

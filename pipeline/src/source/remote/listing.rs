@@ -2,8 +2,7 @@
 //! a listed object then costs no request, and a warm start of a thousand drives costs
 //! the LIST pages alone. An object that was named but never listed costs one HEAD.
 
-use super::store::{block_on, permit, store_of};
-use super::url::ObjectUrl;
+use super::store::{block_on, open_url, permit};
 use crate::source::SourceError;
 use futures::TryStreamExt;
 use object_store::ObjectStoreExt as _;
@@ -37,14 +36,7 @@ pub(super) fn location(key: &str) -> object_store::path::Path {
 /// URL, with its size. Object stores have no directories: a prefix names everything
 /// under it.
 pub fn list_dir(dir: &Path) -> Result<Vec<(PathBuf, u64)>, SourceError> {
-    let url = ObjectUrl::parse(dir).ok_or_else(|| SourceError::Remote {
-        path: dir.to_path_buf(),
-        reason: "not an object URL".into(),
-    })?;
-    let store = store_of(&url).map_err(|reason| SourceError::Remote {
-        path: dir.to_path_buf(),
-        reason,
-    })?;
+    let (url, store) = open_url(dir)?;
     let prefix = location(&url.key);
     let listed = block_on(async move {
         let _permit = permit().await;
@@ -107,14 +99,7 @@ pub(super) fn listed(path: &Path) -> Result<Listed, SourceError> {
     {
         return Ok(known.clone());
     }
-    let url = ObjectUrl::parse(path).ok_or_else(|| SourceError::Remote {
-        path: path.to_path_buf(),
-        reason: "not an object URL".into(),
-    })?;
-    let store = store_of(&url).map_err(|reason| SourceError::Remote {
-        path: path.to_path_buf(),
-        reason,
-    })?;
+    let (url, store) = open_url(path)?;
     let location = location(&url.key);
     let meta = block_on(async move {
         let _permit = permit().await;

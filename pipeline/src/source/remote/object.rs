@@ -12,7 +12,7 @@
 use super::listing::{listed, location};
 use super::prefetch;
 use super::stats;
-use super::store::{block_on, permit, settings, store_of};
+use super::store::{block_on, open_url, permit, settings};
 use super::url::ObjectUrl;
 use crate::source::SourceError;
 use bytes::Bytes;
@@ -51,15 +51,8 @@ pub(crate) struct RemoteObject {
 impl RemoteObject {
     /// The object at `path` (listed before, or one HEAD now). Nothing is read yet.
     pub(crate) fn open(path: &Path) -> Result<RemoteObject, SourceError> {
-        let url = ObjectUrl::parse(path).ok_or_else(|| SourceError::Remote {
-            path: path.to_path_buf(),
-            reason: "not an object URL".into(),
-        })?;
+        let (url, store) = open_url(path)?;
         let known = listed(path)?;
-        let store = store_of(&url).map_err(|reason| SourceError::Remote {
-            path: path.to_path_buf(),
-            reason,
-        })?;
         Ok(RemoteObject {
             path: path.to_path_buf(),
             location: location(&url.key),

@@ -141,9 +141,14 @@ impl Held {
     }
 
     fn covers(&self, key: &str, range: &Range<u64>) -> bool {
+        self.position(key, range).is_some()
+    }
+
+    /// The newest entry of `key` that holds all of `range`.
+    fn position(&self, key: &str, range: &Range<u64>) -> Option<usize> {
         self.entries
             .iter()
-            .any(|e| e.key == key && e.range.start <= range.start && range.end <= e.range.end)
+            .rposition(|e| e.key == key && e.range.start <= range.start && range.end <= e.range.end)
     }
 }
 
@@ -153,9 +158,7 @@ impl Held {
 pub(super) fn take(key: &str, range: Range<u64>) -> Option<Result<Bytes, Arc<str>>> {
     let (fetch, start) = {
         let mut held = HELD.lock().unwrap_or_else(PoisonError::into_inner);
-        let i = held.entries.iter().rposition(|e| {
-            e.key == key && e.range.start <= range.start && range.end <= e.range.end
-        })?;
+        let i = held.position(key, &range)?;
         // Read now: it moves to the back, the last of the read ones to go.
         let entry = held.entries.remove(i)?;
         entry.used.store(true, Ordering::Relaxed);

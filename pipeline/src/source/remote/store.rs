@@ -96,8 +96,21 @@ pub(super) async fn permit() -> tokio::sync::OwnedSemaphorePermit {
         .expect("the request semaphore is never closed")
 }
 
+/// `path` as an object URL and the client of its store: what every request starts from.
+pub(super) fn open_url(
+    path: &std::path::Path,
+) -> Result<(ObjectUrl, Arc<dyn ObjectStore>), crate::source::SourceError> {
+    let remote = |reason: String| crate::source::SourceError::Remote {
+        path: path.to_path_buf(),
+        reason,
+    };
+    let url = ObjectUrl::parse(path).ok_or_else(|| remote("not an object URL".into()))?;
+    let store = store_of(&url).map_err(remote)?;
+    Ok((url, store))
+}
+
 /// The client of the store `url` is in, built on first use.
-pub(super) fn store_of(url: &ObjectUrl) -> Result<Arc<dyn ObjectStore>, String> {
+fn store_of(url: &ObjectUrl) -> Result<Arc<dyn ObjectStore>, String> {
     static STORES: LazyLock<Mutex<HashMap<String, Arc<dyn ObjectStore>>>> =
         LazyLock::new(Default::default);
     let mut stores = STORES.lock().unwrap_or_else(PoisonError::into_inner);
