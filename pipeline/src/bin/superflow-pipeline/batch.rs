@@ -7,17 +7,12 @@ use superflow_pipeline::batch::{BatchShape, batch_bytes};
 use superflow_pipeline::sample::SampleBuilder;
 use superflow_schemas::batch::BatchMeta;
 
-pub fn run(
-    args: &Args,
-    index: usize,
-    batch_size: Option<usize>,
-    epoch: u64,
-    out: &Path,
-) -> anyhow::Result<()> {
-    let config = args.config()?;
-    let size = batch_size
-        .unwrap_or(config.service.batch_size as usize)
-        .max(1);
+pub fn run(args: &Args, index: usize, epoch: u64, out: &Path) -> anyhow::Result<()> {
+    // The service's settings, read the way the service reads them.
+    let mut config = args.config()?;
+    config.apply(&args.overrides()?);
+    config.service.validate()?;
+    let size = config.service.batch_size as usize;
     let dataset = crate::open::dataset(args)?;
     let builder = SampleBuilder::new(&dataset, config.sample)?;
     let keyframes = builder.plan().keyframes.len();

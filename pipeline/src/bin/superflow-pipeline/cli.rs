@@ -30,8 +30,9 @@ pub struct Args {
     /// `~/.cache/superflow/index`].
     #[arg(long, global = true, env = "SUPERFLOW_INDEX_CACHE")]
     pub index_cache: Option<PathBuf>,
-    /// Run name: the services are `superflow/<run>/...`.
-    #[arg(long, default_value = "default")]
+    /// Run name: the services are `superflow/<run>/...` (`batch` writes it in the
+    /// batch's header).
+    #[arg(long, global = true, default_value = "default")]
     pub run: String,
     /// Stream mode (overrides `[service] mode`).
     #[arg(long, value_enum)]
@@ -47,8 +48,9 @@ pub struct Args {
     /// configuration (overrides `[service] host_count`).
     #[arg(long, env = "SUPERFLOW_HOST_COUNT")]
     pub host_count: Option<u32>,
-    /// Samples per batch (overrides `[service] batch_size`).
-    #[arg(long)]
+    /// Samples per batch (overrides `[service] batch_size`; also the size of the batch
+    /// `batch` writes).
+    #[arg(long, global = true)]
     pub batch_size: Option<u32>,
     /// Epochs to stream, 0 = forever (overrides `[service] epochs`).
     #[arg(long)]
@@ -139,16 +141,14 @@ pub enum Command {
         #[arg(long)]
         force: bool,
     },
-    /// Builds one batch (keyframes `index..index + batch-size` of the plan) and writes it
+    /// Builds one batch (keyframes `index..index + batch-size` of the plan; `--batch-size`,
+    /// else `[service] batch_size`, as the service would) and writes it
     /// to a file exactly as it goes on the wire: the `BatchHeader` bytes, then the
     /// payload (`schemas/BATCH_FORMAT.md`). Benchmarks and offline tools read it.
     Batch {
         /// First keyframe of the batch.
         #[arg(long, default_value_t = 0)]
         index: usize,
-        /// Samples in the batch [default: the service's batch size].
-        #[arg(long)]
-        batch_size: Option<usize>,
         /// Epoch of the random draws.
         #[arg(long, default_value_t = 0)]
         epoch: u64,
@@ -156,6 +156,73 @@ pub enum Command {
         #[arg(long)]
         out: PathBuf,
     },
+}
+
+/// The service's flags a subcommand reads: every other one of [`SERVICE_FLAGS`] means
+/// nothing to it, and is refused rather than silently ignored.
+fn flags_read_by(command: &Command) -> &'static [&'static str] {
+    match command {
+        Command::Batch { .. } => &["run", "batch_size"],
+        Command::Index { .. }
+        | Command::Inspect { .. }
+        | Command::Sample { .. }
+        | Command::Superpixels { .. } => &[],
+    }
+}
+
+/// The flags of the service (no subcommand), by clap id. The drive and configuration
+/// flags (`--mcap`, `--dataset`, `--config`, `--index-cache`) mean the same to every
+/// subcommand.
+const SERVICE_FLAGS: &[&str] = &[
+    "run",
+    "mode",
+    "world_size",
+    "host_rank",
+    "host_count",
+    "batch_size",
+    "epochs",
+    "subscribers",
+    "start_epoch",
+    "start_step",
+    "start_sample",
+    "metrics_addr",
+    "iox_prefix",
+];
+
+/// The command line, parsed; a service flag given on the command line to a subcommand
+/// that does not read it is a usage error (exit code 2), as an unknown flag is. Values
+/// from the environment (`SUPERFLOW_HOST_RANK`, ...) are a job's settings for the
+/// service and pass unremarked.
+pub fn parse() -> Args {
+    use clap::{CommandFactory as _, FromArgMatches as _};
+    let mut cmd = Args::command();
+    let matches = cmd.get_matches_mut();
+    let args = Args::from_arg_matches(&matches).unwrap_or_else(|e| e.format(&mut cmd).exit());
+    let Some(command) = &args.command else {
+        return args;
+    };
+    let name = matches.subcommand_name().unwrap_or_default();
+    let sub = matches.subcommand_matches(name).unwrap_or(&matches);
+    let read = flags_read_by(command);
+    for id in SERVICE_FLAGS.iter().filter(|id| !read.contains(id)) {
+        // A global flag is known to both; the others to the top level alone.
+        let given = [&matches, sub].iter().any(|m| {
+            m.ids().any(|known| known.as_str() == *id)
+                && m.value_source(id) == Some(clap::parser::ValueSource::CommandLine)
+        });
+        if given {
+            let flag = format!("--{}", id.replace('_', "-"));
+            cmd.error(
+                clap::error::ErrorKind::ArgumentConflict,
+                format!(
+                    "{flag} is a setting of the service (no subcommand); `{name}` does not \
+                     read it"
+                ),
+            )
+            .exit();
+        }
+    }
+    args
 }
 
 /// `--dataset NAME=PATH[,PATH...][:REPEAT]`.

@@ -21,7 +21,6 @@ mod sample;
 mod serve;
 mod superpixels;
 
-use clap::Parser as _;
 use cli::{Args, Command};
 
 /// mimalloc, keeping freed pages for the next sample (see `superflow_pipeline::memory`).
@@ -51,12 +50,7 @@ fn run(args: &Args) -> anyhow::Result<()> {
                 drive_mcap: drive_mcap.as_deref(),
             },
         ),
-        Some(Command::Batch {
-            index,
-            batch_size,
-            epoch,
-            out,
-        }) => batch::run(args, *index, *batch_size, *epoch, out),
+        Some(Command::Batch { index, epoch, out }) => batch::run(args, *index, *epoch, out),
         None => serve::run(args),
     }
 }
@@ -65,7 +59,7 @@ fn main() -> std::process::ExitCode {
     superflow_common::memory::keep_freed_pages();
     superflow_common::logging::init();
     superflow_pipeline::source::raise_open_file_limit();
-    match run(&Args::parse()) {
+    match run(&cli::parse()) {
         Ok(()) => std::process::ExitCode::SUCCESS,
         Err(err) => superflow_common::exit::failed("superflow-pipeline", err.as_ref()),
     }

@@ -3,8 +3,6 @@
 //! bounded pool of open files; asking the pool for more than the process may open is an
 //! error that names the file and the setting.
 
-#![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
-
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use superflow_pipeline::inspect::InspectReport;

@@ -1,34 +1,12 @@
 //! `superflow-pipeline sample` on the sample drives: the files a user looks at, and
 //! clear errors for bad requests.
 
-#![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
-
 use serde_json::Value;
-use std::path::PathBuf;
-use std::process::Command;
 
-fn root() -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .unwrap()
-        .to_path_buf()
-}
-
+/// `superflow-pipeline sample <args>`: whether it succeeded, stdout then stderr.
 fn sample(args: &[&str]) -> (bool, String) {
-    let out = Command::new(env!("CARGO_BIN_EXE_superflow-pipeline"))
-        .arg("sample")
-        .args(args)
-        .current_dir(root())
-        .output()
-        .unwrap();
-    (
-        out.status.success(),
-        format!(
-            "{}{}",
-            String::from_utf8_lossy(&out.stdout),
-            String::from_utf8_lossy(&out.stderr)
-        ),
-    )
+    let (ok, stdout, stderr) = super::pipeline("sample", args);
+    (ok, format!("{stdout}{stderr}"))
 }
 
 #[test]

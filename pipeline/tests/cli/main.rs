@@ -1,4 +1,13 @@
-//! Running the `superflow-pipeline` binary from the workspace root, for the CLI tests.
+//! `superflow-pipeline`'s subcommands run as a user runs them, one module each, and the
+//! helpers that run the binary from the workspace root.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
+
+mod flags;
+mod inspect;
+mod many_files;
+mod sample;
+mod superpixels;
 
 use std::path::PathBuf;
 use std::process::Command;

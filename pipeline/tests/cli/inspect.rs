@@ -1,16 +1,13 @@
 //! `superflow-pipeline inspect --json` on the sample drives: the stable report agrees
 //! with each drive's ground truth.
 
-#![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
-
 use serde_json::Value;
 use superflow_pipeline::inspect::{INSPECT_FORMAT, InspectReport};
 
-mod cli;
-use cli::root;
+use super::root;
 
 fn inspect(args: &[&str]) -> (bool, String, String) {
-    cli::pipeline("inspect", args)
+    super::pipeline("inspect", args)
 }
 
 #[test]

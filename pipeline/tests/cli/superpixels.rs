@@ -1,19 +1,15 @@
 //! `superflow-pipeline superpixels`: writes `<drive>.slic.mcap`, leaves a current one
 //! alone, refuses to overwrite one written with other settings unless `--force`.
 
-#![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
-
 use std::path::Path;
 
-mod cli;
-
 fn superpixels(args: &[&str]) -> (bool, String, String) {
-    cli::pipeline("superpixels", args)
+    super::pipeline("superpixels", args)
 }
 
 #[test]
 fn writes_keeps_and_rewrites_the_sidecar() {
-    let root = cli::root();
+    let root = super::root();
     let dir = std::env::temp_dir().join(format!("superflow-sp-cli-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let drive = dir.join("street_ros2.mcap");
