@@ -258,12 +258,10 @@ mod tests {
     use std::path::Path;
     use std::sync::Mutex;
 
-    fn sample_drive(name: &str) -> PathBuf {
-        Path::new(env!("CARGO_MANIFEST_DIR")).join(format!("../recordings/drives/{name}.mcap"))
-    }
-
-    /// A directory with `names` as hard links of the sample drives (`ros2`, `foxglove`) or
-    /// files that are not MCAP (`bad`): `<i>_<name>.mcap`, in input order.
+    /// A directory with `names` as copies of the sample drives (`ros2`, `foxglove`) or
+    /// files that are not MCAP (`bad`): `<i>_<name>.mcap`, in input order. Copies, not
+    /// hard links: a link changes the sample drive's status-change time, and with it the
+    /// fingerprint that tests running beside this one compute of it.
     fn inputs(tag: &str, names: &[&str]) -> (PathBuf, Vec<PathBuf>) {
         let dir =
             std::env::temp_dir().join(format!("superflow-dataset-{tag}-{}", std::process::id()));
@@ -277,7 +275,9 @@ mod tests {
                 match *name {
                     "bad" => std::fs::write(&path, b"not an mcap file").unwrap(),
                     drive => {
-                        std::fs::hard_link(sample_drive(&format!("street_{drive}")), &path).unwrap()
+                        let drive =
+                            superflow_recordings::sample_drive_path(&format!("street_{drive}"));
+                        std::fs::copy(drive, &path).unwrap();
                     }
                 }
                 path

@@ -330,6 +330,13 @@ impl Drive {
         index.check_frames(&paths);
         index.log_skips();
         let streams = Streams::assemble(&index.topics, &index.label_topics, &index.tf, config);
+        // The plan reads the sweep that times the cameras next: a file in an object store
+        // keeps it from its scan, rather than fetch it again.
+        let timing = streams.lidar.as_ref().and_then(|l| l.timing_sweep());
+        for (number, file) in files.iter().enumerate() {
+            let keep = timing.filter(|(_, f)| f.file as usize == number);
+            file.release_scan(keep.map(|(_, f)| f.loc));
+        }
         Drive {
             files,
             channels: streams.channels,

@@ -37,6 +37,15 @@ pub struct LidarStream {
     pub sweeps: Vec<FrameRef>,
 }
 
+impl LidarStream {
+    /// The sweep whose points time the cameras (`sample::timing`), with its number:
+    /// the middle one; `None` without sweeps.
+    pub fn timing_sweep(&self) -> Option<(usize, &FrameRef)> {
+        let number = self.sweeps.len() / 2;
+        self.sweeps.get(number).map(|frame| (number, frame))
+    }
+}
+
 /// A point-cloud channel of a `<drive>.labels.mcap` sidecar: label clouds parallel to the
 /// LiDAR's sweeps (same stamps, same point order), one per sweep. Which one labels the
 /// LiDAR is decided when the labels are opened ([`super::labels::DriveLabels::open`]).

@@ -20,7 +20,7 @@
 
 use super::recipe::{CameraSync, SampleConfig};
 use crate::drive::index_cache::EntryKind;
-use crate::drive::{Drive, IndexCache, LidarFacts, LidarStream, ReadError};
+use crate::drive::{Drive, IndexCache, LidarFacts, ReadError};
 use crate::source::ChunkCache;
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
@@ -129,11 +129,6 @@ struct ScanEntry {
     scan: CameraScan,
 }
 
-/// The sweep whose points time the cameras.
-fn measured_sweep(lidar: &LidarStream) -> usize {
-    lidar.sweeps.len() / 2
-}
-
 /// What a drive's camera scan is stored under in the index cache: a hash of everything
 /// the measurement depends on — the drive's files (their fingerprints), the choices of
 /// its `[ingest]` configuration that shape its streams and transforms, the sweep
@@ -142,7 +137,7 @@ fn measured_sweep(lidar: &LidarStream) -> usize {
 pub fn scan_key(drive: &Drive) -> Option<u128> {
     let fingerprint = drive.fingerprint?;
     let lidar = drive.lidar.as_ref()?;
-    let sweep = measured_sweep(lidar);
+    let (sweep, frame) = lidar.timing_sweep()?;
     let mut hash = xxhash_rust::xxh3::Xxh3::new();
     hash.update(SCAN_ENTRY.extension.as_bytes());
     hash.update(&fingerprint.to_le_bytes());
@@ -154,7 +149,6 @@ pub fn scan_key(drive: &Drive) -> Option<u128> {
     };
     hash.update(&bincode::serde::encode_to_vec(&shaping, bincode::config::standard()).ok()?);
     hash.update(&(sweep as u64).to_le_bytes());
-    let frame = lidar.sweeps.get(sweep)?;
     hash.update(&frame.stamp.nanos().to_le_bytes());
     for name in [&lidar.topic, &lidar.frame_id] {
         hash.update(&(name.len() as u64).to_le_bytes());
@@ -272,7 +266,9 @@ fn measure(drive: &Drive) -> Result<CameraScan, ReadError> {
     let Some(lidar) = drive.lidar.as_ref().filter(|l| !l.sweeps.is_empty()) else {
         return Ok(CameraScan::at_stamp(cameras));
     };
-    let frame = &lidar.sweeps[measured_sweep(lidar)];
+    let Some((_, frame)) = lidar.timing_sweep() else {
+        return Ok(CameraScan::at_stamp(cameras));
+    };
     let mut cache = ChunkCache::new(2);
     let decoded = drive.read_sweep(frame, &mut cache)?;
     let cloud = &decoded.cloud;

@@ -133,28 +133,50 @@ impl McapFile {
         }
     }
 
+    /// After an index of the file is built: lets go of what its scan read, keeping the
+    /// records that hold the messages at `locs` (what is read next) where a read finds
+    /// them. Only an object keeps anything; nothing is read.
+    pub fn release_scan(&self, locs: impl IntoIterator<Item = super::MessageLoc>) {
+        if let Some(object) = &self.remote {
+            let keep: Vec<std::ops::Range<u64>> = locs
+                .into_iter()
+                .filter_map(|loc| self.record_body(loc))
+                .collect();
+            object.release_scan(&keep);
+        }
+    }
+
+    /// The body of the record holding the message at `loc`: what a read of its chunk
+    /// asks for. `None` for a message outside chunks (read head first, then body).
+    fn record_body(&self, loc: super::MessageLoc) -> Option<std::ops::Range<u64>> {
+        match loc {
+            super::MessageLoc::Chunk { chunk, .. } => {
+                let c = self.chunks.get(chunk as usize)?;
+                Some(c.offset.saturating_add(9)..c.offset.saturating_add(c.record_len))
+            }
+            super::MessageLoc::Direct { .. } => None,
+        }
+    }
+
     /// Starts reading the records that hold the messages at `locs` (what a sample is
     /// about to read) ahead of their use: an object prefetches them within the prefetch
-    /// budget, a local file asks the kernel to read them into the page cache.
+    /// budget, a local file the pool holds open asks the kernel to read them into the
+    /// page cache (a closed one stays closed: opening it would close another).
     pub fn will_read(&self, locs: impl IntoIterator<Item = super::MessageLoc>) {
         let mut ranges: Vec<std::ops::Range<u64>> = locs
             .into_iter()
-            .filter_map(|loc| match loc {
-                super::MessageLoc::Chunk { chunk, .. } => {
-                    // The record's body: what a read of the chunk asks for.
-                    let c = self.chunks.get(chunk as usize)?;
-                    Some(c.offset.saturating_add(9)..c.offset.saturating_add(c.record_len))
-                }
-                // A message outside chunks is read head first, then body: not worth it.
-                super::MessageLoc::Direct { .. } => None,
-            })
+            .filter_map(|loc| self.record_body(loc))
             .collect();
         ranges.sort_by_key(|r| r.start);
         ranges.dedup();
         match &self.remote {
             Some(object) => super::remote::start_prefetch(object, ranges),
             None => {
-                let Ok(file) = self.handle() else { return };
+                let open = match &self.scanning {
+                    Some(file) => Some(Arc::clone(file)),
+                    None => HandlePool::global().open_now(self.id),
+                };
+                let Some(file) = open else { return };
                 for r in ranges {
                     advise_will_need(&file, r);
                 }

@@ -290,6 +290,17 @@ impl HandlePool {
         Ok(self.insert(key, file, path, found))
     }
 
+    /// The handle of `key` if the pool holds it open now, without opening it or making it
+    /// more recently used: what advice to the kernel reads through, as opening files for
+    /// it would close the ones samples are reading under a tight limit.
+    pub fn open_now(&self, key: u64) -> Option<Arc<File>> {
+        let pool = self.lock();
+        pool.open
+            .get(&key)
+            .or_else(|| pool.kept.get(&key))
+            .map(|entry| Arc::clone(&entry.file))
+    }
+
     /// Forgets `key`, closing its file once no reader holds it.
     pub fn forget(&self, key: u64) {
         let mut pool = self.lock();
@@ -416,6 +427,22 @@ mod tests {
         assert_eq!(keys, [0, 1, 3]);
         pool.set_limit(1);
         assert_eq!(pool.open_count(), 1);
+        std::fs::remove_dir_all(dir).unwrap();
+    }
+
+    #[test]
+    fn a_look_at_the_open_files_opens_none_and_reorders_none() {
+        let (dir, paths) = files(3);
+        let pool = HandlePool::new(2);
+        pool.open_new(0, &paths[0]).unwrap();
+        pool.open_new(1, &paths[1]).unwrap();
+        // 0 is the least recently used; looking at it keeps it so.
+        assert!(pool.open_now(0).is_some());
+        pool.open_new(2, &paths[2]).unwrap();
+        assert!(pool.open_now(0).is_none(), "0 was closed first");
+        assert!(pool.open_now(0).is_none(), "and a look does not reopen it");
+        assert!(pool.open_now(1).is_some() && pool.open_now(2).is_some());
+        assert_eq!(pool.open_count(), 2);
         std::fs::remove_dir_all(dir).unwrap();
     }
 

@@ -19,7 +19,7 @@ use bytes::Bytes;
 use object_store::{GetOptions, GetRange, ObjectStore};
 use std::ops::Range;
 use std::path::{Path, PathBuf};
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 
 /// The suffix a scan reads first: the footer, the summary of all but the largest
@@ -30,6 +30,13 @@ const TAIL_BYTES: u64 = 512 << 10;
 ///
 /// [`RemoteSettings::part_bytes`]: super::RemoteSettings::part_bytes
 const READ_AHEAD_PARTS: u64 = 4;
+
+/// The most bytes of whole objects kept between the end of their scans and the
+/// assembly of their drives ([`RemoteObject::release_scan`]), over all objects.
+const SCANNED_CAP: u64 = 256 << 20;
+
+/// The bytes kept so now.
+static SCANNED_BYTES: AtomicU64 = AtomicU64::new(0);
 
 /// One object, as listed: its URL, key, size and ETag.
 #[derive(Debug)]
@@ -46,6 +53,9 @@ pub(crate) struct RemoteObject {
     tail: Mutex<Option<(u64, Bytes)>>,
     /// The scan's read-ahead (`start`, bytes).
     window: Mutex<Option<(u64, Bytes)>>,
+    /// The whole object, read by a scan that has ended, until its drive is assembled:
+    /// what the drive reads next (the sweep that times its cameras) is kept from it.
+    scanned: Mutex<Option<Bytes>>,
 }
 
 impl RemoteObject {
@@ -63,6 +73,7 @@ impl RemoteObject {
             sequential: AtomicBool::new(false),
             tail: Mutex::new(None),
             window: Mutex::new(None),
+            scanned: Mutex::new(None),
         })
     }
 
@@ -77,12 +88,57 @@ impl RemoteObject {
         (&self.path, self.etag.as_deref(), self.size)
     }
 
-    /// Marks the start or end of a scan: while one runs, reads fetch ahead.
+    /// Marks the start or end of a scan: while one runs, reads fetch ahead. At its end,
+    /// a window holding the whole object is kept (within [`SCANNED_CAP`]) until
+    /// [`release_scan`](Self::release_scan).
     pub(crate) fn set_sequential(&self, on: bool) {
         self.sequential.store(on, Ordering::Relaxed);
-        if !on {
-            *self.window.lock().unwrap_or_else(PoisonError::into_inner) = None;
-            *self.tail.lock().unwrap_or_else(PoisonError::into_inner) = None;
+        if on {
+            return;
+        }
+        *self.tail.lock().unwrap_or_else(PoisonError::into_inner) = None;
+        let window = self
+            .window
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .take();
+        let Some((0, bytes)) = window.filter(|(_, b)| b.len() as u64 == self.size) else {
+            return;
+        };
+        let len = bytes.len() as u64;
+        if SCANNED_BYTES.fetch_add(len, Ordering::Relaxed) + len > SCANNED_CAP {
+            SCANNED_BYTES.fetch_sub(len, Ordering::Relaxed);
+            return;
+        }
+        let old = self
+            .scanned
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .replace(bytes);
+        if let Some(old) = old {
+            SCANNED_BYTES.fetch_sub(old.len() as u64, Ordering::Relaxed);
+        }
+    }
+
+    /// Lets go of what the ended scan read, first keeping `keep` (byte ranges the
+    /// object is read at next) among the prefetched ranges, so that they are not asked
+    /// of the store again; nothing is fetched.
+    pub(crate) fn release_scan(&self, keep: &[Range<u64>]) {
+        let Some(whole) = self
+            .scanned
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .take()
+        else {
+            return;
+        };
+        SCANNED_BYTES.fetch_sub(whole.len() as u64, Ordering::Relaxed);
+        let key = self.prefetch_key();
+        for range in keep {
+            if let Some(bytes) = whole.get(range.start as usize..range.end as usize) {
+                // A copy: a slice would hold the whole object.
+                prefetch::keep(&key, range.clone(), Bytes::copy_from_slice(bytes));
+            }
         }
     }
 
@@ -247,5 +303,11 @@ impl RemoteObject {
             }
             Ok(bytes)
         }
+    }
+}
+
+impl Drop for RemoteObject {
+    fn drop(&mut self) {
+        self.release_scan(&[]);
     }
 }
