@@ -55,5 +55,7 @@ pub use generate::{generate, generate_with};
 pub use options::{
     CameraTrigger, ChunkCompression, ClassMapStorage, DriveOptions, JpegCoding, LidarLabels,
 };
-pub use sample_drive::{GENERATOR_VERSION, IMAGE_SIZE, JPEG_QUALITY, SCENE_SEED};
+pub use sample_drive::{
+    GENERATOR_VERSION, IMAGE_SIZE, JPEG_QUALITY, SCENE_SEED, sample_drive_path, sample_drives_dir,
+};
 pub use simulation::{Simulation, simulate, simulate_with};

@@ -1130,14 +1130,7 @@ fn main() -> anyhow::Result<()> {
         "The latency and bandwidth cap come from the test harness's proxy \
          (tests/src/s3/proxy.rs), not object_store's throttle wrapper. Shared memory left in \
          /dev/shm: {}.",
-        if left.is_empty() {
-            "none".to_owned()
-        } else {
-            left.join(", ")
-        },
+        transport::left_in_shm(&left),
     )?;
-    print!("\n{out}");
-    common::write_report("bench-object-store.md", &out)?;
-    anyhow::ensure!(left.is_empty(), "left in /dev/shm: {left:?}");
-    Ok(())
+    transport::publish_report("bench-object-store.md", &out, &left)
 }

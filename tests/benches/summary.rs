@@ -320,14 +320,7 @@ fn main() -> anyhow::Result<()> {
         out,
         "Pipeline: default recipe, {} samples per run after a warm-up epoch. Latency: `send` to `receive` returning, one message in flight, the subscriber woken by the ready event. Fan-out: loan + write every byte + send + notify. Trainer: burn `flex` on the CPU; streamed = the pipeline service in the same process, sharing the cores; stall = time blocked in `receive` / wall time. {batch_note}Shared memory left in /dev/shm: {}.",
         args.samples,
-        if left.is_empty() {
-            "none".to_owned()
-        } else {
-            left.join(", ")
-        },
+        transport::left_in_shm(&left),
     )?;
-    print!("\n{out}");
-    common::write_report("bench-summary.md", &out)?;
-    anyhow::ensure!(left.is_empty(), "left in /dev/shm: {left:?}");
-    Ok(())
+    transport::publish_report("bench-summary.md", &out, &left)
 }

@@ -1,10 +1,12 @@
 //! Shared helpers of the end-to-end tests: where the sample drives are, their ground
-//! truth, the transforms and calibrations a drive records, and ([`bench`]) the
-//! measurement code of the benchmarks.
+//! truth, the transforms and calibrations a drive records, the binaries and how the tests
+//! start them ([`process`]), their temporary directories ([`scratch`]), and ([`bench`])
+//! the measurement code of the benchmarks.
 
 pub mod bench;
 pub mod process;
 pub mod s3;
+pub mod scratch;
 
 use anyhow::{Context as _, bail};
 use std::collections::BTreeMap;
@@ -37,11 +39,16 @@ pub struct SampleDrive {
     pub truth: GroundTruth,
 }
 
+/// The ROS 2 sample drive as the tests give it to the binaries: relative to the workspace
+/// root, where they run ([`superflow_recordings::sample_drive_path`] of `street_ros2`, as
+/// a user types it).
+pub const SAMPLE_DRIVE: &str = "recordings/drives/street_ros2.mcap";
+
 /// Loads `recordings/drives/<drive>.mcap` and its `.truth.json`.
 pub fn sample_drive(dialect: Dialect) -> anyhow::Result<SampleDrive> {
-    let dir = workspace_root().join("recordings/drives");
-    let path = dir.join(format!("{}.mcap", dialect.drive_name()));
-    let truth_path = dir.join(format!("{}.truth.json", dialect.drive_name()));
+    let name = dialect.drive_name();
+    let path = superflow_recordings::sample_drive_path(&name);
+    let truth_path = superflow_recordings::sample_drives_dir().join(format!("{name}.truth.json"));
     let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
     let truth_json =
         std::fs::read(&truth_path).with_context(|| format!("reading {}", truth_path.display()))?;
@@ -169,6 +176,11 @@ pub fn pipeline_binary(sibling: &str) -> PathBuf {
     workspace_binary(sibling, "superflow-pipeline")
 }
 
+/// The `superflow-trainer` binary next to this package's binaries, built if missing.
+pub fn trainer_binary(sibling: &str) -> PathBuf {
+    workspace_binary(sibling, "superflow-trainer")
+}
+
 /// The binary `name` (package of the same name) next to `sibling`, built if missing.
 pub fn workspace_binary(sibling: &str, name: &str) -> PathBuf {
     let dir = PathBuf::from(sibling)
@@ -196,10 +208,10 @@ pub fn workspace_binary(sibling: &str, name: &str) -> PathBuf {
 pub fn replaceable_drives(dir: &std::path::Path) -> anyhow::Result<(Vec<PathBuf>, PathBuf)> {
     std::fs::create_dir_all(dir)?;
     let mut drives = Vec::new();
-    for name in ["street_ros2.mcap", "street_foxglove.mcap"] {
-        let to = dir.join(name);
-        std::fs::copy(workspace_root().join("recordings/drives").join(name), &to)
-            .with_context(|| format!("copying {name}"))?;
+    for name in ["street_ros2", "street_foxglove"] {
+        let to = dir.join(format!("{name}.mcap"));
+        std::fs::copy(superflow_recordings::sample_drive_path(name), &to)
+            .with_context(|| format!("copying {name}.mcap"))?;
         drives.push(to);
     }
     let config = dir.join("pipeline.toml");
@@ -233,4 +245,15 @@ pub fn truncate_drives(drives: &[PathBuf]) -> anyhow::Result<()> {
         std::fs::rename(&fresh, drive)?;
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn the_sample_drive_argument_names_the_committed_ros2_drive() {
+        assert_eq!(
+            super::workspace_root().join(super::SAMPLE_DRIVE),
+            superflow_recordings::sample_drive_path("street_ros2")
+        );
+    }
 }

@@ -1,10 +1,14 @@
 //! Child processes for the end-to-end tests: killed when dropped (a failing test leaves
 //! nothing running), waited for with a watchdog, their output read line by line, and
-//! the check that they left nothing in /dev/shm.
+//! the check that they left nothing in /dev/shm; and the commands that start the
+//! project's binaries as the tests run them (a serving pipeline, a one-shot pipeline
+//! command, a subscriber, a trainer), each a [`Command`] the caller adds to.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // test support fails loudly
 
-use std::process::{Child, Command};
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::sync::mpsc::Receiver;
 use std::time::{Duration, Instant};
 
 /// A unique iceoryx2 prefix for one test of this test process.
@@ -78,6 +82,17 @@ pub fn lines_of(stream: impl std::io::Read + Send + 'static) -> std::sync::mpsc:
     rx
 }
 
+/// The lines `rx` ([`lines_of`]) gives until none comes for `quiet` (its process ended
+/// or fell silent), each ending in a newline.
+pub fn drain(rx: &Receiver<String>, quiet: Duration) -> String {
+    let mut text = String::new();
+    while let Ok(line) = rx.recv_timeout(quiet) {
+        text.push_str(&line);
+        text.push('\n');
+    }
+    text
+}
+
 /// Sends `signal` (`-INT`, `-TERM`) to a running process.
 pub fn send_signal(proc: &Proc, signal: &str) {
     let status = Command::new("kill")
@@ -85,6 +100,21 @@ pub fn send_signal(proc: &Proc, signal: &str) {
         .status()
         .unwrap();
     assert!(status.success());
+}
+
+/// Stops `proc` as an operator does, with SIGTERM (a pipeline then removes its shared
+/// memory), and waits for it under the watchdog `limit` ([`finish`]): (success, stdout,
+/// stderr).
+pub fn stop(proc: Proc, limit: Duration) -> (bool, String, String) {
+    send_signal(&proc, "-TERM");
+    finish(proc, limit)
+}
+
+/// [`stop`], failing unless `proc` exits successfully; its stderr.
+pub fn stop_cleanly(proc: Proc, limit: Duration) -> String {
+    let (ok, _, err) = stop(proc, limit);
+    assert!(ok, "{err}");
+    err
 }
 
 /// Fails if a file of `prefix` (other than iceoryx2's per-prefix `.global_mgmt`) is left
@@ -104,15 +134,42 @@ pub fn spawn(command: &mut Command) -> Proc {
     Proc(Some(command.spawn().unwrap()))
 }
 
-/// `superflow-pipeline --mcap drive --run run args…` under the iceoryx2 prefix `prefix`,
-/// from the workspace root, its stderr piped; `subscriber` is the test's
+/// What a serving pipeline and a trainer start with: the iceoryx2 prefix `prefix`, logging
+/// at `info`, the workspace root, stdout dropped and stderr piped.
+fn in_run<'a>(command: &'a mut Command, prefix: &str) -> &'a mut Command {
+    command
+        .env("SUPERFLOW_IOX_PREFIX", prefix)
+        .env("RUST_LOG", "info")
+        .current_dir(crate::workspace_root())
+        .stdout(Stdio::null())
+        .stderr(Stdio::piped())
+}
+
+/// `superflow-pipeline` serving under the iceoryx2 prefix `prefix`, no argument yet:
+/// from the workspace root, logging at `info`, its stdout dropped and its stderr piped
+/// (for [`wait_until_ready`]). `subscriber` is the test's
 /// `env!("CARGO_BIN_EXE_superflow-subscriber")` (the pipeline binary lies beside it).
+/// Every serving pipeline of the tests starts here: the caller adds its arguments
+/// (`--run`, its inputs, `--index-cache off`, …) and sets over these what it runs
+/// otherwise (`RUST_LOG`, `NO_COLOR`, where stderr goes).
+pub fn pipeline_server(subscriber: &str, prefix: &str) -> Command {
+    let mut command = Command::new(crate::pipeline_binary(subscriber));
+    in_run(&mut command, prefix);
+    command
+}
+
+/// `superflow-pipeline --mcap drive --run run args…` ([`pipeline_server`]), started.
 pub fn pipeline(subscriber: &str, drive: &str, prefix: &str, run: &str, args: &[&str]) -> Proc {
     spawn(&mut pipeline_command(subscriber, drive, prefix, run, args))
 }
 
-/// The command [`pipeline`] spawns, for a caller that adds to it (an environment)
-/// before spawning it.
+/// [`pipeline`] of the ROS 2 sample drive ([`crate::SAMPLE_DRIVE`]).
+pub fn serve(subscriber: &str, prefix: &str, run: &str, args: &[&str]) -> Proc {
+    pipeline(subscriber, crate::SAMPLE_DRIVE, prefix, run, args)
+}
+
+/// The command [`pipeline`] spawns, for a caller that adds to it (an environment, a log
+/// level) before spawning it.
 pub fn pipeline_command(
     subscriber: &str,
     drive: &str,
@@ -120,16 +177,57 @@ pub fn pipeline_command(
     run: &str,
     args: &[&str],
 ) -> Command {
-    let mut command = Command::new(crate::pipeline_binary(subscriber));
+    let mut command = pipeline_server(subscriber, prefix);
+    command.args(["--mcap", drive, "--run", run]).args(args);
     command
-        .args(["--mcap", drive, "--run", run])
-        .args(args)
-        .env("SUPERFLOW_IOX_PREFIX", prefix)
-        .env("RUST_LOG", "info")
-        .current_dir(crate::workspace_root())
-        .stdout(std::process::Stdio::null())
-        .stderr(std::process::Stdio::piped());
-    command
+}
+
+/// Reads the stderr of `pipe` (a [`pipeline_server`], its stderr piped) until the
+/// pipeline logs `waiting for subscribers`: it is up and holds its first batch for them.
+/// Its further stderr lines ([`lines_of`]) and the log read so far; fails, with that
+/// log, when no line comes for `limit`.
+pub fn wait_until_ready(pipe: &mut Proc, limit: Duration) -> (Receiver<String>, String) {
+    let rx = lines_of(pipe.stderr.take().expect("the pipeline's stderr is piped"));
+    let mut log = String::new();
+    while !log.contains("waiting for subscribers") {
+        let line = rx
+            .recv_timeout(limit)
+            .unwrap_or_else(|_| panic!("the pipeline starts:\n{log}"));
+        log.push_str(&line);
+        log.push('\n');
+    }
+    (rx, log)
+}
+
+/// `superflow-pipeline args…` as a one-shot command (`inspect`, `sample`, `batch`,
+/// `index`, …), run to its end under the watchdog `limit`: from the workspace root with
+/// `env` added to its environment (an object store's endpoint and credentials), logging
+/// warnings only, without colours. (success, stdout, stderr); fails on a panic (the word
+/// `panicked` in either output).
+pub fn run_pipeline(
+    subscriber: &str,
+    args: &[&str],
+    env: &[(String, String)],
+    limit: Duration,
+) -> (bool, String, String) {
+    let (ok, stdout, stderr) = finish(
+        spawn(
+            Command::new(crate::pipeline_binary(subscriber))
+                .args(args)
+                .envs(env.iter().map(|(k, v)| (k, v)))
+                .env("RUST_LOG", "warn")
+                .env("NO_COLOR", "1")
+                .current_dir(crate::workspace_root())
+                .stdout(Stdio::piped())
+                .stderr(Stdio::piped()),
+        ),
+        limit,
+    );
+    assert!(
+        !stderr.contains("panicked") && !stdout.contains("panicked"),
+        "superflow-pipeline {args:?} panicked:\n{stderr}"
+    );
+    (ok, stdout, stderr)
 }
 
 /// `superflow-subscriber --run run args…` under the iceoryx2 prefix `prefix`, its output
@@ -141,8 +239,53 @@ pub fn subscriber(subscriber: &str, prefix: &str, run: &str, args: &[&str]) -> P
             .args(args)
             .env("SUPERFLOW_IOX_PREFIX", prefix)
             .current_dir(crate::workspace_root())
-            .stdout(std::process::Stdio::piped())
-            .stderr(std::process::Stdio::piped()),
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped()),
+    )
+}
+
+/// `superflow-trainer` (the binary beside `subscriber`), under `launcher` when given
+/// ([`mpirun`]), training run `run` for `steps` steps with the tiny presets under the
+/// iceoryx2 prefix `prefix`, waiting at most 120 s for a batch: `--run run --steps steps
+/// --unet tiny --vit tiny --pixel-stride 4 --timeout-secs 120`, from the workspace root,
+/// logging at `info`, its stdout dropped and its stderr piped. The caller adds the rest
+/// (`--out`) and sets over these what it runs otherwise.
+pub fn trainer_command(
+    subscriber: &str,
+    launcher: Option<Command>,
+    prefix: &str,
+    run: &str,
+    steps: u64,
+) -> Command {
+    let binary = crate::trainer_binary(subscriber);
+    let mut command = match launcher {
+        Some(mut launcher) => {
+            launcher.arg(binary);
+            launcher
+        }
+        None => Command::new(binary),
+    };
+    in_run(&mut command, prefix)
+        .args(["--run", run, "--steps", &steps.to_string()])
+        .args(["--unet", "tiny", "--vit", "tiny", "--pixel-stride", "4"])
+        .args(["--timeout-secs", "120"]);
+    command
+}
+
+/// [`trainer_command`] writing into `out` (`--out out extra…`), started.
+pub fn trainer(
+    subscriber: &str,
+    prefix: &str,
+    run: &str,
+    steps: u64,
+    out: &Path,
+    extra: &[&str],
+) -> Proc {
+    spawn(
+        trainer_command(subscriber, None, prefix, run, steps)
+            .arg("--out")
+            .arg(out)
+            .args(extra),
     )
 }
 
@@ -238,10 +381,7 @@ pub fn kill_and_restart(
     let second = restart();
     let (ok, _, err) = finish(reader, limit);
     assert!(ok, "{err}\n{out}");
-    while let Ok(line) = rx.recv_timeout(Duration::from_secs(5)) {
-        out.push_str(&line);
-        out.push('\n');
-    }
+    out.push_str(&drain(&rx, Duration::from_secs(5)));
     let (ok, _, err) = finish(second, limit);
     assert!(ok, "{err}");
     out

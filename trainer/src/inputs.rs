@@ -408,7 +408,6 @@ mod tests {
     #![allow(clippy::unwrap_used)] // tests fail loudly on purpose
 
     use super::*;
-    use std::path::Path;
     use superflow_pipeline::batch::{BatchPlan, BatchShape};
     use superflow_pipeline::drive::{Dataset, IngestConfig};
     use superflow_pipeline::sample::{KernelMaps, SampleBuilder, SampleConfig};
@@ -421,8 +420,7 @@ mod tests {
 
     /// [`street_batch`] built with `config`.
     fn street_batch_of(config: SampleConfig) -> (BatchHeader, Vec<u64>) {
-        let drive =
-            Path::new(env!("CARGO_MANIFEST_DIR")).join("../recordings/drives/street_ros2.mcap");
+        let drive = superflow_recordings::sample_drive_path("street_ros2");
         let dataset =
             Dataset::open(std::slice::from_ref(&drive), &IngestConfig::default()).unwrap();
         let builder = SampleBuilder::new(&dataset, config.clone()).unwrap();

@@ -103,7 +103,7 @@ mod tests {
     use super::*;
     use crate::drive::{Dataset, IngestConfig};
     use crate::sample::SampleConfig;
-    use std::path::{Path, PathBuf};
+    use std::path::PathBuf;
 
     /// Copies of the sample drives in `<tmp>/<tag>/`: the same recordings at another
     /// path, as another host mounts them.
@@ -113,8 +113,7 @@ mod tests {
         ["street_foxglove", "street_ros2"]
             .iter()
             .map(|name| {
-                let from = Path::new(env!("CARGO_MANIFEST_DIR"))
-                    .join(format!("../recordings/drives/{name}.mcap"));
+                let from = superflow_recordings::sample_drive_path(name);
                 let to = dir.join(format!("{name}.mcap"));
                 std::fs::copy(&from, &to).unwrap_or_else(|e| panic!("{}: {e}", from.display()));
                 to

@@ -246,3 +246,21 @@ pub fn release_shared_memory() -> Vec<String> {
     }
     ours()
 }
+
+/// What [`release_shared_memory`] found left, for a report: `none`, or the files.
+pub fn left_in_shm(left: &[String]) -> String {
+    if left.is_empty() {
+        "none".to_owned()
+    } else {
+        left.join(", ")
+    }
+}
+
+/// Prints a bench's report, writes it as `file` (see [`super::common::write_report`])
+/// and fails the bench when shared memory was `left`.
+pub fn publish_report(file: &str, report: &str, left: &[String]) -> anyhow::Result<()> {
+    print!("\n{report}");
+    super::common::write_report(file, report)?;
+    anyhow::ensure!(left.is_empty(), "left in /dev/shm: {left:?}");
+    Ok(())
+}

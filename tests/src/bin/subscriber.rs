@@ -134,7 +134,8 @@ fn main() -> anyhow::Result<()> {
                 "superflow-subscriber: no batch within {} s after {n}",
                 args.timeout_secs
             );
-            std::process::exit(3);
+            // A stream gone quiet: the peer is gone, not a failed data-parallel job.
+            std::process::exit(i32::from(superflow_common::exit::FAILED));
         };
         let view = batch.view()?;
         let meta = view.meta();

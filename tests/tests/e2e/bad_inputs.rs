@@ -8,21 +8,23 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
 
+use crate::SUBSCRIBER;
 use serde::Deserialize;
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
-use std::process::Command;
 use std::time::{Duration, Instant};
 use superflow_pipeline::drive::{Dataset, IngestConfig};
 use superflow_pipeline::inspect::{INSPECT_FORMAT, InspectReport};
 use superflow_pipeline::sample::recipe::{CameraSync, KeyframeChoice};
 use superflow_pipeline::sample::{SampleBuilder, SampleConfig};
-use superflow_tests::process::{finish, spawn};
-use superflow_tests::{pipeline_binary, workspace_root};
+use superflow_tests::process::run_pipeline;
+use superflow_tests::{scratch, workspace_root};
 
 /// The directory, relative to the workspace root (commands run there, so the reports
 /// name files as `recordings/damaged/<name>.mcap`).
 const DIR: &str = "recordings/damaged";
+/// The watchdog of each `superflow-pipeline` command: a hang fails the test.
+const LIMIT: Duration = Duration::from_secs(120);
 
 /// `<name>.expected.json`.
 #[derive(Debug, Deserialize)]
@@ -109,24 +111,6 @@ fn listing() -> (Vec<String>, Vec<String>) {
     (mcaps, expected)
 }
 
-/// Runs the pipeline binary in the workspace root; fails on a panic or a hang.
-fn pipeline(args: &[&str]) -> (bool, String, String) {
-    let mut command = Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-subscriber")));
-    command
-        .args(args)
-        .current_dir(workspace_root())
-        .env("RUST_LOG", "warn")
-        .env("NO_COLOR", "1")
-        .stdout(std::process::Stdio::piped())
-        .stderr(std::process::Stdio::piped());
-    let (ok, stdout, stderr) = finish(spawn(&mut command), Duration::from_secs(120));
-    assert!(
-        !stderr.contains("panicked") && !stdout.contains("panicked"),
-        "superflow-pipeline {args:?} panicked:\n{stderr}"
-    );
-    (ok, stdout, stderr)
-}
-
 fn contains_all(text: &str, words: &[String], what: &str, errors: &mut Vec<String>) {
     for w in words {
         if !text.contains(w.as_str()) {
@@ -148,7 +132,12 @@ fn check(stem: &str) -> Vec<String> {
     }
 
     // What a user sees: inspect, JSON and text.
-    let (ok, stdout, stderr) = pipeline(&["inspect", "--json", "--mcap", &relative]);
+    let (ok, stdout, stderr) = run_pipeline(
+        SUBSCRIBER,
+        &["inspect", "--json", "--mcap", &relative],
+        &[],
+        LIMIT,
+    );
     if !ok {
         errors.push(format!("{stem}: inspect --json failed:\n{stderr}"));
         return errors;
@@ -243,7 +232,8 @@ fn check(stem: &str) -> Vec<String> {
         )),
     }
     // The text form shows the same words.
-    let (ok, text, stderr) = pipeline(&["inspect", "--mcap", &relative]);
+    let (ok, text, stderr) =
+        run_pipeline(SUBSCRIBER, &["inspect", "--mcap", &relative], &[], LIMIT);
     if !ok {
         errors.push(format!("{stem}: inspect failed:\n{stderr}"));
     }
@@ -272,21 +262,23 @@ fn check(stem: &str) -> Vec<String> {
     }
 
     // Samples: the binary for keyframe 0, the library for every keyframe.
-    let out = std::env::temp_dir().join(format!(
-        "superflow-bad-inputs-{}-{stem}",
-        std::process::id()
-    ));
+    let out = scratch::path("bad-inputs", stem);
     let out_text = out.display().to_string();
-    let (ok, _, stderr) = pipeline(&[
-        "sample",
-        "--mcap",
-        &relative,
-        "--index",
-        "0",
-        "--no-augment",
-        "--out",
-        &out_text,
-    ]);
+    let (ok, _, stderr) = run_pipeline(
+        SUBSCRIBER,
+        &[
+            "sample",
+            "--mcap",
+            &relative,
+            "--index",
+            "0",
+            "--no-augment",
+            "--out",
+            &out_text,
+        ],
+        &[],
+        LIMIT,
+    );
     let _ = std::fs::remove_dir_all(&out);
     match &expected.samples.error_contains {
         Some(words) => {

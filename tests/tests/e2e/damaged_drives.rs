@@ -7,15 +7,7 @@ use std::collections::BTreeSet;
 use std::path::PathBuf;
 use superflow_pipeline::drive::{Drive, IngestConfig};
 use superflow_recordings::Dialect;
-use superflow_tests::sample_drive;
-
-fn scratch(name: &str, bytes: &[u8]) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("superflow-damaged-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
-    let path = dir.join(name);
-    std::fs::write(&path, bytes).unwrap();
-    path
-}
+use superflow_tests::{sample_drive, scratch};
 
 fn truth_stamps(dialect: Dialect) -> BTreeSet<i64> {
     let drive = sample_drive(dialect).unwrap();
@@ -33,7 +25,8 @@ fn truncated_drive_reports_where_and_keeps_what_came_before() {
     for dialect in Dialect::ALL {
         let drive = sample_drive(dialect).unwrap();
         let cut = drive.bytes.len() * 6 / 10;
-        let path = scratch(
+        let path = scratch::file(
+            "damaged",
             &format!("{}_truncated.mcap", dialect.name()),
             &drive.bytes[..cut],
         );
@@ -80,7 +73,11 @@ fn byte_flipped_chunk_costs_only_its_messages() {
         for b in &mut bytes[middle..middle + 64] {
             *b ^= 0x5A;
         }
-        let path = scratch(&format!("{}_flipped.mcap", dialect.name()), &bytes);
+        let path = scratch::file(
+            "damaged",
+            &format!("{}_flipped.mcap", dialect.name()),
+            &bytes,
+        );
         let dataset = Drive::open(std::slice::from_ref(&path), &IngestConfig::default()).unwrap();
         let report: Vec<String> = dataset
             .skipped
@@ -129,7 +126,7 @@ fn any_single_corruption_is_reported_not_a_panic() {
         for b in &mut bytes[at..end] {
             *b = b.wrapping_add(0x3D);
         }
-        let path = scratch(&format!("corrupt_{i}.mcap"), &bytes);
+        let path = scratch::file("damaged", &format!("corrupt_{i}.mcap"), &bytes);
         match Drive::open(std::slice::from_ref(&path), &IngestConfig::default()) {
             Ok(dataset) => {
                 let sweeps = dataset.lidar.as_ref().map_or(0, |l| l.sweeps.len());
@@ -145,7 +142,7 @@ fn any_single_corruption_is_reported_not_a_panic() {
 
 #[test]
 fn files_that_are_not_mcap_are_clear_errors() {
-    let empty = scratch("empty.mcap", b"");
+    let empty = scratch::file("damaged", "empty.mcap", b"");
     let err = Drive::open(std::slice::from_ref(&empty), &IngestConfig::default())
         .unwrap_err()
         .to_string();
@@ -153,7 +150,11 @@ fn files_that_are_not_mcap_are_clear_errors() {
         err.contains("not an MCAP file") && err.contains(&empty.display().to_string()),
         "{err}"
     );
-    let text = scratch("text.mcap", b"hello, this is not a recording at all");
+    let text = scratch::file(
+        "damaged",
+        "text.mcap",
+        b"hello, this is not a recording at all",
+    );
     assert!(Drive::open(&[text], &IngestConfig::default()).is_err());
     let missing = PathBuf::from("/nonexistent/drive.mcap");
     let err = Drive::open(&[missing], &IngestConfig::default())

@@ -19,6 +19,7 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
 
+use crate::SUBSCRIBER;
 use burn::module::{Module, ModuleVisitor, Param};
 use burn::nn::loss::{MseLoss, Reduction};
 use burn::nn::{Linear, LinearConfig};
@@ -29,9 +30,10 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 use superflow_tests::process::{
-    Proc, finish, lines_of, mpirun, no_shared_memory_left, pipeline, prefix, send_signal, spawn,
+    Proc, drain, finish, lines_of, mpirun, no_shared_memory_left, pipeline, prefix, serve, spawn,
+    stop, trainer_command, wait_until_ready,
 };
-use superflow_tests::{workspace_binary, workspace_root};
+use superflow_tests::scratch;
 use superflow_trainer::ddp::Ddp;
 use superflow_trainer::metrics::{self, StepRecord};
 use superflow_trainer::sync::{GradientBuffer, params_hash};
@@ -39,13 +41,6 @@ use superflow_trainer::sync::{GradientBuffer, params_hash};
 const LIMIT: Duration = Duration::from_secs(600);
 const WORKER: &str = "SUPERFLOW_DDP_WORKER";
 const OUT: &str = "SUPERFLOW_DDP_OUT";
-
-fn temp_dir(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("superflow-ddp-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
 
 /// This test binary under `mpirun -np 2`, running the ignored test `worker` in mode `mode`.
 fn run_workers(mode: &str, out: &Path, limit: Duration) -> (bool, String, String, Duration) {
@@ -234,7 +229,7 @@ fn worker() {
 
 #[test]
 fn two_ranks_train_the_toy_model_as_one_process_on_the_union_of_their_batches() {
-    let out = temp_dir("toy");
+    let out = scratch::dir("ddp", "toy");
     let (ok, stdout, stderr, _) = run_workers("toy", &out, Duration::from_secs(120));
     assert!(ok, "mpirun failed:\n{stdout}\n{stderr}");
     let hashes: Vec<String> = (0..2)
@@ -262,7 +257,7 @@ fn two_ranks_train_the_toy_model_as_one_process_on_the_union_of_their_batches() 
 
 #[test]
 fn a_hung_rank_aborts_the_job_within_the_collective_timeout() {
-    let out = temp_dir("hang");
+    let out = scratch::dir("ddp", "hang");
     let (ok, stdout, stderr, took) = run_workers("hang", &out, Duration::from_secs(90));
     assert!(
         !ok,
@@ -279,7 +274,6 @@ fn a_hung_rank_aborts_the_job_within_the_collective_timeout() {
     let _ = std::fs::remove_dir_all(&out);
 }
 
-const DRIVE: &str = "recordings/drives/street_ros2.mcap";
 /// The drive's keyframes: 3 per rank and epoch in batches of 1.
 const KEYFRAMES: u64 = 6;
 
@@ -296,18 +290,13 @@ fn shard_pipeline(prefix: &str, run: &str, epochs: u64) -> Proc {
         "--epochs",
         &epochs,
     ];
-    pipeline(
-        env!("CARGO_BIN_EXE_superflow-subscriber"),
-        DRIVE,
-        prefix,
-        run,
-        &args,
-    )
+    serve(SUBSCRIBER, prefix, run, &args)
 }
 
-/// `superflow-trainer` with the tiny presets for `steps` steps into `out`, under
-/// `launcher` (`mpirun -np 2` for `--ddp`, or none).
-fn trainer(
+/// The trainer as the data-parallel tests start it ([`trainer_command`]: the tiny presets
+/// for `steps` steps), under `launcher` (`mpirun -np 2` for `--ddp`, or none), with the
+/// collective watchdog at 300 s, writing into `out`, its stdout piped too.
+fn ddp_trainer(
     launcher: Option<Command>,
     prefix: &str,
     run: &str,
@@ -315,35 +304,12 @@ fn trainer(
     out: &Path,
     extra: &[&str],
 ) -> Proc {
-    let binary = workspace_binary(
-        env!("CARGO_BIN_EXE_superflow-subscriber"),
-        "superflow-trainer",
-    );
-    let mut command = match launcher {
-        Some(mut launcher) => {
-            launcher.arg(binary);
-            launcher
-        }
-        None => Command::new(binary),
-    };
     spawn(
-        command
-            .args(["--run", run, "--steps", &steps.to_string()])
-            .args(["--unet", "tiny", "--vit", "tiny", "--pixel-stride", "4"])
-            .args([
-                "--timeout-secs",
-                "120",
-                "--collective-timeout-secs",
-                "300",
-                "--out",
-            ])
+        trainer_command(SUBSCRIBER, launcher, prefix, run, steps)
+            .args(["--collective-timeout-secs", "300", "--out"])
             .arg(out)
             .args(extra)
-            .env("SUPERFLOW_IOX_PREFIX", prefix)
-            .env("RUST_LOG", "info")
-            .current_dir(workspace_root())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped()),
+            .stdout(Stdio::piped()),
     )
 }
 
@@ -408,10 +374,10 @@ fn two_ranks_hold_the_same_model_at_every_step_and_differ_from_one_rank_alone() 
     const ASKED: u64 = 20;
     const STEPS: u64 = 6;
     let p = prefix("tworanks");
-    let out = temp_dir("two-ranks");
+    let out = scratch::dir("ddp", "two-ranks");
     let pipe = shard_pipeline(&p, "ddp", 2);
     let (ok, stdout, stderr) = finish(
-        trainer(
+        ddp_trainer(
             Some(mpirun(2)),
             &p,
             "ddp",
@@ -422,8 +388,7 @@ fn two_ranks_hold_the_same_model_at_every_step_and_differ_from_one_rank_alone() 
         LIMIT,
     );
     assert!(ok, "{stdout}\n{stderr}");
-    send_signal(&pipe, "-TERM");
-    let _ = finish(pipe, LIMIT);
+    let _ = stop(pipe, LIMIT);
     no_shared_memory_left(&p);
     let [ddp, _] = assert_replicas_agree(&out, STEPS);
     assert!(
@@ -446,7 +411,7 @@ fn two_ranks_hold_the_same_model_at_every_step_and_differ_from_one_rank_alone() 
     let p = prefix("tworanks-done");
     let pipe = shard_pipeline(&p, "ddp", 2);
     let (ok, stdout, stderr) = finish(
-        trainer(
+        ddp_trainer(
             Some(mpirun(2)),
             &p,
             "ddp",
@@ -464,20 +429,19 @@ fn two_ranks_hold_the_same_model_at_every_step_and_differ_from_one_rank_alone() 
         2,
         "{stderr}"
     );
-    send_signal(&pipe, "-TERM");
-    let _ = finish(pipe, LIMIT);
+    let _ = stop(pipe, LIMIT);
     no_shared_memory_left(&p);
 
     // The same 2 shards trained by 2 independent trainers (no --ddp): what a skipped
     // all-reduce would give.
     let p = prefix("onerank");
-    let alone_dir = temp_dir("one-rank");
+    let alone_dir = scratch::dir("ddp", "one-rank");
     let pipe = shard_pipeline(&p, "alone", 2);
     let independent: Vec<Proc> = (0..2)
         .map(|rank| {
             let out = alone_dir.join(format!("rank{rank}"));
             let rank = rank.to_string();
-            trainer(
+            ddp_trainer(
                 None,
                 &p,
                 "alone",
@@ -495,8 +459,7 @@ fn two_ranks_hold_the_same_model_at_every_step_and_differ_from_one_rank_alone() 
             "{stderr}"
         );
     }
-    send_signal(&pipe, "-TERM");
-    let _ = finish(pipe, LIMIT);
+    let _ = stop(pipe, LIMIT);
     no_shared_memory_left(&p);
     let alone: BTreeMap<u64, StepRecord> = metrics::read(&alone_dir.join("rank0/metrics.jsonl"))
         .unwrap()
@@ -541,10 +504,10 @@ fn rank_pid(mpirun: &Proc, rank: usize) -> Option<u32> {
 fn a_killed_rank_ends_the_job_and_the_restarted_job_resumes_every_rank() {
     const STEPS: u64 = 9; // 3 epochs
     let p = prefix("killrank");
-    let out = temp_dir("kill");
+    let out = scratch::dir("ddp", "kill");
     let pipe = shard_pipeline(&p, "kill", 3);
     let extra = ["--ddp", "--checkpoint-every", "2"];
-    let mut job = trainer(Some(mpirun(2)), &p, "kill", STEPS, &out, &extra);
+    let mut job = ddp_trainer(Some(mpirun(2)), &p, "kill", STEPS, &out, &extra);
     let rx = lines_of(job.stderr.take().unwrap());
     // Kill rank 1 in the middle of epoch 1: after step 5, checkpoint at step 4.
     let started = Instant::now();
@@ -565,10 +528,7 @@ fn a_killed_rank_ends_the_job_and_the_restarted_job_resumes_every_rank() {
     let killed = Instant::now();
     let (ok, _, _) = finish(job, Duration::from_secs(120));
     let mut log = String::new();
-    while let Ok(line) = rx.recv_timeout(Duration::from_secs(1)) {
-        log.push_str(&line);
-        log.push('\n');
-    }
+    log.push_str(&drain(&rx, Duration::from_secs(1)));
     assert!(!ok, "the job succeeded with a killed rank:\n{log}");
     eprintln!(
         "the job ended {:.1} s after rank 1 was killed",
@@ -576,7 +536,7 @@ fn a_killed_rank_ends_the_job_and_the_restarted_job_resumes_every_rank() {
     );
 
     let (ok, stdout, stderr) = finish(
-        trainer(
+        ddp_trainer(
             Some(mpirun(2)),
             &p,
             "kill",
@@ -591,8 +551,7 @@ fn a_killed_rank_ends_the_job_and_the_restarted_job_resumes_every_rank() {
         stderr.contains("the job continues from this checkpoint"),
         "{stderr}"
     );
-    send_signal(&pipe, "-TERM");
-    let _ = finish(pipe, LIMIT);
+    let _ = stop(pipe, LIMIT);
     no_shared_memory_left(&p);
     // The lineage: steps 1..=4 of the first job, 5..=9 of the resumed one; every
     // keyframe once per epoch, the ranks equal at every step.
@@ -610,10 +569,10 @@ fn a_killed_rank_ends_the_job_and_the_restarted_job_resumes_every_rank() {
 fn a_job_of_two_ranks_resumed_on_three_trains_every_keyframe_once() {
     const STEPS: u64 = 20; // more than the stream holds: both jobs end with it
     let p = prefix("elastic");
-    let out = temp_dir("elastic");
+    let out = scratch::dir("ddp", "elastic");
     let extra = ["--ddp", "--checkpoint-every", "1"];
     let pipe = shard_pipeline(&p, "elastic", 2);
-    let mut job = trainer(Some(mpirun(2)), &p, "elastic", STEPS, &out, &extra);
+    let mut job = ddp_trainer(Some(mpirun(2)), &p, "elastic", STEPS, &out, &extra);
     let rank0 = out.join("rank-0/metrics.jsonl");
     let started = Instant::now();
     while std::fs::read_to_string(&rank0).map_or(0, |t| t.lines().count()) < 2 {
@@ -621,11 +580,9 @@ fn a_job_of_two_ranks_resumed_on_three_trains_every_keyframe_once() {
         assert!(job.try_wait().unwrap().is_none(), "the job ended early");
         std::thread::sleep(Duration::from_millis(50));
     }
-    send_signal(&job, "-TERM");
-    let (ok, _, stderr) = finish(job, LIMIT);
+    let (ok, _, stderr) = stop(job, LIMIT);
     assert!(!ok, "a stopped job exits with 128 + SIGTERM:\n{stderr}");
-    send_signal(&pipe, "-TERM");
-    let _ = finish(pipe, LIMIT);
+    let _ = stop(pipe, LIMIT);
     let first = [rank_records(&out, 0), rank_records(&out, 1)];
     let stopped_at = first[0].keys().max().copied().unwrap_or(0);
     assert!(stopped_at >= 2, "{first:?}");
@@ -640,16 +597,10 @@ fn a_job_of_two_ranks_resumed_on_three_trains_every_keyframe_once() {
         "--epochs",
         "2",
     ];
-    let pipe = pipeline(
-        env!("CARGO_BIN_EXE_superflow-subscriber"),
-        DRIVE,
-        &p,
-        "elastic",
-        &args,
-    );
+    let pipe = serve(SUBSCRIBER, &p, "elastic", &args);
     let resumed = [&extra[..], &["--resume"]].concat();
     let (ok, stdout, stderr) = finish(
-        trainer(Some(mpirun(3)), &p, "elastic", STEPS, &out, &resumed),
+        ddp_trainer(Some(mpirun(3)), &p, "elastic", STEPS, &out, &resumed),
         LIMIT,
     );
     assert!(ok, "{stdout}\n{stderr}");
@@ -694,8 +645,8 @@ fn lost_batches_keep_the_ranks_in_step_and_the_stream_ends() {
     // 12 keyframes of both sample drives, 6 per rank, one epoch.
     const POSITIONS: usize = 6;
     let p = prefix("ddplost");
-    let out = temp_dir("lost");
-    let dir = temp_dir("lost-drives");
+    let out = scratch::dir("ddp", "lost");
+    let dir = scratch::dir("ddp", "lost-drives");
     let (drives, config) = superflow_tests::replaceable_drives(&dir).unwrap();
     let (first, second, config) = (
         drives[0].to_str().unwrap(),
@@ -716,33 +667,16 @@ fn lost_batches_keep_the_ranks_in_step_and_the_stream_ends() {
         "--epochs",
         "1",
     ];
-    let mut pipe = pipeline(
-        env!("CARGO_BIN_EXE_superflow-subscriber"),
-        first,
-        &p,
-        "ddplost",
-        &args,
-    );
-    let rx = lines_of(pipe.stderr.take().unwrap());
-    let mut pipe_log = String::new();
-    while !pipe_log.contains("waiting for subscribers") {
-        let line = rx
-            .recv_timeout(LIMIT)
-            .unwrap_or_else(|_| panic!("the pipeline starts:\n{pipe_log}"));
-        pipe_log.push_str(&line);
-        pipe_log.push('\n');
-    }
+    let mut pipe = pipeline(SUBSCRIBER, first, &p, "ddplost", &args);
+    let (rx, mut pipe_log) = wait_until_ready(&mut pipe, LIMIT);
     superflow_tests::truncate_drives(&drives).unwrap();
     let (ok, stdout, stderr) = finish(
-        trainer(Some(mpirun(2)), &p, "ddplost", ASKED, &out, &["--ddp"]),
+        ddp_trainer(Some(mpirun(2)), &p, "ddplost", ASKED, &out, &["--ddp"]),
         LIMIT,
     );
     assert!(ok, "{stdout}\n{stderr}");
     let (ok, _, _) = finish(pipe, LIMIT);
-    while let Ok(line) = rx.recv_timeout(Duration::from_secs(2)) {
-        pipe_log.push_str(&line);
-        pipe_log.push('\n');
-    }
+    pipe_log.push_str(&drain(&rx, Duration::from_secs(2)));
     assert!(ok, "the pipeline ends once the job left: {pipe_log}");
     no_shared_memory_left(&p);
 

@@ -7,39 +7,21 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
 
+use crate::SUBSCRIBER;
 use serde_json::Value;
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::process::{Command, Stdio};
 use std::time::Duration;
 use superflow_recordings::Dialect;
-use superflow_tests::process::{self, Proc, finish, no_shared_memory_left, prefix, send_signal};
-use superflow_tests::{pipeline_binary, rig_drive, sample_drive, two_camera_rig, workspace_root};
+use superflow_tests::process::{
+    self, Proc, finish, no_shared_memory_left, pipeline_server, prefix, stop, subscriber,
+};
+use superflow_tests::{
+    rig_drive, sample_drive, scratch, trainer_binary, two_camera_rig, workspace_root,
+};
 
 const LIMIT: Duration = Duration::from_secs(300);
-
-/// `superflow-pipeline args…` for run `run` under the iceoryx2 prefix `prefix`.
-fn pipeline(prefix: &str, run: &str, args: &[String]) -> Proc {
-    process::spawn(
-        Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-subscriber")))
-            .args(["--run", run, "--index-cache", "off"])
-            .args(args)
-            .env("SUPERFLOW_IOX_PREFIX", prefix)
-            .env("RUST_LOG", "info")
-            .current_dir(workspace_root())
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped()),
-    )
-}
-
-fn subscriber(prefix: &str, run: &str, args: &[&str]) -> Proc {
-    process::subscriber(
-        env!("CARGO_BIN_EXE_superflow-subscriber"),
-        prefix,
-        run,
-        args,
-    )
-}
 
 /// The batches a subscriber printed, after checking it succeeded.
 fn batches_of(proc: Proc) -> Vec<Value> {
@@ -83,12 +65,6 @@ fn served(batches: &[Value]) -> Vec<Served> {
         .collect()
 }
 
-fn stop(pipe: Proc) {
-    send_signal(&pipe, "-TERM");
-    let (_, _, err) = finish(pipe, LIMIT);
-    assert!(!err.contains("panicked"), "{err}");
-}
-
 fn path(p: PathBuf) -> String {
     p.display().to_string()
 }
@@ -101,20 +77,20 @@ fn weighted_groups_of_two_rigs_serve_each_keyframe_as_their_repeat_says() {
     let big = path(sample_drive(Dialect::Ros2).unwrap().path);
     let small = path(rig_drive(Dialect::Ros2, &two_camera_rig()).unwrap());
     // 6 keyframes × 0.5 + 6 × 2 = 15 samples an epoch, batches of 5: 3 a epoch.
-    let reader = subscriber(&p, "weights", &["--count", "6"]);
-    let pipe = pipeline(
-        &p,
-        "weights",
-        &[
-            "--dataset".into(),
-            format!("big={big}:0.5"),
-            "--dataset".into(),
-            format!("small={small}:2"),
-            "--batch-size".into(),
-            "5".into(),
-            "--epochs".into(),
-            "2".into(),
-        ],
+    let reader = subscriber(SUBSCRIBER, &p, "weights", &["--count", "6"]);
+    let pipe = process::spawn(
+        pipeline_server(SUBSCRIBER, &p)
+            .args(["--run", "weights", "--index-cache", "off"])
+            .args([
+                "--dataset".into(),
+                format!("big={big}:0.5"),
+                "--dataset".into(),
+                format!("small={small}:2"),
+                "--batch-size".into(),
+                "5".into(),
+                "--epochs".into(),
+                "2".into(),
+            ]),
     );
     let got = served(&batches_of(reader));
     let (ok, _, err) = finish(pipe, LIMIT);
@@ -198,7 +174,7 @@ fn resumed_on_another_size(
             .map(|r| {
                 let rank = r.to_string();
                 let count = steps.to_string();
-                subscriber(&p, tag, &["--rank", &rank, "--count", &count])
+                subscriber(SUBSCRIBER, &p, tag, &["--rank", &rank, "--count", &count])
             })
             .collect();
         let mut args = common(before);
@@ -211,11 +187,16 @@ fn resumed_on_another_size(
             ]
             .map(String::from),
         );
-        let pipe = pipeline(&p, tag, &args);
+        let pipe = process::spawn(
+            pipeline_server(SUBSCRIBER, &p)
+                .args(["--run", tag, "--index-cache", "off"])
+                .args(&args),
+        );
         for reader in readers {
             first.extend(served(&batches_of(reader)));
         }
-        stop(pipe);
+        let (_, _, err) = stop(pipe, LIMIT);
+        assert!(!err.contains("panicked"), "{err}");
         no_shared_memory_left(&p);
     }
     let consumed = steps as u64 * BATCH * u64::from(before * hosts_before);
@@ -240,14 +221,18 @@ fn resumed_on_another_size(
             if by_request {
                 args.extend(["--resume-sample", "0", resume.as_str()]);
             }
-            subscriber(&p, tag, &args)
+            subscriber(SUBSCRIBER, &p, tag, &args)
         })
         .collect();
     let mut args = common(after);
     if !by_request {
         args.extend(["--start-sample".into(), resume.clone()]);
     }
-    let pipe = pipeline(&p, tag, &args);
+    let pipe = process::spawn(
+        pipeline_server(SUBSCRIBER, &p)
+            .args(["--run", tag, "--index-cache", "off"])
+            .args(&args),
+    );
     let mut second = Vec::new();
     for reader in readers {
         second.extend(served(&batches_of(reader)));
@@ -289,21 +274,13 @@ fn a_job_of_two_hosts_resumed_on_one_serves_every_keyframe_once() {
     resumed_on_another_size("elh21", (1, 2), 2, 1, false);
 }
 
-fn trainer_binary() -> PathBuf {
-    superflow_tests::workspace_binary(
-        env!("CARGO_BIN_EXE_superflow-subscriber"),
-        "superflow-trainer",
-    )
-}
-
 /// One epoch of three rigs (6, 2 and 1 cameras) through the service to the Rust trainer:
 /// every sample trained once with finite losses, the trainer ends with the stream; then
 /// `probe` scores the trained backbone on the same mixed, labelled drives.
 #[test]
 fn the_trainer_trains_an_epoch_of_three_rigs_and_probe_scores_them() {
     let p = prefix("fleettrain");
-    let out = std::env::temp_dir().join(format!("superflow-fleet-train-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&out);
+    let out = scratch::vacant("fleet", "train");
     let drives: Vec<String> = superflow_tests::fleet_drives()
         .unwrap()
         .into_iter()
@@ -312,26 +289,12 @@ fn the_trainer_trains_an_epoch_of_three_rigs_and_probe_scores_them() {
     let mut args = vec!["--mcap".to_string()];
     args.extend(drives.iter().cloned());
     args.extend(["--batch-size", "3", "--epochs", "1"].map(String::from));
-    let pipe = pipeline(&p, "fleettrain", &args);
-    let trainer = process::spawn(
-        Command::new(trainer_binary())
-            .args(["--run", "fleettrain", "--steps", "20", "--unet", "tiny"])
-            .args([
-                "--vit",
-                "tiny",
-                "--pixel-stride",
-                "4",
-                "--timeout-secs",
-                "120",
-            ])
-            .arg("--out")
-            .arg(&out)
-            .env("SUPERFLOW_IOX_PREFIX", &p)
-            .env("RUST_LOG", "info")
-            .current_dir(workspace_root())
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped()),
+    let pipe = process::spawn(
+        pipeline_server(SUBSCRIBER, &p)
+            .args(["--run", "fleettrain", "--index-cache", "off"])
+            .args(&args),
     );
+    let trainer = process::trainer(SUBSCRIBER, &p, "fleettrain", 20, &out, &[]);
     let (ok, _, err) = finish(trainer, LIMIT);
     assert!(ok, "{err}");
     assert!(err.contains("trained 6 of the 20 steps asked"), "{err}");
@@ -353,7 +316,7 @@ fn the_trainer_trains_an_epoch_of_three_rigs_and_probe_scores_them() {
     let checkpoint = out.join("checkpoints");
     let (ok, report, err) = finish(
         process::spawn(
-            Command::new(trainer_binary())
+            Command::new(trainer_binary(SUBSCRIBER))
                 .arg("probe")
                 .arg("--mcap")
                 .args(&drives)

@@ -12,17 +12,7 @@ use superflow_pipeline::drive::{Dataset, Drive, IngestConfig};
 use superflow_pipeline::sample::{SampleBuilder, SampleConfig};
 use superflow_recordings::Dialect;
 use superflow_recordings::damaged::write_damaged;
-use superflow_tests::{pipeline_binary, sample_drive, workspace_root};
-
-fn scratch(tag: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!(
-        "superflow-index-cache-{tag}-{}",
-        std::process::id()
-    ));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
+use superflow_tests::{pipeline_binary, sample_drive, scratch};
 
 fn config(cache: Option<&Path>) -> IngestConfig {
     IngestConfig {
@@ -57,7 +47,7 @@ fn assert_same_drive(a: &Drive, b: &Drive, what: &str) {
 /// The sample drives (the ROS 2 one with its labels sidecar) and every damaged
 /// recording, in `dir`.
 fn inputs(dir: &Path) -> Vec<PathBuf> {
-    let drives = workspace_root().join("recordings/drives");
+    let drives = superflow_recordings::sample_drives_dir();
     for name in [
         "street_ros2.mcap",
         "street_ros2.labels.mcap",
@@ -77,7 +67,7 @@ fn inputs(dir: &Path) -> Vec<PathBuf> {
 
 #[test]
 fn a_cache_hit_is_the_drive_a_scan_makes_and_builds_the_same_samples() {
-    let dir = scratch("same");
+    let dir = scratch::dir("index-cache", "same");
     let cache = dir.join("cache");
     let inputs = inputs(&dir);
     let scanned = Dataset::open(&inputs, &config(None)).unwrap();
@@ -172,7 +162,7 @@ fn rewritten(bytes: &[u8], shift_nanos: u32) -> Vec<u8> {
 
 #[test]
 fn a_file_rewritten_in_place_with_its_size_and_time_is_indexed_again() {
-    let dir = scratch("rewrite");
+    let dir = scratch::dir("index-cache", "rewrite");
     let cache = dir.join("cache");
     let original = sample_drive(Dialect::Ros2).unwrap().bytes;
     let before = rewritten(&original, 0);
@@ -241,7 +231,7 @@ fn text(output: &Output) -> (String, String) {
 
 #[test]
 fn damaged_or_foreign_cache_entries_are_ignored_with_a_reason() {
-    let dir = scratch("entries");
+    let dir = scratch::dir("index-cache", "entries");
     let cache = dir.join("cache");
     let inputs = inputs(&dir)[..2].to_vec();
     let filled = index(&inputs, &cache);
@@ -299,7 +289,7 @@ fn damaged_or_foreign_cache_entries_are_ignored_with_a_reason() {
 
 #[test]
 fn two_processes_filling_one_cache_at_once_both_succeed() {
-    let dir = scratch("concurrent");
+    let dir = scratch::dir("index-cache", "concurrent");
     let cache = dir.join("cache");
     let inputs = inputs(&dir);
     let (a, b) = std::thread::scope(|s| {
@@ -398,7 +388,7 @@ fn unshare_works(flags: &str) -> bool {
 /// is, the files are scanned again, and their entries are then whole again.
 #[test]
 fn fifos_links_and_forged_entries_are_skipped_without_hanging() {
-    let dir = scratch("hostile");
+    let dir = scratch::dir("index-cache", "hostile");
     let cache = dir.join("cache");
     let inputs = inputs(&dir)[..2].to_vec();
     let filled = index(&inputs, &cache);
@@ -454,13 +444,13 @@ fn two_pods_with_pid_1_index_into_one_cache_at_once() {
     if !unshare_works("-Urpf") {
         return;
     }
-    let dir = scratch("pods");
+    let dir = scratch::dir("index-cache", "pods");
     let cache = dir.join("cache");
     let inputs = inputs(&dir);
     // Several copies, so that the pods write many entries at the same moments.
     let more = dir.join("more");
     std::fs::create_dir_all(&more).unwrap();
-    let drives = workspace_root().join("recordings/drives");
+    let drives = superflow_recordings::sample_drives_dir();
     for i in 0..6 {
         std::fs::copy(
             drives.join("street_foxglove.mcap"),
@@ -498,7 +488,7 @@ fn index_fails_when_it_cannot_store_what_it_indexed() {
     if !unshare_works("-Urm") {
         return;
     }
-    let dir = scratch("readonly");
+    let dir = scratch::dir("index-cache", "readonly");
     let cache = dir.join("cache");
     std::fs::create_dir_all(&cache).unwrap();
     let inputs = inputs(&dir)[..2].to_vec();
@@ -535,7 +525,7 @@ fn index_fails_when_it_cannot_store_what_it_indexed() {
 #[test]
 fn a_cache_others_may_write_is_refused_and_prune_tidies_it() {
     use std::os::unix::fs::PermissionsExt;
-    let dir = scratch("tidy");
+    let dir = scratch::dir("index-cache", "tidy");
     let cache = dir.join("cache");
     let inputs = inputs(&dir)[..2].to_vec();
     let filled = index(&inputs, &cache);

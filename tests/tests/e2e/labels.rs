@@ -22,15 +22,7 @@ use superflow_recordings::{
 };
 use superflow_schemas::Stamp;
 use superflow_schemas::ros2::{Header, PointCloud2, PointField, Ros2Message, Ros2Time};
-use superflow_tests::{sample_dataset, sample_drive};
-
-/// A fresh directory for one test's files.
-fn temp_dir(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("superflow-labels-{}-{name}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    std::fs::create_dir_all(&dir).unwrap();
-    dir
-}
+use superflow_tests::{sample_dataset, sample_drive, scratch};
 
 /// Writes `sim` in `dialect` into `dir` as `drive.mcap` (with `drive.labels.mcap` when
 /// its labels go to a sidecar); returns the drive's path.
@@ -163,7 +155,7 @@ fn poisoned_drive(
             }
         }
     }
-    let dir = temp_dir(&format!("{}-{}", dialect.name(), labels.name()));
+    let dir = scratch::dir("labels", &format!("{}-{}", dialect.name(), labels.name()));
     let path = write(&sim, dialect, &dir);
     (sim, path)
 }
@@ -253,7 +245,7 @@ fn a_wrong_or_missing_label_cloud_is_an_error_naming_file_topic_and_stamp() {
         ..DriveOptions::short()
     };
     let sim = simulate_with(Dialect::Ros2, &options);
-    let dir = temp_dir("wrong-count");
+    let dir = scratch::dir("labels", "wrong-count");
     let path = write(&sim, Dialect::Ros2, &dir);
     let sidecar = dir.join("drive.labels.mcap");
     std::fs::write(

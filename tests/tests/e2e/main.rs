@@ -6,7 +6,11 @@
 //! `cargo test -p superflow-tests --test e2e MODULE::` runs one module, e.g.
 //! `--test e2e replay::`. Tests of different modules run side by side in this one
 //! process, so everything a test writes is named by the test and the process id
-//! (`superflow_tests::process::prefix`, each module's `temp_dir`).
+//! (`superflow_tests::process::prefix`, `superflow_tests::scratch`).
+
+/// The `superflow-subscriber` binary of this package; the other binaries lie beside it
+/// (the `subscriber` argument of `superflow_tests::process`).
+const SUBSCRIBER: &str = env!("CARGO_BIN_EXE_superflow-subscriber");
 
 mod bad_inputs;
 mod batches;

@@ -18,6 +18,7 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
 
+use crate::SUBSCRIBER;
 use serde_json::Value;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
@@ -25,11 +26,10 @@ use std::sync::OnceLock;
 use std::time::Duration;
 use superflow_recordings::Dialect;
 use superflow_tests::process::{
-    self, Proc, finish, free_port, no_shared_memory_left, prefix, send_signal,
+    self, Proc, finish, free_port, no_shared_memory_left, prefix, serve, stop_cleanly,
 };
 use superflow_tests::{one_camera_rig, rig_drive, two_camera_rig, workspace_root};
 
-const DRIVE: &str = "recordings/drives/street_ros2.mcap";
 /// Keyframes of the sample drive (its plan; `samples.rs` checks it).
 const KEYFRAMES: u64 = 6;
 const LIMIT: Duration = Duration::from_secs(180);
@@ -91,23 +91,6 @@ fn scenario(prefix: &str, args: &[&str], env: &[(&str, &str)]) -> Proc {
         .unwrap()
 }
 
-fn pipeline(prefix: &str, run: &str, args: &[&str]) -> Proc {
-    process::pipeline(
-        env!("CARGO_BIN_EXE_superflow-subscriber"),
-        DRIVE,
-        prefix,
-        run,
-        args,
-    )
-}
-
-/// Stops a pipeline as an operator does (SIGTERM: it removes its shared memory).
-fn stop(pipe: Proc) {
-    send_signal(&pipe, "-TERM");
-    let (ok, _, err) = finish(pipe, LIMIT);
-    assert!(ok, "{err}");
-}
-
 /// The JSON lines a process printed.
 fn json_lines(stdout: &str) -> Vec<Value> {
     stdout
@@ -127,14 +110,9 @@ fn succeeded(proc: Proc) -> Vec<Value> {
 fn python_sections_equal_the_rust_reader_and_lie_in_shared_memory() {
     let p = prefix("pyread");
     let python = scenario(&p, &["read", "--run", "pyread", "--count", "2"], &[]);
-    let subscriber_exe = env!("CARGO_BIN_EXE_superflow-subscriber");
-    let rust = process::subscriber(
-        subscriber_exe,
-        &p,
-        "pyread",
-        &["--count", "2", "--sections"],
-    );
-    let pipe = pipeline(
+    let rust = process::subscriber(SUBSCRIBER, &p, "pyread", &["--count", "2", "--sections"]);
+    let pipe = serve(
+        SUBSCRIBER,
         &p,
         "pyread",
         &["--batch-size", "3", "--epochs", "1", "--subscribers", "2"],
@@ -197,7 +175,8 @@ fn python_shards_from_rank_and_world_size_cover_every_keyframe_once_per_epoch() 
             scenario(&p, &["read", "--run", "pyshard", "--count", "6"], &env)
         })
         .collect();
-    let pipe = pipeline(
+    let pipe = serve(
+        SUBSCRIBER,
         &p,
         "pyshard",
         &["--world-size", "2", "--batch-size", "1", "--epochs", "2"],
@@ -228,7 +207,12 @@ fn python_shards_from_rank_and_world_size_cover_every_keyframe_once_per_epoch() 
 fn python_resume_replays_the_following_batches_bit_identically() {
     let p = prefix("pyresume");
     let python = scenario(&p, &["resume", "--run", "pyresume"], &[]);
-    let pipe = pipeline(&p, "pyresume", &["--batch-size", "1", "--epochs", "1"]);
+    let pipe = serve(
+        SUBSCRIBER,
+        &p,
+        "pyresume",
+        &["--batch-size", "1", "--epochs", "1"],
+    );
     let out = succeeded(python);
     assert_eq!(out[0]["resume"], "identical", "{out:?}");
     assert_eq!(
@@ -243,7 +227,7 @@ fn python_resume_replays_the_following_batches_bit_identically() {
             .contains("the run is complete (1 epochs)"),
         "{out:?}"
     );
-    stop(pipe);
+    stop_cleanly(pipe, LIMIT);
     no_shared_memory_left(&p);
 }
 
@@ -256,7 +240,12 @@ fn python_resume_replays_the_following_batches_bit_identically() {
 fn python_views_kept_past_release_keep_their_bytes_within_max_held() {
     let p = prefix("pykept");
     let python = scenario(&p, &["kept", "--run", "pykept"], &[]);
-    let pipe = pipeline(&p, "pykept", &["--batch-size", "1", "--epochs", "3"]);
+    let pipe = serve(
+        SUBSCRIBER,
+        &p,
+        "pykept",
+        &["--batch-size", "1", "--epochs", "3"],
+    );
     let out = succeeded(python);
     let checks = out[0]["checks"].as_object().unwrap();
     assert!(checks.len() >= 8, "{checks:?}");
@@ -275,7 +264,7 @@ fn python_views_kept_past_release_keep_their_bytes_within_max_held() {
         .collect();
     let expected: Vec<(u64, u64)> = (1..14).map(|i| (i / KEYFRAMES, i % KEYFRAMES)).collect();
     assert_eq!(positions, expected);
-    stop(pipe);
+    stop_cleanly(pipe, LIMIT);
     no_shared_memory_left(&p);
 }
 
@@ -288,7 +277,12 @@ fn python_views_kept_past_release_keep_their_bytes_within_max_held() {
 fn python_epochs_end_and_the_stream_stops_after_the_last() {
     let p = prefix("pyepochs");
     let python = scenario(&p, &["epochs", "--run", "pyepochs"], &[]);
-    let pipe = pipeline(&p, "pyepochs", &["--batch-size", "4", "--epochs", "2"]);
+    let pipe = serve(
+        SUBSCRIBER,
+        &p,
+        "pyepochs",
+        &["--batch-size", "4", "--epochs", "2"],
+    );
     let out = succeeded(python);
     let (ok, _, err) = finish(pipe, LIMIT);
     assert!(ok, "{err}");
@@ -354,7 +348,8 @@ fn python_spconv_tensor_holds_the_batch_voxels_and_runs_a_submanifold_convolutio
             .stdout(Stdio::piped())
             .stderr(Stdio::piped()),
     );
-    let pipe = pipeline(
+    let pipe = serve(
+        SUBSCRIBER,
         &p,
         "pyspconv",
         &[
@@ -386,7 +381,7 @@ fn python_spconv_tensor_holds_the_batch_voxels_and_runs_a_submanifold_convolutio
             .contains("forward passes only"),
         "{trained:?}"
     );
-    stop(pipe);
+    stop_cleanly(pipe, LIMIT);
     no_shared_memory_left(&p);
 }
 
@@ -404,7 +399,8 @@ fn python_uneven_shards_stay_in_step_with_drop_uneven() {
             scenario(&p, &["uneven", "--run", "pyuneven"], &env)
         })
         .collect();
-    let pipe = pipeline(
+    let pipe = serve(
+        SUBSCRIBER,
         &p,
         "pyuneven",
         &["--world-size", "4", "--batch-size", "1", "--epochs", "2"],
@@ -447,7 +443,8 @@ fn python_reads_an_epoch_of_mixed_rigs() {
     let p = prefix("pyfleet");
     let [two, one] = other_rigs();
     let reader = scenario(&p, &["fleet", "--run", "pyfleet"], &[]);
-    let pipe = pipeline(
+    let pipe = serve(
+        SUBSCRIBER,
         &p,
         "pyfleet",
         &["--mcap", &two, &one, "--batch-size", "4", "--epochs", "1"],
@@ -490,7 +487,12 @@ fn python_state_dict_resumes_a_job_on_another_number_of_ranks() {
     };
     let p = prefix("pyelastic1");
     let first = ranks(&p, 2, &["--count", "2"]);
-    let pipe = pipeline(&p, "pyelastic", &[&mcap[..], &shards("2")].concat());
+    let pipe = serve(
+        SUBSCRIBER,
+        &p,
+        "pyelastic",
+        &[&mcap[..], &shards("2")].concat(),
+    );
     let mut seen: Vec<Value> = Vec::new();
     let mut states = Vec::new();
     for reader in first {
@@ -498,7 +500,7 @@ fn python_state_dict_resumes_a_job_on_another_number_of_ranks() {
         seen.extend(out[0]["samples"].as_array().unwrap().iter().cloned());
         states.push(out[0]["state"].clone());
     }
-    stop(pipe);
+    stop_cleanly(pipe, LIMIT);
     no_shared_memory_left(&p);
     // Ranks step together: they agree on where the job stands.
     assert_eq!(states[0], states[1]);
@@ -506,7 +508,12 @@ fn python_state_dict_resumes_a_job_on_another_number_of_ranks() {
     let state = states[0].to_string();
     let p = prefix("pyelastic2");
     let second = ranks(&p, 3, &["--count", "0", "--state", &state]);
-    let pipe = pipeline(&p, "pyelastic", &[&mcap[..], &shards("3")].concat());
+    let pipe = serve(
+        SUBSCRIBER,
+        &p,
+        "pyelastic",
+        &[&mcap[..], &shards("3")].concat(),
+    );
     for reader in second {
         let out = succeeded(reader);
         seen.extend(out[0]["samples"].as_array().unwrap().iter().cloned());
@@ -552,10 +559,10 @@ fn python_iteration_continues_across_a_restarted_pipeline() {
         &[],
     );
     let args = ["--batch-size", "1", "--epochs", "1"];
-    let first = pipeline(&p, "pyrestart", &args);
+    let first = serve(SUBSCRIBER, &p, "pyrestart", &args);
     let restart = || {
         std::thread::sleep(Duration::from_secs(2));
-        pipeline(&p, "pyrestart", &args)
+        serve(SUBSCRIBER, &p, "pyrestart", &args)
     };
     let lines = process::kill_and_restart(reader, first, 2, restart, LIMIT);
     let mut got = json_lines(&lines);
@@ -613,7 +620,12 @@ fn python_malformed_batches_raise_typed_errors_and_the_stream_goes_on() {
 fn python_torch_tensors_share_the_shared_memory_and_feed_a_data_loader() {
     let p = prefix("pytorch");
     let python = scenario(&p, &["torch_views", "--run", "pytorch"], &[]);
-    let pipe = pipeline(&p, "pytorch", &["--batch-size", "1", "--epochs", "1"]);
+    let pipe = serve(
+        SUBSCRIBER,
+        &p,
+        "pytorch",
+        &["--batch-size", "1", "--epochs", "1"],
+    );
     let out = succeeded(python);
     assert_eq!(out[0]["shared"], true, "{out:?}");
     assert_eq!(out[0]["inside"], true, "{out:?}");
@@ -621,7 +633,7 @@ fn python_torch_tensors_share_the_shared_memory_and_feed_a_data_loader() {
     assert!(out[0]["sections"].as_u64().unwrap() >= 40, "{out:?}");
     assert_eq!(out[0]["loader_sample_ids"], serde_json::json!([1, 2, 3]));
     assert_eq!(out[0]["loader_types"], serde_json::json!(["Tensor"]));
-    stop(pipe);
+    stop_cleanly(pipe, LIMIT);
     no_shared_memory_left(&p);
 }
 
@@ -651,7 +663,8 @@ fn torchrun_trains_the_example_with_ddp_on_two_shards() {
             .stdout(Stdio::piped())
             .stderr(Stdio::piped()),
     );
-    let pipe = pipeline(
+    let pipe = serve(
+        SUBSCRIBER,
         &p,
         "pyddp",
         &["--world-size", "2", "--batch-size", "1", "--epochs", "2"],
@@ -704,7 +717,12 @@ fn python_iteration_times_out_when_the_pipeline_dies_for_good() {
     let args = ["read", "--run", "pydead", "--count", "6", "--timeout", "3"];
     let mut reader = scenario(&p, &args, &[]);
     let rx = superflow_tests::process::lines_of(reader.stdout.take().unwrap());
-    let mut pipe = pipeline(&p, "pydead", &["--batch-size", "1", "--epochs", "1"]);
+    let mut pipe = serve(
+        SUBSCRIBER,
+        &p,
+        "pydead",
+        &["--batch-size", "1", "--epochs", "1"],
+    );
     for _ in 0..2 {
         rx.recv_timeout(LIMIT).expect("batches before the kill");
     }
@@ -726,13 +744,9 @@ fn python_iteration_times_out_when_the_pipeline_dies_for_good() {
 fn python_in_place_ops_on_batch_tensors_change_only_this_process() {
     let p = prefix("pyinplace");
     let python = scenario(&p, &["in_place", "--run", "pyinplace"], &[]);
-    let rust = process::subscriber(
-        env!("CARGO_BIN_EXE_superflow-subscriber"),
-        &p,
-        "pyinplace",
-        &["--count", "2", "--sections"],
-    );
-    let pipe = pipeline(
+    let rust = process::subscriber(SUBSCRIBER, &p, "pyinplace", &["--count", "2", "--sections"]);
+    let pipe = serve(
+        SUBSCRIBER,
         &p,
         "pyinplace",
         &["--batch-size", "2", "--epochs", "1", "--subscribers", "2"],
@@ -765,7 +779,12 @@ fn python_in_place_ops_on_batch_tensors_change_only_this_process() {
 fn python_data_loader_workers_get_a_clear_error_and_lose_nothing() {
     let p = prefix("pyworkers");
     let python = scenario(&p, &["workers", "--run", "pyworkers"], &[]);
-    let pipe = pipeline(&p, "pyworkers", &["--batch-size", "1", "--epochs", "1"]);
+    let pipe = serve(
+        SUBSCRIBER,
+        &p,
+        "pyworkers",
+        &["--batch-size", "1", "--epochs", "1"],
+    );
     let out = succeeded(python);
     let got = &out[0];
     let unsupported = serde_json::json!(["WorkersUnsupported", true]);
@@ -830,7 +849,7 @@ fn two_node_job(test: &str, host_config: [Option<&str>; 2]) -> Vec<Value> {
             if let Some(config) = host_config[h] {
                 args.extend(["--config", config]);
             }
-            pipeline(&prefixes[h], test, &args)
+            serve(SUBSCRIBER, &prefixes[h], test, &args)
         })
         .collect();
     let out: Vec<Value> = readers
@@ -838,7 +857,7 @@ fn two_node_job(test: &str, host_config: [Option<&str>; 2]) -> Vec<Value> {
         .map(|r| succeeded(r).remove(0))
         .collect();
     for pipe in pipes {
-        stop(pipe);
+        stop_cleanly(pipe, LIMIT);
     }
     for p in &prefixes {
         no_shared_memory_left(p);
@@ -918,7 +937,7 @@ fn python_epochs_with_lost_batches_still_end() {
     let rx = process::lines_of(reader.stdout.take().unwrap());
     let mcap: Vec<&str> = drives.iter().map(|d| d.to_str().unwrap()).collect();
     let pipe = process::pipeline(
-        env!("CARGO_BIN_EXE_superflow-subscriber"),
+        SUBSCRIBER,
         mcap[0],
         &p,
         "pylost",
@@ -990,7 +1009,8 @@ fn python_close_with_live_views_leaves_the_publisher_at_once() {
         &[],
     );
     let other = scenario(&p, &["close_live", "--run", "pyclose"], &[]);
-    let pipe = pipeline(
+    let pipe = serve(
+        SUBSCRIBER,
         &p,
         "pyclose",
         &["--batch-size", "1", "--epochs", "1", "--subscribers", "2"],
@@ -1042,7 +1062,12 @@ fn python_epochs_without_a_schedule_service_raise_a_typed_error() {
 fn python_resume_past_the_end_says_the_run_is_complete() {
     let p = prefix("pypastend");
     let python = scenario(&p, &["past_end", "--run", "pypastend"], &[]);
-    let pipe = pipeline(&p, "pypastend", &["--batch-size", "1", "--epochs", "1"]);
+    let pipe = serve(
+        SUBSCRIBER,
+        &p,
+        "pypastend",
+        &["--batch-size", "1", "--epochs", "1"],
+    );
     let out = succeeded(python);
     let got = &out[0];
     assert_eq!(
@@ -1058,6 +1083,6 @@ fn python_resume_past_the_end_says_the_run_is_complete() {
         );
     }
     assert_eq!(got["last again"], KEYFRAMES - 1, "{got}");
-    stop(pipe);
+    stop_cleanly(pipe, LIMIT);
     no_shared_memory_left(&p);
 }

@@ -6,36 +6,16 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
 
-use std::process::{Command, Stdio};
+use crate::SUBSCRIBER;
 use std::time::{Duration, Instant};
 use superflow_tests::process::{
-    self, Proc, batches, counter, finish, lines_of, no_shared_memory_left, prefix, sample_keys,
-    scrape, send_signal,
+    self, Proc, batches, counter, drain, finish, lines_of, no_shared_memory_left, prefix,
+    sample_keys, scrape, send_signal, serve, stop_cleanly, subscriber, trainer, wait_until_ready,
 };
-use superflow_tests::workspace_root;
+use superflow_tests::scratch;
 
-const DRIVE: &str = "recordings/drives/street_ros2.mcap";
 /// Keyframes of the sample drive (its plan; `samples.rs` checks it).
 const KEYFRAMES: u64 = 6;
-
-fn pipeline(prefix: &str, run: &str, args: &[&str]) -> Proc {
-    process::pipeline(
-        env!("CARGO_BIN_EXE_superflow-subscriber"),
-        DRIVE,
-        prefix,
-        run,
-        args,
-    )
-}
-
-fn subscriber(prefix: &str, run: &str, args: &[&str]) -> Proc {
-    process::subscriber(
-        env!("CARGO_BIN_EXE_superflow-subscriber"),
-        prefix,
-        run,
-        args,
-    )
-}
 
 const LIMIT: Duration = Duration::from_secs(180);
 
@@ -44,9 +24,17 @@ fn two_shards_receive_every_keyframe_once_per_epoch() {
     let p = prefix("shard");
     // 6 keyframes, 2 ranks, batches of 2: 2 batches per rank per epoch; 2 epochs.
     let subscribers: Vec<Proc> = (0..2)
-        .map(|r| subscriber(&p, "shard", &["--rank", &r.to_string(), "--count", "4"]))
+        .map(|r| {
+            subscriber(
+                SUBSCRIBER,
+                &p,
+                "shard",
+                &["--rank", &r.to_string(), "--count", "4"],
+            )
+        })
         .collect();
-    let pipe = pipeline(
+    let pipe = serve(
+        SUBSCRIBER,
         &p,
         "shard",
         &["--world-size", "2", "--batch-size", "2", "--epochs", "2"],
@@ -67,9 +55,10 @@ fn two_shards_receive_every_keyframe_once_per_epoch() {
 fn broadcast_subscribers_receive_identical_batches() {
     let p = prefix("bcast");
     let subscribers: Vec<Proc> = (0..3)
-        .map(|_| subscriber(&p, "bcast", &["--count", "3"]))
+        .map(|_| subscriber(SUBSCRIBER, &p, "bcast", &["--count", "3"]))
         .collect();
-    let pipe = pipeline(
+    let pipe = serve(
+        SUBSCRIBER,
         &p,
         "bcast",
         &["--batch-size", "2", "--epochs", "1", "--subscribers", "3"],
@@ -107,6 +96,7 @@ fn broadcast_subscribers_receive_identical_batches() {
 fn a_stalled_subscriber_slows_the_stream_without_loss() {
     let p = prefix("stall");
     let slow = subscriber(
+        SUBSCRIBER,
         &p,
         "stall",
         &[
@@ -120,9 +110,10 @@ fn a_stalled_subscriber_slows_the_stream_without_loss() {
             "3",
         ],
     );
-    let fast = subscriber(&p, "stall", &["--count", "6"]);
+    let fast = subscriber(SUBSCRIBER, &p, "stall", &["--count", "6"]);
     let started = Instant::now();
-    let pipe = pipeline(
+    let pipe = serve(
+        SUBSCRIBER,
         &p,
         "stall",
         &["--batch-size", "2", "--epochs", "2", "--subscribers", "2"],
@@ -150,12 +141,14 @@ fn a_stalled_subscriber_slows_the_stream_without_loss() {
 fn a_killed_subscriber_is_cleaned_up_and_the_stream_goes_on() {
     let p = prefix("kill");
     let mut doomed = subscriber(
+        SUBSCRIBER,
         &p,
         "kill",
         &["--count", "9", "--buffer", "1", "--stall-after", "1"],
     );
-    let survivor = subscriber(&p, "kill", &["--count", "9"]);
-    let pipe = pipeline(
+    let survivor = subscriber(SUBSCRIBER, &p, "kill", &["--count", "9"]);
+    let pipe = serve(
+        SUBSCRIBER,
         &p,
         "kill",
         &["--batch-size", "2", "--epochs", "3", "--subscribers", "2"],
@@ -196,6 +189,7 @@ fn resuming_at_a_position_replays_exactly_the_following_batches() {
     // of epoch 1 (the pipeline publishes until its epochs are done, so the reader reads
     // them all).
     let reader = subscriber(
+        SUBSCRIBER,
         &p,
         "resume",
         &[
@@ -208,7 +202,12 @@ fn resuming_at_a_position_replays_exactly_the_following_batches() {
             "1",
         ],
     );
-    let pipe = pipeline(&p, "resume", &["--batch-size", "2", "--epochs", "2"]);
+    let pipe = serve(
+        SUBSCRIBER,
+        &p,
+        "resume",
+        &["--batch-size", "2", "--epochs", "2"],
+    );
     let (ok, out, err) = finish(reader, LIMIT);
     assert!(ok, "{err}\n{out}");
     let (ok, _, err) = finish(pipe, LIMIT);
@@ -239,8 +238,9 @@ fn resuming_at_a_position_replays_exactly_the_following_batches() {
     // A pipeline started at (0, 2) publishes that batch first, the same bits (it is the
     // last batch of the one epoch asked for, so the pipeline then ends).
     let p2 = prefix("start");
-    let reader = subscriber(&p2, "start", &["--count", "1"]);
-    let pipe = pipeline(
+    let reader = subscriber(SUBSCRIBER, &p2, "start", &["--count", "1"]);
+    let pipe = serve(
+        SUBSCRIBER,
         &p2,
         "start",
         &[
@@ -276,9 +276,19 @@ fn a_resume_past_the_last_epoch_is_run_complete() {
     let p = prefix("complete");
     // A subscriber that never reads keeps the pipeline serving (it would end once its
     // one epoch is published and its subscribers gone).
-    let mut holder = subscriber(&p, "complete", &["--count", "1", "--stall-after", "0"]);
+    let mut holder = subscriber(
+        SUBSCRIBER,
+        &p,
+        "complete",
+        &["--count", "1", "--stall-after", "0"],
+    );
     // 6 keyframes in batches of 2: 3 steps, one epoch.
-    let pipe = pipeline(&p, "complete", &["--batch-size", "2", "--epochs", "1"]);
+    let pipe = serve(
+        SUBSCRIBER,
+        &p,
+        "complete",
+        &["--batch-size", "2", "--epochs", "1"],
+    );
     for (ask, expected) in [
         (
             ["--resume", "0", "3"],
@@ -299,15 +309,13 @@ fn a_resume_past_the_last_epoch_is_run_complete() {
         ),
     ] {
         let args: Vec<&str> = ask.iter().copied().chain(["--count", "0"]).collect();
-        let (ok, out, err) = finish(subscriber(&p, "complete", &args), LIMIT);
+        let (ok, out, err) = finish(subscriber(SUBSCRIBER, &p, "complete", &args), LIMIT);
         assert!(ok, "{ask:?}: {err}");
         assert!(out.contains(expected), "{ask:?}: {out}");
     }
     holder.kill().unwrap();
     let _ = holder.wait();
-    send_signal(&pipe, "-TERM");
-    let (ok, _, err) = finish(pipe, LIMIT);
-    assert!(ok, "{err}");
+    stop_cleanly(pipe, LIMIT);
     no_shared_memory_left(&p);
 }
 
@@ -319,6 +327,7 @@ fn a_restarted_pipeline_continues_where_the_subscriber_is() {
     // 6 batches of 1; read 2, pause 5 s (the pipeline is killed and restarted meanwhile),
     // then ask for (0, 2) and read the remaining 4.
     let reader = subscriber(
+        SUBSCRIBER,
         &p,
         "restart",
         &[
@@ -338,10 +347,10 @@ fn a_restarted_pipeline_continues_where_the_subscriber_is() {
         ],
     );
     let args = ["--batch-size", "1", "--epochs", "1"];
-    let first = pipeline(&p, "restart", &args);
+    let first = serve(SUBSCRIBER, &p, "restart", &args);
     // Kill the first pipeline once the subscriber has its first 2 batches (it then
     // pauses before asking for its position).
-    let restart = || pipeline(&p, "restart", &args);
+    let restart = || serve(SUBSCRIBER, &p, "restart", &args);
     let out = process::kill_and_restart(reader, first, 2, restart, LIMIT);
     assert!(out.contains("\"resume\":[0,2],\"accepted\":1"), "{out}");
     let got = batches(&out);
@@ -360,8 +369,9 @@ fn metrics_endpoint_and_sigterm() {
     let p = prefix("metrics");
     let port = 20_000 + (std::process::id() % 20_000) as u16;
     let addr = format!("127.0.0.1:{port}");
-    let reader = subscriber(&p, "metrics", &["--count", "1"]);
-    let pipe = pipeline(
+    let reader = subscriber(SUBSCRIBER, &p, "metrics", &["--count", "1"]);
+    let pipe = serve(
+        SUBSCRIBER,
         &p,
         "metrics",
         &["--batch-size", "2", "--metrics-addr", &addr],
@@ -391,9 +401,7 @@ fn metrics_endpoint_and_sigterm() {
     ] {
         assert!(text.contains(name), "{name} missing:\n{text}");
     }
-    send_signal(&pipe, "-TERM");
-    let (ok, _, err) = finish(pipe, LIMIT);
-    assert!(ok, "{err}");
+    let err = stop_cleanly(pipe, LIMIT);
     assert!(err.contains("SIGTERM"), "{err}");
     no_shared_memory_left(&p);
 }
@@ -403,32 +411,15 @@ fn metrics_endpoint_and_sigterm() {
 #[test]
 fn the_trainer_waits_for_a_pipeline() {
     let p = prefix("trainer");
-    let out = std::env::temp_dir().join(format!("superflow-waits-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&out);
-    let trainer = superflow_tests::process::spawn(
-        Command::new(superflow_tests::workspace_binary(
-            env!("CARGO_BIN_EXE_superflow-subscriber"),
-            "superflow-trainer",
-        ))
-        .args(["--run", "trainer", "--steps", "2", "--timeout-secs", "120"])
-        .args([
-            "--unet",
-            "tiny",
-            "--vit",
-            "tiny",
-            "--pixel-stride",
-            "4",
-            "--out",
-        ])
-        .arg(&out)
-        .env("SUPERFLOW_IOX_PREFIX", &p)
-        .env("RUST_LOG", "info")
-        .current_dir(workspace_root())
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped()),
-    );
+    let out = scratch::vacant("service", "waits");
+    let trainer = trainer(SUBSCRIBER, &p, "trainer", 2, &out, &[]);
     std::thread::sleep(Duration::from_secs(3));
-    let pipe = pipeline(&p, "trainer", &["--batch-size", "3", "--epochs", "1"]);
+    let pipe = serve(
+        SUBSCRIBER,
+        &p,
+        "trainer",
+        &["--batch-size", "3", "--epochs", "1"],
+    );
     let (ok, _, err) = finish(trainer, LIMIT);
     assert!(ok, "{err}");
     assert!(err.contains("no pipeline is publishing"), "{err}");
@@ -445,20 +436,11 @@ fn the_trainer_waits_for_a_pipeline() {
 #[test]
 fn sigint_stops_a_waiting_pipeline_cleanly() {
     let p = prefix("sigint");
-    let mut pipe = pipeline(&p, "sigint", &["--batch-size", "2"]);
-    let rx = lines_of(pipe.stderr.take().unwrap());
-    let mut log = String::new();
-    while !log.contains("waiting for subscribers") {
-        let line = rx.recv_timeout(LIMIT).expect("the pipeline starts");
-        log.push_str(&line);
-        log.push('\n');
-    }
+    let mut pipe = serve(SUBSCRIBER, &p, "sigint", &["--batch-size", "2"]);
+    let (rx, mut log) = wait_until_ready(&mut pipe, LIMIT);
     send_signal(&pipe, "-INT");
     let (ok, _, _) = finish(pipe, LIMIT);
-    while let Ok(line) = rx.recv_timeout(Duration::from_secs(2)) {
-        log.push_str(&line);
-        log.push('\n');
-    }
+    log.push_str(&drain(&rx, Duration::from_secs(2)));
     assert!(ok, "{log}");
     assert!(log.contains("SIGINT"), "{log}");
     no_shared_memory_left(&p);

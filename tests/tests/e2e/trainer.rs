@@ -13,69 +13,36 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
 
+use crate::SUBSCRIBER;
 use std::collections::BTreeMap;
 use std::ffi::OsStr;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 use superflow_tests::process::{
-    Proc, finish, lines_of, no_shared_memory_left, prefix, send_signal, spawn,
+    Proc, drain, finish, lines_of, no_shared_memory_left, pipeline_command, pipeline_server,
+    prefix, send_signal, spawn, stop, stop_cleanly, trainer, wait_until_ready,
 };
-use superflow_tests::{pipeline_binary, workspace_binary, workspace_root};
+use superflow_tests::{SAMPLE_DRIVE, pipeline_binary, scratch, trainer_binary, workspace_root};
 use superflow_trainer::metrics::{self, StepRecord};
 
-const DRIVE: &str = "recordings/drives/street_ros2.mcap";
 const LIMIT: Duration = Duration::from_secs(600);
 /// Steps of each run: 4 epochs of the drive's 6 keyframes in batches of 1.
 const STEPS: u64 = 24;
 const EPOCHS: &str = "4";
 
-fn pipeline(prefix: &str, run: &str) -> Proc {
-    spawn(
-        Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-subscriber")))
-            .args([
-                "--mcap",
-                DRIVE,
-                "--run",
-                run,
-                "--batch-size",
-                "1",
-                "--epochs",
-                EPOCHS,
-            ])
-            .env("SUPERFLOW_IOX_PREFIX", prefix)
-            .env("RUST_LOG", "warn")
-            .current_dir(workspace_root())
-            .stdout(Stdio::null())
-            .stderr(Stdio::null()),
-    )
-}
-
-fn trainer(prefix: &str, run: &str, out: &Path, extra: &[&str]) -> Proc {
-    let steps = STEPS.to_string();
-    spawn(
-        Command::new(workspace_binary(
-            env!("CARGO_BIN_EXE_superflow-subscriber"),
-            "superflow-trainer",
-        ))
-        .args([
-            "--run", run, "--steps", &steps, "--unet", "tiny", "--vit", "tiny",
-        ])
-        .args(["--pixel-stride", "4", "--timeout-secs", "120", "--out"])
-        .arg(out)
-        .args(extra)
-        .env("SUPERFLOW_IOX_PREFIX", prefix)
-        .env("RUST_LOG", "info")
-        .current_dir(workspace_root())
-        .stdout(Stdio::null())
-        .stderr(Stdio::piped()),
-    )
-}
-
-fn temp_dir(name: &str) -> PathBuf {
-    let dir = std::env::temp_dir().join(format!("superflow-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&dir);
-    dir
+/// The sample drive served in batches of 1 for `epochs` epochs as run `run`
+/// ([`pipeline_command`]), logging warnings only.
+fn quiet_pipeline(prefix: &str, run: &str, epochs: &str) -> Command {
+    let mut command = pipeline_command(
+        SUBSCRIBER,
+        SAMPLE_DRIVE,
+        prefix,
+        run,
+        &["--batch-size", "1", "--epochs", epochs],
+    );
+    command.env("RUST_LOG", "warn");
+    command
 }
 
 /// The last record of every step (a resumed run repeats the steps after its checkpoint).
@@ -87,30 +54,27 @@ fn by_step(records: Vec<StepRecord>) -> BTreeMap<u64, StepRecord> {
 fn probe(backbone: &str, extra: &[&str]) -> serde_json::Value {
     let (ok, out, err) = finish(
         spawn(
-            Command::new(workspace_binary(
-                env!("CARGO_BIN_EXE_superflow-subscriber"),
-                "superflow-trainer",
-            ))
-            .args([
-                "probe",
-                "--mcap",
-                "recordings/drives",
-                "--checkpoint",
-                backbone,
-            ])
-            .args([
-                "--unet",
-                "tiny",
-                "--json",
-                "--val-fraction",
-                "0.3",
-                "--gap-secs",
-                "0.5",
-            ])
-            .args(extra)
-            .current_dir(workspace_root())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped()),
+            Command::new(trainer_binary(SUBSCRIBER))
+                .args([
+                    "probe",
+                    "--mcap",
+                    "recordings/drives",
+                    "--checkpoint",
+                    backbone,
+                ])
+                .args([
+                    "--unet",
+                    "tiny",
+                    "--json",
+                    "--val-fraction",
+                    "0.3",
+                    "--gap-secs",
+                    "0.5",
+                ])
+                .args(extra)
+                .current_dir(workspace_root())
+                .stdout(Stdio::piped())
+                .stderr(Stdio::piped()),
         ),
         LIMIT,
     );
@@ -128,15 +92,21 @@ fn mean(values: impl Iterator<Item = f64>) -> f64 {
 fn training_lowers_the_loss_and_a_resumed_run_matches_an_uninterrupted_one() {
     // The uninterrupted run.
     let p = prefix("train");
-    let full = temp_dir("train-full");
-    let pipe = pipeline(&p, "full");
+    let full = scratch::vacant("trainer", "full");
+    let pipe = spawn(quiet_pipeline(&p, "full", EPOCHS).stderr(Stdio::null()));
     let (ok, _, err) = finish(
-        trainer(&p, "full", &full, &["--checkpoint-every", "10", "--plot"]),
+        trainer(
+            SUBSCRIBER,
+            &p,
+            "full",
+            STEPS,
+            &full,
+            &["--checkpoint-every", "10", "--plot"],
+        ),
         LIMIT,
     );
     assert!(ok, "{err}");
-    send_signal(&pipe, "-TERM");
-    let _ = finish(pipe, LIMIT);
+    let _ = stop(pipe, LIMIT);
     no_shared_memory_left(&p);
     let uninterrupted = by_step(metrics::read(&full.join("metrics.jsonl")).unwrap());
     assert_eq!(uninterrupted.len() as u64, STEPS);
@@ -211,9 +181,16 @@ fn training_lowers_the_loss_and_a_resumed_run_matches_an_uninterrupted_one() {
 
     // The same run, killed after its checkpoint at step 10, then resumed.
     let p = prefix("resume");
-    let cut = temp_dir("train-cut");
-    let pipe = pipeline(&p, "cut");
-    let mut first_half = trainer(&p, "cut", &cut, &["--checkpoint-every", "10"]);
+    let cut = scratch::vacant("trainer", "cut");
+    let pipe = spawn(quiet_pipeline(&p, "cut", EPOCHS).stderr(Stdio::null()));
+    let mut first_half = trainer(
+        SUBSCRIBER,
+        &p,
+        "cut",
+        STEPS,
+        &cut,
+        &["--checkpoint-every", "10"],
+    );
     let rx = lines_of(first_half.stderr.take().unwrap());
     let started = Instant::now();
     let mut log = String::new();
@@ -229,13 +206,19 @@ fn training_lowers_the_loss_and_a_resumed_run_matches_an_uninterrupted_one() {
     let _ = first_half.wait();
     drop(first_half);
     let (ok, _, err) = finish(
-        trainer(&p, "cut", &cut, &["--checkpoint-every", "10", "--resume"]),
+        trainer(
+            SUBSCRIBER,
+            &p,
+            "cut",
+            STEPS,
+            &cut,
+            &["--checkpoint-every", "10", "--resume"],
+        ),
         LIMIT,
     );
     assert!(ok, "{err}");
     assert!(err.contains("resuming"), "{err}");
-    send_signal(&pipe, "-TERM");
-    let _ = finish(pipe, LIMIT);
+    let _ = stop(pipe, LIMIT);
     no_shared_memory_left(&p);
 
     let resumed = by_step(metrics::read(&cut.join("metrics.jsonl")).unwrap());
@@ -278,19 +261,10 @@ fn training_lowers_the_loss_and_a_resumed_run_matches_an_uninterrupted_one() {
 #[test]
 fn the_trainer_ends_at_the_end_of_the_stream_saying_how_many_steps_it_trained() {
     let p = prefix("ends");
-    let out = temp_dir("train-ends");
-    let pipe = spawn(
-        Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-subscriber")))
-            .args(["--mcap", DRIVE, "--run", "ends", "--batch-size", "1"])
-            .args(["--epochs", "1"])
-            .env("SUPERFLOW_IOX_PREFIX", &p)
-            .env("RUST_LOG", "warn")
-            .current_dir(workspace_root())
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped()),
-    );
+    let out = scratch::vacant("trainer", "ends");
+    let pipe = spawn(&mut quiet_pipeline(&p, "ends", "1"));
     let started = Instant::now();
-    let (ok, _, err) = finish(trainer(&p, "ends", &out, &[]), LIMIT);
+    let (ok, _, err) = finish(trainer(SUBSCRIBER, &p, "ends", STEPS, &out, &[]), LIMIT);
     let took = started.elapsed();
     assert!(ok, "{err}");
     assert!(
@@ -310,17 +284,11 @@ fn the_trainer_ends_at_the_end_of_the_stream_saying_how_many_steps_it_trained() 
     // checkpoint is at the end of the last epoch: the run is complete, it says so and
     // succeeds without a step, leaving the metrics as they were.
     let p = prefix("ends-again");
-    let pipe = spawn(
-        Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-subscriber")))
-            .args(["--mcap", DRIVE, "--run", "ends", "--batch-size", "1"])
-            .args(["--epochs", "1"])
-            .env("SUPERFLOW_IOX_PREFIX", &p)
-            .env("RUST_LOG", "warn")
-            .current_dir(workspace_root())
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped()),
+    let pipe = spawn(&mut quiet_pipeline(&p, "ends", "1"));
+    let (ok, _, err) = finish(
+        trainer(SUBSCRIBER, &p, "ends", STEPS, &out, &["--resume"]),
+        LIMIT,
     );
-    let (ok, _, err) = finish(trainer(&p, "ends", &out, &["--resume"]), LIMIT);
     assert!(ok, "a finished run's resume is not a failure: {err}");
     assert!(
         err.contains("the run is complete (1 epochs): nothing left to train"),
@@ -328,9 +296,7 @@ fn the_trainer_ends_at_the_end_of_the_stream_saying_how_many_steps_it_trained() 
     );
     assert!(!err.contains("done training"), "no step: {err}");
     assert_eq!(metrics::read(&out.join("metrics.jsonl")).unwrap().len(), 6);
-    send_signal(&pipe, "-TERM");
-    let (ok, _, err) = finish(pipe, LIMIT);
-    assert!(ok, "{err}");
+    stop_cleanly(pipe, LIMIT);
     no_shared_memory_left(&p);
     let _ = std::fs::remove_dir_all(&out);
 }
@@ -350,7 +316,7 @@ fn serve_replaceable_drives(
 ) {
     let (drives, config) = superflow_tests::replaceable_drives(dir).unwrap();
     let mut pipe = spawn(
-        Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-subscriber")))
+        pipeline_server(SUBSCRIBER, p)
             .arg("--mcap")
             .arg(&drives[0])
             .arg("--mcap")
@@ -358,22 +324,9 @@ fn serve_replaceable_drives(
             .arg("--config")
             .arg(&config)
             .args(["--run", run, "--batch-size", "1", "--epochs", "2"])
-            .env("SUPERFLOW_IOX_PREFIX", p)
-            .env("RUST_LOG", "info")
-            .env("NO_COLOR", "1")
-            .current_dir(workspace_root())
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped()),
+            .env("NO_COLOR", "1"),
     );
-    let rx = lines_of(pipe.stderr.take().unwrap());
-    let mut pipe_log = String::new();
-    while !pipe_log.contains("waiting for subscribers") {
-        let line = rx
-            .recv_timeout(LIMIT)
-            .unwrap_or_else(|_| panic!("the pipeline starts:\n{pipe_log}"));
-        pipe_log.push_str(&line);
-        pipe_log.push('\n');
-    }
+    let (rx, pipe_log) = wait_until_ready(&mut pipe, LIMIT);
     (drives, pipe, rx, pipe_log)
 }
 
@@ -387,14 +340,14 @@ fn serve_replaceable_drives(
 #[test]
 fn lost_batches_are_counted_without_a_step_and_the_stream_still_ends() {
     let p = prefix("lost");
-    let out = temp_dir("train-lost");
-    let dir = temp_dir("train-lost-drives");
+    let out = scratch::vacant("trainer", "lost");
+    let dir = scratch::vacant("trainer", "lost-drives");
     // Its first batch is built (it waits for a subscriber to publish it): the drives are
     // replaced before the trainer comes.
     let (drives, pipe, rx, mut pipe_log) = serve_replaceable_drives(&dir, &p, "lost");
     superflow_tests::truncate_drives(&drives).unwrap();
     // 2 epochs of the drives' 12 keyframes: 24 batches, fewer steps.
-    let (ok, _, err) = finish(trainer(&p, "lost", &out, &[]), LIMIT);
+    let (ok, _, err) = finish(trainer(SUBSCRIBER, &p, "lost", STEPS, &out, &[]), LIMIT);
     assert!(ok, "{err}");
     let lost = err
         .matches("batch lost: every sample failed in the pipeline")
@@ -414,10 +367,7 @@ fn lost_batches_are_counted_without_a_step_and_the_stream_still_ends() {
     let steps: Vec<u64> = trained.iter().map(|r| r.step).collect();
     assert_eq!(steps, (1..=trained.len() as u64).collect::<Vec<_>>());
     let (ok, _, _) = finish(pipe, LIMIT);
-    while let Ok(line) = rx.recv_timeout(Duration::from_secs(2)) {
-        pipe_log.push_str(&line);
-        pipe_log.push('\n');
-    }
+    pipe_log.push_str(&drain(&rx, Duration::from_secs(2)));
     assert!(ok, "the pipeline ends once the trainer left: {pipe_log}");
     assert_eq!(
         pipe_log.matches("batch lost: all").count(),
@@ -438,12 +388,12 @@ fn lost_batches_are_counted_without_a_step_and_the_stream_still_ends() {
 #[test]
 fn a_resynced_drive_loses_nothing_and_a_deleted_one_is_one_counted_error() {
     let p = prefix("resync");
-    let out = temp_dir("train-resync");
-    let dir = temp_dir("train-resync-drives");
+    let out = scratch::vacant("trainer", "resync");
+    let dir = scratch::vacant("trainer", "resync-drives");
     let (drives, pipe, rx, mut pipe_log) = serve_replaceable_drives(&dir, &p, "resync");
     superflow_tests::resync_drives(&drives[..1]).unwrap();
     std::fs::remove_file(&drives[1]).unwrap();
-    let (ok, _, err) = finish(trainer(&p, "resync", &out, &[]), LIMIT);
+    let (ok, _, err) = finish(trainer(SUBSCRIBER, &p, "resync", STEPS, &out, &[]), LIMIT);
     assert!(ok, "{err}");
     let lost = err
         .matches("batch lost: every sample failed in the pipeline")
@@ -451,10 +401,7 @@ fn a_resynced_drive_loses_nothing_and_a_deleted_one_is_one_counted_error() {
     let trained = metrics::read(&out.join("metrics.jsonl")).unwrap();
     assert_eq!(trained.len() + lost, 24, "{err}");
     let (ok, _, _) = finish(pipe, LIMIT);
-    while let Ok(line) = rx.recv_timeout(Duration::from_secs(2)) {
-        pipe_log.push_str(&line);
-        pipe_log.push('\n');
-    }
+    pipe_log.push_str(&drain(&rx, Duration::from_secs(2)));
     assert!(ok, "{pipe_log}");
     assert!(
         pipe_log.contains("replaced by a copy of the same content; reading the copy"),
@@ -508,8 +455,8 @@ fn a_resynced_drive_loses_nothing_and_a_deleted_one_is_one_counted_error() {
 #[test]
 fn a_drive_replaced_while_open_is_read_on_from_its_descriptor() {
     let p = prefix("held");
-    let out = temp_dir("train-held");
-    let dir = temp_dir("train-held-drives");
+    let out = scratch::vacant("trainer", "held");
+    let dir = scratch::vacant("trainer", "held-drives");
     let (drives, pipe, rx, mut pipe_log) = serve_replaceable_drives(&dir, &p, "held");
     let fds = std::fs::read_dir(format!("/proc/{}/fd", pipe.id())).unwrap();
     let open: Vec<&PathBuf> = {
@@ -521,14 +468,11 @@ fn a_drive_replaced_while_open_is_read_on_from_its_descriptor() {
     assert_eq!(open.len(), 1, "one drive open: {open:?}");
     let held = open[0].clone();
     superflow_tests::truncate_drives(std::slice::from_ref(&held)).unwrap();
-    let (ok, _, err) = finish(trainer(&p, "held", &out, &[]), LIMIT);
+    let (ok, _, err) = finish(trainer(SUBSCRIBER, &p, "held", STEPS, &out, &[]), LIMIT);
     assert!(ok, "{err}");
     let trained = metrics::read(&out.join("metrics.jsonl")).unwrap();
     let (ok, _, _) = finish(pipe, LIMIT);
-    while let Ok(line) = rx.recv_timeout(Duration::from_secs(2)) {
-        pipe_log.push_str(&line);
-        pipe_log.push('\n');
-    }
+    pipe_log.push_str(&drain(&rx, Duration::from_secs(2)));
     assert!(ok, "{pipe_log}");
     assert_eq!(trained.len(), 24, "every sample trained: {err}\n{pipe_log}");
     assert!(!pipe_log.contains("sample lost"), "{pipe_log}");
@@ -549,8 +493,8 @@ fn write_batch(dir: &Path, samples: usize) -> PathBuf {
     let batch = dir.join("batch.bin");
     let (ok, _, err) = finish(
         spawn(
-            Command::new(pipeline_binary(env!("CARGO_BIN_EXE_superflow-subscriber")))
-                .args(["batch", "--mcap", DRIVE, "--batch-size"])
+            Command::new(pipeline_binary(SUBSCRIBER))
+                .args(["batch", "--mcap", SAMPLE_DRIVE, "--batch-size"])
                 .arg(samples.to_string())
                 .arg("--out")
                 .arg(&batch)
@@ -569,17 +513,14 @@ fn write_batch(dir: &Path, samples: usize) -> PathBuf {
 fn check_tiny(batch: &Path, backends: &str, extra: &[&OsStr]) -> (bool, String, String) {
     finish(
         spawn(
-            Command::new(workspace_binary(
-                env!("CARGO_BIN_EXE_superflow-subscriber"),
-                "superflow-trainer",
-            ))
-            .args(["check", "--batch"])
-            .arg(batch)
-            .args(["--backends", backends, "--steps", "2", "--unet", "tiny"])
-            .args(["--vit", "tiny", "--pixel-stride", "4"])
-            .args(extra)
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped()),
+            Command::new(trainer_binary(SUBSCRIBER))
+                .args(["check", "--batch"])
+                .arg(batch)
+                .args(["--backends", backends, "--steps", "2", "--unet", "tiny"])
+                .args(["--vit", "tiny", "--pixel-stride", "4"])
+                .args(extra)
+                .stdout(Stdio::piped())
+                .stderr(Stdio::piped()),
         ),
         LIMIT,
     )
@@ -587,8 +528,7 @@ fn check_tiny(batch: &Path, backends: &str, extra: &[&OsStr]) -> (bool, String, 
 
 #[test]
 fn check_runs_the_same_steps_on_every_backend_and_compares_their_losses() {
-    let dir = temp_dir("check");
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = scratch::dir("trainer", "check");
     let batch = write_batch(&dir, 2);
     let json = dir.join("check.json");
     let (ok, out, err) = check_tiny(&batch, "flex,flex", &["--json".as_ref(), json.as_os_str()]);
@@ -614,14 +554,11 @@ fn check_runs_the_same_steps_on_every_backend_and_compares_their_losses() {
     std::fs::write(&batch, b"not a batch").unwrap();
     let (ok, _, err) = finish(
         spawn(
-            Command::new(workspace_binary(
-                env!("CARGO_BIN_EXE_superflow-subscriber"),
-                "superflow-trainer",
-            ))
-            .args(["check", "--backends", "flex", "--batch"])
-            .arg(&batch)
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped()),
+            Command::new(trainer_binary(SUBSCRIBER))
+                .args(["check", "--backends", "flex", "--batch"])
+                .arg(&batch)
+                .stdout(Stdio::null())
+                .stderr(Stdio::piped()),
         ),
         LIMIT,
     );
@@ -639,8 +576,7 @@ fn in_ci() -> bool {
 
 #[test]
 fn check_agrees_on_wgpu_with_the_cpu_on_a_vulkan_device() {
-    let dir = temp_dir("check-wgpu");
-    std::fs::create_dir_all(&dir).unwrap();
+    let dir = scratch::dir("trainer", "check-wgpu");
     // 4 samples: the sparse maps and the pooling have more rows than a GPU launches
     // workgroups in one dimension (65 535 on llvmpipe), where burn's own ops go wrong.
     let batch = write_batch(&dir, 4);
@@ -681,45 +617,41 @@ fn check_agrees_on_wgpu_with_the_cpu_on_a_vulkan_device() {
 fn features_of_a_backbone_open_as_foxglove_point_clouds() {
     use prost::Message as _;
     use superflow_pipeline::drive::{Dataset, IngestConfig};
-    let out = temp_dir("features");
-    std::fs::create_dir_all(&out).unwrap();
+    let out = scratch::dir("trainer", "features");
     let (file, bev) = (out.join("features.mcap"), out.join("features.png"));
     let (ok, stdout, err) = finish(
         spawn(
-            Command::new(workspace_binary(
-                env!("CARGO_BIN_EXE_superflow-subscriber"),
-                "superflow-trainer",
-            ))
-            .args([
-                "--unet",
-                "tiny",
-                "--vit",
-                "tiny",
-                "features",
-                "--mcap",
-                "recordings/drives",
-            ])
-            .args([
-                "--checkpoint",
-                "random",
-                "--query",
-                "12.5,-3,0.5",
-                "--images",
-                "--out",
-            ])
-            .arg(&file)
-            .arg("--bev")
-            .arg(&bev)
-            .current_dir(workspace_root())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped()),
+            Command::new(trainer_binary(SUBSCRIBER))
+                .args([
+                    "--unet",
+                    "tiny",
+                    "--vit",
+                    "tiny",
+                    "features",
+                    "--mcap",
+                    "recordings/drives",
+                ])
+                .args([
+                    "--checkpoint",
+                    "random",
+                    "--query",
+                    "12.5,-3,0.5",
+                    "--images",
+                    "--out",
+                ])
+                .arg(&file)
+                .arg("--bev")
+                .arg(&bev)
+                .current_dir(workspace_root())
+                .stdout(Stdio::piped())
+                .stderr(Stdio::piped()),
         ),
         LIMIT,
     );
     assert!(ok, "{err}");
     // The keyframe sweeps of each drive, read here on their own: one per 0.5 s.
     let dataset = Dataset::open(
-        &[workspace_root().join("recordings/drives")],
+        &[superflow_recordings::sample_drives_dir()],
         &IngestConfig::default(),
     )
     .unwrap();

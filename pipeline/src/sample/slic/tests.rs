@@ -439,8 +439,7 @@ fn drive_images() -> Vec<(usize, usize, Vec<u8>)> {
     use crate::sample::{SampleBuilder, SampleConfig};
     let mut images = Vec::new();
     for name in ["street_foxglove", "street_ros2"] {
-        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join(format!("../recordings/drives/{name}.mcap"));
+        let path = superflow_recordings::sample_drive_path(name);
         let dataset = Dataset::open(&[path], &IngestConfig::default()).expect("drive");
         let config = SampleConfig {
             superpixels: SuperpixelSource::Channel,
