@@ -77,6 +77,12 @@ impl PixelSampler {
     }
 
     /// `[cells, C]` grid rows → `[pixels, C]`.
+    ///
+    /// # Shapes
+    ///
+    /// - grid_rows: `[I·gh·gw, C]`, the `[gh, gw]` grid cells of every image as rows, in
+    ///   (image, grid row, grid column) order
+    /// - output: `[pixels, C]`, one row per pixel given to [`new`](Self::new), in its order
     pub fn sample(&self, grid_rows: Tensor<2>) -> Tensor<2> {
         let mut out: Option<Tensor<2>> = None;
         for j in 0..4 {
@@ -114,6 +120,14 @@ impl ImageHead {
     /// The convolution's bias gradient sums over every patch of every image (a batch of
     /// 8 samples of 6 cameras × 3 frames of 512 patches: 73 728 rows), so it goes through
     /// [`RowOps::linear`] like the 3D network's layers; on the CPU that is burn's `Linear`.
+    ///
+    /// # Shapes
+    ///
+    /// - patches: `[I, dim, gh, gw]`, the ViT's patch features of every image of the batch
+    ///   (`gh = H / 14`, `gw = W / 14`), as
+    ///   [`DinoVit::forward`](crate::vit::DinoVit::forward) gives them
+    /// - output: `[pixels, out_dim]`, one unit row per pixel of `sampler` (`out_dim`: the
+    ///   UNet's, 64 in every preset)
     pub fn forward(&self, patches: Tensor<4>, sampler: &PixelSampler) -> Tensor<2> {
         let [i, d, gh, gw] = patches.dims();
         let rows = patches.permute([0, 2, 3, 1]).reshape([i * gh * gw, d]);
@@ -140,6 +154,18 @@ impl SuperFlowModel {
     }
 
     /// 3D features of the voxels → of the pairings' points.
+    ///
+    /// # Shapes
+    ///
+    /// - voxel_features: `[V₀, in_channels]`, one row per voxel of the finest level
+    ///   (`levels[0].rows`)
+    /// - pairing_voxel: `[pairings]`, the level-0 voxel row of every pairing's point,
+    ///   over every cloud of every sample
+    /// - output: `[pairings, out_dim]`, the UNet's head feature of each pairing's voxel
+    ///
+    /// # Panics
+    ///
+    /// As [`SparseUNet::backbone`].
     pub fn point_features(
         &self,
         voxel_features: Tensor<2>,

@@ -189,6 +189,11 @@ impl SparseConv {
     }
 
     /// Submanifold 3×3×3 convolution at one level (output rows = input rows).
+    ///
+    /// # Shapes
+    ///
+    /// - x: `[voxels, c_in]`, one row per voxel of `maps`' level (`maps.rows`)
+    /// - output: `[voxels, c_out]`, the same voxels
     pub fn forward(&self, x: Tensor<2>, maps: &LevelMaps) -> Tensor<2> {
         self.apply(
             x,
@@ -200,6 +205,16 @@ impl SparseConv {
     }
 
     /// Stride-2 convolution from `maps`' level to the next (`next_rows` rows).
+    ///
+    /// # Shapes
+    ///
+    /// - x: `[voxels, c_in]`, one row per voxel of `maps`' level (`maps.rows`)
+    /// - output: `[next_voxels, c_out]`, one row per voxel of the next, coarser level
+    ///   (`next_rows`)
+    ///
+    /// # Panics
+    ///
+    /// Panics if `maps` is the coarsest level (it has no down map).
     pub fn forward_down(&self, x: Tensor<2>, maps: &LevelMaps, next_rows: usize) -> Tensor<2> {
         let down = maps
             .down
@@ -209,6 +224,16 @@ impl SparseConv {
     }
 
     /// Transposed stride-2 convolution from the next level back to `maps`' level.
+    ///
+    /// # Shapes
+    ///
+    /// - x_next: `[next_voxels, c_in]`, one row per voxel of the next, coarser level
+    ///   (that level's `rows`)
+    /// - output: `[voxels, c_out]`, one row per voxel of `maps`' level (`maps.rows`)
+    ///
+    /// # Panics
+    ///
+    /// Panics if `maps` is the coarsest level (it has no down map).
     pub fn forward_up(&self, x_next: Tensor<2>, maps: &LevelMaps) -> Tensor<2> {
         let down = maps
             .down
@@ -327,9 +352,11 @@ pub struct UNetConfig {
     pub out_dim: usize,
 }
 
-/// The named UNet sizes.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+/// The named UNet sizes; lowercase names in serde and on the command line
+/// (`--unet minkunet34`, listed by `--help`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "lowercase")]
+#[value(rename_all = "lowercase")]
 pub enum UNetPreset {
     /// MinkUNet-34 (the paper's 3D backbone).
     Minkunet34,
@@ -337,20 +364,6 @@ pub enum UNetPreset {
     Minkunet18,
     /// A small UNet that trains at a useful speed on a 2-core CPU (tests, the demo).
     Tiny,
-}
-
-impl std::str::FromStr for UNetPreset {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Self, Self::Err> {
-        match s {
-            "minkunet34" => Ok(Self::Minkunet34),
-            "minkunet18" => Ok(Self::Minkunet18),
-            "tiny" => Ok(Self::Tiny),
-            other => Err(format!(
-                "unknown 3D network preset {other:?} (minkunet34, minkunet18, tiny)"
-            )),
-        }
-    }
 }
 
 impl UNetConfig {
@@ -453,6 +466,17 @@ impl SparseUNet {
 
     /// Voxel features `[V₀, in_channels]` → L2-normalized head features `[V₀, out_dim]`.
     /// `levels` must hold the maps of 5 levels, finest first.
+    ///
+    /// # Shapes
+    ///
+    /// - features: `[V₀, in_channels]`, one row per voxel of the finest level
+    ///   (`levels[0].rows`; the batch's `voxel_features`: x, y, z, intensity)
+    /// - output: `[V₀, out_dim]`, the same voxels, each row of unit length (a row of
+    ///   zeros stays zeros)
+    ///
+    /// # Panics
+    ///
+    /// As [`backbone`](Self::backbone).
     pub fn forward(&self, features: Tensor<2>, levels: &[LevelMaps]) -> Tensor<2> {
         let ops = levels.first().map_or(RowOps::Direct, |l| l.nbr.ops);
         l2_normalize(ops.linear(&self.head, self.backbone(features, levels)))
@@ -465,6 +489,20 @@ impl SparseUNet {
 
     /// Voxel features → the last decoder stage's features `[V₀, backbone_dim]`, before
     /// the pretraining head: what downstream probes and fine-tuning start from.
+    ///
+    /// # Shapes
+    ///
+    /// - features: `[V₀, in_channels]`, one row per voxel of the finest level
+    ///   (`levels[0].rows`)
+    /// - output: `[V₀, backbone_dim]`, the same voxels (`backbone_dim`: the last decoder
+    ///   stage's width, `planes[7]` of the [`UNetConfig`])
+    ///
+    /// Inside, level `l` holds `V_l = levels[l].rows` voxels: the encoder goes down to
+    /// `[V₄, planes[3]]`, the decoder back up to `[V₀, planes[7]]`.
+    ///
+    /// # Panics
+    ///
+    /// Panics if `levels` holds fewer than [`UNetConfig::LEVELS`] levels.
     pub fn backbone(&self, features: Tensor<2>, levels: &[LevelMaps]) -> Tensor<2> {
         assert!(
             levels.len() >= UNetConfig::LEVELS,
@@ -504,6 +542,11 @@ impl SparseUNet {
 /// the square root: a row of zeros (a voxel whose features all died in ReLUs) then has a
 /// finite gradient, as in PyTorch, where √ at 0 would make it NaN and the next step's
 /// parameters with it.
+///
+/// # Shapes
+///
+/// - x: `[N, C, ...]`, any rank, normalized over `C` (dimension 1)
+/// - output: the shape of `x`
 pub fn l2_normalize<const D: usize>(x: Tensor<D>) -> Tensor<D> {
     let norm = x.clone().square().sum_dim(1).clamp_min(1e-24).sqrt();
     x / norm

@@ -23,6 +23,13 @@ fn pool(
 }
 
 /// InfoNCE of matched rows: cross-entropy of `a·bᵀ/τ` against the diagonal.
+///
+/// # Shapes
+///
+/// - a: `[matched, channels]`, row `i` the anchor of pair `i`
+/// - b: `[matched, channels]`, row `i` the positive of pair `i`, every other row a
+///   negative
+/// - output: `[1]`, the mean over the pairs
 pub fn info_nce(a: Tensor<2>, b: Tensor<2>, temperature: f64) -> Tensor<1> {
     let [m, _] = a.dims();
     let device = a.device();
@@ -33,6 +40,12 @@ pub fn info_nce(a: Tensor<2>, b: Tensor<2>, temperature: f64) -> Tensor<1> {
 }
 
 /// `mean(1 − cos(a_i, b_i))`.
+///
+/// # Shapes
+///
+/// - a: `[matched, channels]`
+/// - b: `[matched, channels]`, row `i` compared with row `i` of `a`
+/// - output: `[1]`, the mean over the pairs
 pub fn cosine_distance(a: Tensor<2>, b: Tensor<2>) -> Tensor<1> {
     let dot = (a.clone() * b.clone()).sum_dim(1);
     let na = a.square().sum_dim(1).sqrt();
@@ -109,6 +122,13 @@ impl SuperFlowLoss {
 
     /// Superpoint features: mean 3D feature of each slot's pairings. `pairing_features`
     /// holds the 3D feature of every pairing's point, in pairing order.
+    ///
+    /// # Shapes
+    ///
+    /// - pairing_features: `[pairings, channels]`, one row per pairing of the batch
+    /// - output: `[superpoint_slots, channels]`, one row per superpoint slot (cloud kind,
+    ///   sample, superpixel id; see [the module](crate::loss)), zeros for a slot without
+    ///   pairings
     pub fn superpoints(&self, pairing_features: Tensor<2>, plan: &LossPlan) -> Tensor<2> {
         pool(
             pairing_features,
@@ -121,6 +141,13 @@ impl SuperFlowLoss {
 
     /// Superpixel features: mean 2D feature of each slot's sampled pixels
     /// (`pixel_features` in the order of `plan.pixels`).
+    ///
+    /// # Shapes
+    ///
+    /// - pixel_features: `[pixels, channels]`, one row per sampled pixel (`plan.pixels`)
+    /// - output: `[superpixel_slots, channels]`, one row per superpixel slot (frame,
+    ///   sample, superpixel id; see [the module](crate::loss)), zeros for a slot without
+    ///   sampled pixels
     pub fn superpixels(&self, pixel_features: Tensor<2>, plan: &LossPlan) -> Tensor<2> {
         pool(
             pixel_features,
@@ -143,6 +170,17 @@ impl SuperFlowLoss {
 
     /// All terms from the 3D features of the pairings' points and the 2D features of
     /// the sampled pixels.
+    ///
+    /// # Shapes
+    ///
+    /// - pairing_features: `[pairings, channels]`, one row per pairing of the batch, in
+    ///   pairing order (what [`SuperFlowModel::point_features`] gives)
+    /// - pixel_features: `[pixels, channels]`, one row per sampled pixel, in the order of
+    ///   `plan.pixels` (what [`ImageHead::forward`] gives)
+    /// - output: [`LossTerms`], every term `[1]`; `sc_frames` holds one `[1]` per frame
+    ///
+    /// [`SuperFlowModel::point_features`]: crate::model::SuperFlowModel::point_features
+    /// [`ImageHead::forward`]: crate::model::ImageHead::forward
     pub fn forward(
         &self,
         pairing_features: Tensor<2>,

@@ -234,6 +234,15 @@ impl ResumeRefused {
 }
 
 impl RunError {
+    /// The epochs of a finished run, when this error says the pipeline found the run
+    /// complete ([`ResumeRefused::RunComplete`]): not a failure, the stream has ended.
+    pub fn run_complete(&self) -> Option<u64> {
+        match self {
+            Self::Resume(ResumeRefused::RunComplete { epochs }) => Some(*epochs),
+            _ => None,
+        }
+    }
+
     /// An I/O error of `action` on `path`.
     pub fn io(action: &'static str, path: impl Into<PathBuf>, source: std::io::Error) -> Self {
         Self::Io {

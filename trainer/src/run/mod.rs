@@ -5,7 +5,8 @@
 //! * [`options`]: [`RunOptions`], what the command line says about the run (not the
 //!   networks: those are the [`TrainerConfig`]);
 //! * [`paths`]: where the run's files go;
-//! * [`start`]: fresh start, `--resume`, and the data-parallel start;
+//! * [`start`]: how the run begins ([`start::begin`]): fresh, `--resume`, or the
+//!   data-parallel start;
 //! * [`error`]: [`RunError`], why a run stops with an error;
 //! * [`job`]: joining the MPI job (`--ddp`);
 //! * [`session`]: the step loop, the periodic and final checkpoints;
@@ -29,7 +30,7 @@ use job::{Ddp, join_job};
 use paths::RunPaths;
 use session::{Session, progress_bar};
 use signals::watch_signals;
-use start::{resume, run_complete, start_fresh, start_ranks};
+use start::{Begun, begin};
 use std::time::Instant;
 
 pub use error::{ResumeRefused, RunError};
@@ -58,18 +59,9 @@ pub fn train(options: &RunOptions, config: TrainerConfig) -> Result<Option<i32>,
     let device = device::select(options.backend, options.device_index)?;
     tracing::info!(backend = %options.backend, ?device, "compute device");
     let mut trainer = Trainer::new(config, &device)?;
-    let started = match &ddp {
-        Some(ddp) => start_ranks(options, &mut trainer, &subscription, &paths, ddp),
-        None if options.resume => resume(options, &mut trainer, &subscription, &paths),
-        None => start_fresh(&paths, true).map(|()| None),
-    };
-    let resumed_at = match started {
-        Ok(at) => at,
-        Err(e) if run_complete(&e).is_some() => {
-            tracing::info!(run = %options.run, step = trainer.step_count(), "{e}");
-            return Ok(None);
-        }
-        Err(e) => return Err(e),
+    let resumed_at = match begin(options, &mut trainer, &subscription, &paths, ddp.as_ref())? {
+        Begun::At(at) => at,
+        Begun::RunComplete => return Ok(None),
     };
     let metrics = MetricsWriter::open(&paths.metrics)?;
     let bar = progress_bar(steps, trainer.step_count());

@@ -5,7 +5,7 @@ use super::error::RunError;
 use super::job::Ddp;
 use super::options::RunOptions;
 use super::paths::RunPaths;
-use super::start::{ask_resume, run_complete};
+use super::start::ask_resume;
 use crate::checkpoint::JobPosition;
 use crate::loss::LossValues;
 use crate::metrics::{self, DdpRecord, MetricsWriter, StepRecord};
@@ -278,7 +278,7 @@ impl Session<'_> {
                         Ok(()) => {}
                         // A restarted pipeline that has already served every epoch: the
                         // stream ended.
-                        Err(e) if run_complete(&e).is_some() => {
+                        Err(e) if e.run_complete().is_some() => {
                             tracing::info!(run = %self.options.run, "{e}");
                             self.ended = true;
                             return Ok(None);
@@ -501,8 +501,8 @@ impl Session<'_> {
         ))
     }
 
-    /// The final checkpoint, the plot and the summary; `Some(128 + signal)` when stopped
-    /// by a signal.
+    /// The final checkpoint, the plot and the summary; the exit code of a signal
+    /// ([`superflow_common::exit::signalled`]) when stopped by one.
     pub fn finish(self) -> Result<Option<i32>, RunError> {
         self.bar.finish_and_clear();
         let signal = self.stop.load(Ordering::SeqCst);
@@ -528,7 +528,8 @@ impl Session<'_> {
         let stopped_early = signal != 0
             || (self.ddp.is_some() && self.trainer.step_count() < self.steps && !self.ended);
         if stopped_early {
-            return Ok(Some(128 + if signal != 0 { signal } else { 15 }));
+            let signal = if signal != 0 { signal } else { 15 };
+            return Ok(Some(i32::from(superflow_common::exit::signalled(signal))));
         }
         if self.options.plot {
             metrics::plot_svg(&metrics::read(&self.paths.metrics)?, &self.paths.plot)?;

@@ -5,7 +5,8 @@ use std::sync::atomic::{AtomicI32, Ordering};
 
 /// Watches SIGTERM and SIGINT (on a thread of its own): the first sets the returned
 /// number (15 or 2) — the trainer checkpoints after the step in progress and exits
-/// with 128 + the signal — and a second one exits at once.
+/// with the scheme's code of a signal ([`superflow_common::exit::signalled`]) — and a
+/// second one exits at once, with the same code.
 pub fn watch_signals() -> std::io::Result<Arc<AtomicI32>> {
     use tokio::signal::unix::{SignalKind, signal};
     let caught = Arc::new(AtomicI32::new(0));
@@ -30,7 +31,7 @@ pub fn watch_signals() -> std::io::Result<Arc<AtomicI32>> {
                     };
                     if flag.swap(n, Ordering::SeqCst) != 0 {
                         eprintln!("superflow-trainer: second signal, exiting without a checkpoint");
-                        std::process::exit(128 + n);
+                        std::process::exit(i32::from(superflow_common::exit::signalled(n)));
                     }
                     tracing::warn!(
                         signal = n,

@@ -1,5 +1,7 @@
-//! How a run starts: fresh, from its newest checkpoint (`--resume`), or — a data-parallel
-//! job — as rank 0 decides, with every rank receiving rank 0's parameters.
+//! How a run starts ([`begin`], the one way in): fresh, from its newest checkpoint
+//! (`--resume`), or — a data-parallel job — as rank 0 decides, with every rank receiving
+//! rank 0's parameters. Resuming asks the pipeline where the stream continues
+//! ([`ask_resume`], which a running session also uses when its pipeline restarts).
 
 use super::error::RunError;
 use super::job::Ddp;
@@ -15,18 +17,43 @@ use std::time::Duration;
 
 pub use super::error::ResumeRefused;
 
-/// The epochs of a finished run, when `error` says the pipeline found the run complete
-/// ([`ResumeRefused::RunComplete`]).
-pub fn run_complete(error: &RunError) -> Option<u64> {
-    match error {
-        RunError::Resume(ResumeRefused::RunComplete { epochs }) => Some(*epochs),
-        _ => None,
+/// Where a run begins.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Begun {
+    /// Training starts: fresh (`None`) or where the pipeline continues the stream.
+    At(Option<StreamPosition>),
+    /// The pipeline has served every epoch of the run (a requeued job of a finished
+    /// run): nothing to train, and not a failure.
+    RunComplete,
+}
+
+/// Starts the run in `trainer`: as a rank of the data-parallel job `ddp`, from the
+/// newest checkpoint (`--resume`), or fresh.
+pub fn begin(
+    options: &RunOptions,
+    trainer: &mut Trainer,
+    subscription: &Subscription,
+    paths: &RunPaths,
+    ddp: Option<&Ddp>,
+) -> Result<Begun, RunError> {
+    let started = match ddp {
+        Some(ddp) => start_ranks(options, trainer, subscription, paths, ddp),
+        None if options.resume => resume(options, trainer, subscription, paths),
+        None => start_fresh(paths, true).map(|()| None),
+    };
+    match started {
+        Ok(at) => Ok(Begun::At(at)),
+        Err(e) if e.run_complete().is_some() => {
+            tracing::info!(run = %options.run, step = trainer.step_count(), "{e}");
+            Ok(Begun::RunComplete)
+        }
+        Err(e) => Err(e),
     }
 }
 
 /// Asks the pipeline to continue this trainer's stream at `at`; the publisher that
 /// answered, and the position its next batch has there. A refusal is a
-/// [`ResumeRefused`] ([`run_complete`] tells a finished run).
+/// [`ResumeRefused`] ([`RunError::run_complete`] tells a finished run).
 pub fn ask_resume(
     subscription: &Subscription,
     run: &str,
@@ -59,7 +86,7 @@ fn agree_on_resume(
 ) -> Result<StreamPosition, RunError> {
     let outcome = match &asked {
         Ok(_) => 0,
-        Err(e) if run_complete(e).is_some() => 1,
+        Err(e) if e.run_complete().is_some() => 1,
         Err(_) => 2,
     };
     let all = ddp.all_gather(&[outcome], "every rank's resume outcome");
@@ -92,7 +119,7 @@ pub struct JobStart {
 /// and every rank receives the same parameters and optimizer state from it; each rank
 /// then asks its shard stream to continue at its own position. Returns that position
 /// when resuming.
-pub fn start_ranks(
+fn start_ranks(
     options: &RunOptions,
     trainer: &mut Trainer,
     subscription: &Subscription,
@@ -176,7 +203,7 @@ pub fn start_ranks(
 }
 
 /// Rank 0's part of [`start_ranks`]: the decision and the records to send.
-pub fn first_rank_start(
+fn first_rank_start(
     resume: bool,
     trainer: &Trainer,
     paths: &RunPaths,
@@ -211,7 +238,7 @@ pub fn first_rank_start(
 
 /// `--resume`: restores the newest checkpoint and asks the pipeline to continue at its
 /// next batch (`None` when there is no checkpoint yet: a fresh start).
-pub fn resume(
+fn resume(
     options: &RunOptions,
     trainer: &mut Trainer,
     subscription: &Subscription,
@@ -239,7 +266,7 @@ pub fn resume(
 
 /// Restores the newest checkpoint of `paths` into `trainer`; `None` (said in the log)
 /// when there is none yet: the run starts fresh.
-pub fn restore_newest(
+fn restore_newest(
     trainer: &mut Trainer,
     paths: &RunPaths,
 ) -> Result<Option<CheckpointState>, RunError> {
@@ -251,7 +278,7 @@ pub fn restore_newest(
 }
 
 /// A resumed run redoes the steps after its checkpoint's `step`: their metrics lines go.
-pub fn drop_redone_metrics(paths: &RunPaths, step: u64) -> Result<(), RunError> {
+fn drop_redone_metrics(paths: &RunPaths, step: u64) -> Result<(), RunError> {
     let redone = metrics::truncate_after(&paths.metrics, step)?;
     if redone > 0 {
         tracing::warn!(
@@ -272,7 +299,7 @@ fn holds_checkpoints(paths: &RunPaths) -> RunError {
 
 /// A fresh run: refuses an output directory holding checkpoints (`check_checkpoints`:
 /// the process that writes them), drops old metrics.
-pub fn start_fresh(paths: &RunPaths, check_checkpoints: bool) -> Result<(), RunError> {
+fn start_fresh(paths: &RunPaths, check_checkpoints: bool) -> Result<(), RunError> {
     if check_checkpoints && crate::checkpoint::latest(&paths.checkpoints)?.is_some() {
         return Err(holds_checkpoints(paths));
     }
@@ -347,13 +374,13 @@ mod tests {
             "the run is complete (3 epochs): nothing left to train"
         );
         let error = RunError::from(done);
-        assert_eq!(run_complete(&error), Some(3));
+        assert_eq!(error.run_complete(), Some(3));
         let other = ResumeRefused::of("r", at, &reply(ResumeReply::OUT_OF_RANGE, 0));
         assert_eq!(
             other.to_string(),
             "the pipeline refused to resume run r at epoch 2 after 36 samples: no such position in its epochs: is it the same recording and configuration?"
         );
-        assert_eq!(run_complete(&RunError::from(other)), None);
+        assert_eq!(RunError::from(other).run_complete(), None);
         let step = ResumeAt::Step { epoch: 1, step: 4 };
         let text = ResumeRefused::of("r", step, &reply(ResumeReply::OTHER_JOB_SIZE, 0)).to_string();
         assert!(

@@ -3,13 +3,14 @@
 
 use serde::{Deserialize, Serialize};
 use std::fmt;
-use std::str::FromStr;
 use superflow_common::InvalidSetting;
 
-/// The backbone sizes [`VitConfig::preset`] knows. Names are lowercase in serde, [`FromStr`]
-/// and [`Display`](fmt::Display): `tiny`, `small`, `base`, `large`.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+/// The backbone sizes [`VitConfig::preset`] knows. Names are lowercase in serde, on the
+/// command line ([`clap::ValueEnum`]: `--vit small`, listed by `--help`) and in
+/// [`Display`](fmt::Display): `tiny`, `small`, `base`, `large`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize, clap::ValueEnum)]
 #[serde(rename_all = "lowercase")]
+#[value(rename_all = "lowercase")]
 pub enum VitPreset {
     /// A 2-block, 32-wide model for tests and CPU demos (no released checkpoint).
     Tiny,
@@ -41,22 +42,6 @@ impl fmt::Display for VitPreset {
         f.write_str(self.name())
     }
 }
-
-impl FromStr for VitPreset {
-    type Err = UnknownPreset;
-
-    fn from_str(name: &str) -> Result<Self, Self::Err> {
-        Self::ALL
-            .into_iter()
-            .find(|preset| preset.name() == name)
-            .ok_or_else(|| UnknownPreset(name.to_owned()))
-    }
-}
-
-/// A name that is none of [`VitPreset`]'s.
-#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-#[error("unknown ViT preset `{0}`: expected tiny, small, base or large")]
-pub struct UnknownPreset(pub String);
 
 /// The shape of a [`DinoVit`](super::DinoVit).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -37,7 +37,7 @@ mod normalize;
 mod pos_embed;
 mod weights;
 
-pub use config::{UnknownPreset, VitConfig, VitPreset};
+pub use config::{VitConfig, VitPreset};
 pub use error::WeightsError;
 pub use network::DinoVit;
 pub use normalize::imagenet_normalize;

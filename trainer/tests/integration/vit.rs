@@ -6,6 +6,7 @@
 use std::path::{Path, PathBuf};
 
 use burn::tensor::{Device, Tensor, TensorData, bf16, f16};
+use clap::ValueEnum as _;
 use safetensors::Dtype;
 use serde::Deserialize;
 use superflow_trainer::vit::{DinoVit, VitConfig, VitPreset, imagenet_normalize};
@@ -493,7 +494,7 @@ fn tiny_output_is_a_patch_feature_map() {
 fn presets_parse_and_serialize_by_lowercase_name() {
     for preset in VitPreset::ALL {
         let name = preset.to_string();
-        assert_eq!(name.parse::<VitPreset>(), Ok(preset));
+        assert_eq!(VitPreset::from_str(&name, false), Ok(preset));
         assert_eq!(
             serde_json::to_string(&preset).expect("serializing"),
             format!("\"{name}\"")
@@ -503,7 +504,7 @@ fn presets_parse_and_serialize_by_lowercase_name() {
             VitConfig::preset(preset).dim
         );
     }
-    assert!("huge".parse::<VitPreset>().is_err());
+    assert!(VitPreset::from_str("huge", false).is_err());
     assert_eq!(VitConfig::preset(VitPreset::Small).dim, 384);
     assert_eq!(VitConfig::preset(VitPreset::Large).depth, 24);
 }

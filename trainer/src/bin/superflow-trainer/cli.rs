@@ -32,11 +32,11 @@ pub struct Args {
     /// config's `optim.steps`].
     #[arg(long, global = true)]
     pub steps: Option<u64>,
-    /// 3D network: minkunet34, minkunet18, tiny.
-    #[arg(long, global = true)]
+    /// 3D network.
+    #[arg(long, global = true, value_enum)]
     pub unet: Option<UNetPreset>,
-    /// 2D network size without weights: tiny, small, base, large.
-    #[arg(long, global = true)]
+    /// 2D network size without weights.
+    #[arg(long, global = true, value_enum)]
     pub vit: Option<VitPreset>,
     /// DINOv2 weights (safetensors) for the frozen 2D network.
     #[arg(long, global = true)]
