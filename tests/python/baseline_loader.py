@@ -37,7 +37,7 @@ import numpy as np
 from PIL import Image
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from check_drives import Drive, FOXGLOVE_NUMERIC, calibration_of, frame_of, invert, stamp_of  # noqa: E402
+from check_drives import FOXGLOVE_NUMERIC, Drive, calibration_of, frame_of, invert, stamp_of
 
 OUT_W, OUT_H = 448, 224
 KEYFRAME_INTERVAL_S = 0.5
@@ -202,16 +202,16 @@ def build_sample(root: Path, index: dict, step: int, key: int, rng: np.random.Ge
               for s in frames + [key - d for d in range(1, DENSE_EXTRA + 1)]}
     timer.lap("decode")
     key_from_map = invert(np.asarray(sweeps[key]["map_from_lidar"]))
-    dense = [clouds[key]]
+    layers = [clouds[key]]
     for d in range(1, DENSE_EXTRA + 1):
         m = key_from_map @ np.asarray(sweeps[key - d]["map_from_lidar"])
         earlier = clouds[key - d]
         moved = earlier[:, :3].astype(np.float64) @ m[:3, :3].T + m[:3, 3]
-        dense.append(np.concatenate([moved.astype(np.float32), earlier[:, 3:4]], axis=1))
-    dense = np.concatenate(dense)
+        layers.append(np.concatenate([moved.astype(np.float32), earlier[:, 3:4]], axis=1))
+    dense = np.concatenate(layers)
     timer.lap("sweeps")
     pairings = []
-    for f, s in enumerate(frames):
+    for s in frames:
         stamp = sweeps[s]["stamp"]
         for c in chosen:
             cam = index["cameras"][names[c]]
@@ -248,8 +248,9 @@ def main(argv: list[str] | None = None) -> int:
     rng = np.random.default_rng(0)
     for key in keys[:2]:  # warm-up: file cache, imports
         build_sample(out, index, step, key, rng)
-    totals, stages = [], {}
-    for i in range(args.samples):
+    totals: list[float] = []
+    stages: dict[str, list[float]] = {}
+    for _ in range(args.samples):
         key = keys[int(rng.integers(len(keys)))]
         started = time.perf_counter()
         times = build_sample(out, index, step, key, rng)

@@ -49,8 +49,9 @@ import json
 import math
 import sys
 from collections import defaultdict
+from collections.abc import Callable
 from pathlib import Path
-from typing import Any, Callable, Optional
+from typing import Any
 
 import numpy as np
 from mcap.decoder import DecoderFactory
@@ -95,7 +96,7 @@ STATIC_TF_TOPIC = "/tf_static"
 class JsonDecoderFactory(DecoderFactory):
     """Decodes ``json`` channels (the foxglove drive's ``/odom``) with the standard library."""
 
-    def decoder_for(self, message_encoding: str, schema: Any) -> Optional[Callable[[bytes], Any]]:
+    def decoder_for(self, message_encoding: str, schema: Any) -> Callable[[bytes], Any] | None:
         if message_encoding == "json":
             return lambda data: json.loads(data)
         return None
@@ -333,7 +334,7 @@ class Drive:
         return buf
 
 
-def cloud_points(msg: Any) -> tuple[np.ndarray, Optional[np.ndarray], int]:
+def cloud_points(msg: Any) -> tuple[np.ndarray, np.ndarray | None, int]:
     """(points (N, 3) float64, per-point ``time`` or None, N) of a point cloud message.
 
     The count is the data length divided by the point stride; for ``PointCloud2`` it
@@ -387,11 +388,11 @@ def calibration_of(msg: Any) -> tuple[int, int, np.ndarray, str, np.ndarray]:
             str(msg.distortion_model), np.asarray(list(d), dtype=np.float64))
 
 
-def first_difference(a: list, b: list) -> Optional[int]:
+def first_difference(a: list, b: list) -> int | None:
     """Index of the first differing element (or of the shorter end), None if equal."""
     if a == b:
         return None
-    return next((i for i, (x, y) in enumerate(zip(a, b)) if x != y), min(len(a), len(b)))
+    return next((i for i, (x, y) in enumerate(zip(a, b, strict=False)) if x != y), min(len(a), len(b)))
 
 
 def nearest(stamps: list[int], stamp: int) -> int:
@@ -425,7 +426,7 @@ class Checker:
         """Runs a group of checks; an exception in it counts as one failed check."""
         try:
             fn()
-        except Exception as e:  # noqa: BLE001 - every error becomes a reported failure
+        except Exception as e:  # every error becomes a reported failure
             self.check(name, False, f"{type(e).__name__}: {e}")
 
 
@@ -633,7 +634,8 @@ def check_lidar_camera(c: Checker, drive: Drive, tf: TransformBuffer, truth: dic
     calibs = drive.messages[cam["calibration_topic"]]
     _, _, k, model, d = calibration_of(next(m for m in calibs if stamp_of(m) == image_stamp))
 
-    map_from_cam = tf.lookup(frames["map"], frames["ego"], image_stamp) @ tf.lookup(frames["ego"], cam["frame_id"], image_stamp)
+    map_from_cam = (tf.lookup(frames["map"], frames["ego"], image_stamp)
+                    @ tf.lookup(frames["ego"], cam["frame_id"], image_stamp))
     p_cam = apply(invert(map_from_cam), p_map)
     front = p_cam[:, 2] > 1.0
     uv = project(p_cam[front], k, model, d)
@@ -667,7 +669,7 @@ def check_drive(c: Checker, mcap_path: Path, truth_path: Path) -> None:
         return
     try:
         drive = Drive(mcap_path)
-    except Exception as e:  # noqa: BLE001 - an unreadable file is a reported failure
+    except Exception as e:  # an unreadable file is a reported failure
         c.check("mcap file reads", False, f"{type(e).__name__}: {e}")
         print(f"{c.drive}: {c.passed - before_pass} passed, {c.failed - before_fail} failed")
         return
@@ -676,7 +678,7 @@ def check_drive(c: Checker, mcap_path: Path, truth_path: Path) -> None:
     c.guard("cameras", lambda: check_cameras(c, drive, truth, notes))
     try:
         tf = drive.transforms()
-    except Exception as e:  # noqa: BLE001
+    except Exception as e:
         c.check("transform tree", False, f"{type(e).__name__}: {e}")
         tf = None
     consistency = "not run"
@@ -685,7 +687,7 @@ def check_drive(c: Checker, mcap_path: Path, truth_path: Path) -> None:
         c.guard("landmarks", lambda: check_landmarks(c, drive, tf, truth))
         try:
             consistency = check_lidar_camera(c, drive, tf, truth)
-        except Exception as e:  # noqa: BLE001
+        except Exception as e:
             c.check("lidar/camera consistency", False, f"{type(e).__name__}: {e}")
     n_obs = sum(len(lm["observations"]) for lm in truth["landmarks"])
     print(f"{c.drive} ({truth['dialect']}): {c.passed - before_pass} passed, {c.failed - before_fail} failed; "
@@ -695,7 +697,7 @@ def check_drive(c: Checker, mcap_path: Path, truth_path: Path) -> None:
         print(f"  note: {note}")
 
 
-def main(argv: Optional[list[str]] = None) -> int:
+def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("directory", type=Path, help="folder holding <drive>.mcap and <drive>.truth.json")
     parser.add_argument("-v", "--verbose", action="store_true", help="also print passing checks")

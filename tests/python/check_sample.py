@@ -12,8 +12,8 @@ Prints one line per check and `N passed, M failed` last.
 """
 
 import json
-import math
 import sys
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -137,7 +137,7 @@ def main():
         key_pts = np.load(d / f"frame{key}_points.npy")
         check("dense: keyframe points equal the frame's points", bool((pts[: counts[0]] == key_pts).all()))
     stamps = dense["stamps_nanos"]
-    check("dense: earlier sweeps are earlier", all(a > b for a, b in zip(stamps, stamps[1:])))
+    check("dense: earlier sweeps are earlier", all(a > b for a, b in pairwise(stamps)))
     print(f"{passed} passed, {failed} failed")
     return 0 if failed == 0 else 1
 

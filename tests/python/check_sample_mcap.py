@@ -167,7 +167,7 @@ def main() -> None:
             sp = by_topic_time.get((topic + "/superpixels", stamp))
             notes = by_topic_time.get((topic + "/pairings", stamp))
             check(None not in (image, cal, sp, notes), f"{topic} at {stamp}: image, calibration, superpixels, pairings")
-            if None in (image, cal, sp, notes):
+            if image is None or cal is None or sp is None or notes is None:
                 continue
             check(image.format == "png" and image.data[:8] == b"\x89PNG\r\n\x1a\n", f"{topic}: PNG")
             check((cal.width, cal.height) == (width, height), f"{topic}: calibration size {cal.width}x{cal.height}")

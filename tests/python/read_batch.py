@@ -34,10 +34,18 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "trainer" / "python"))
-from superflow.errors import MalformedBatch  # noqa: E402
-from superflow.format import (  # noqa: E402
-    DTYPES, HEADER, HEADER_SIZE, MAGIC, SECTION_ALIGN, VERSION, _address, batch_meta,
-    dtype_string, read_batch,
+from superflow.errors import MalformedBatch
+from superflow.format import (
+    DTYPES,
+    HEADER,
+    HEADER_SIZE,
+    MAGIC,
+    SECTION_ALIGN,
+    VERSION,
+    _address,
+    batch_meta,
+    dtype_string,
+    read_batch,
 )
 
 __all__ = ["DTYPES", "HEADER", "HEADER_SIZE", "MAGIC", "VERSION", "load_batch_file", "read_batch"]
@@ -53,7 +61,7 @@ def load_batch_file(path: str) -> tuple[np.ndarray, np.ndarray]:
     shift = (-(_address(raw) + HEADER_SIZE)) % SECTION_ALIGN
     buf = raw[shift:shift + size]
     with open(path, "rb") as f:
-        if f.readinto(memoryview(buf)) != size:
+        if f.readinto(buf.data) != size:
             raise OSError(f"short read of {path}")
     return buf[:HEADER_SIZE], buf[HEADER_SIZE:]
 
@@ -65,8 +73,8 @@ def _values_equal(array: np.ndarray, values: list) -> tuple[bool, str]:
         return False, f"{len(values)} expected values for {flat.size} elements"
     if array.dtype.kind in "iu":
         got = flat.tolist()  # Python ints: exact for u64 too
-        bad = next((i for i, (a, b) in enumerate(zip(got, values))
-                    if type(b) is not int or a != b), None)  # noqa: E721 - bool is not a value
+        bad = next((i for i, (a, b) in enumerate(zip(got, values, strict=False))
+                    if type(b) is not int or a != b), None)  # bool is not a value
         return bad is None, "" if bad is None else f"element {bad}: {got[bad]} != {values[bad]!r}"
     if not all(type(v) in (int, float) for v in values):
         return False, "expected values must be numbers"

@@ -84,6 +84,8 @@ import os
 import statistics
 import sys
 import time
+from itertools import pairwise
+from typing import Any
 
 import numpy as np
 import torch
@@ -141,7 +143,7 @@ class SparseConv(nn.Module):
         if rows_in.numel() == 0:
             return out
         # split, not slices: a slice's backward fills a zero tensor of the whole gather.
-        sizes = [e - s for s, e in zip(starts[:-1], starts[1:])]
+        sizes = [e - s for s, e in pairwise(starts)]
         parts = [g @ self.weight[k]
                  for k, g in enumerate(torch.index_select(x, 0, rows_in).split(sizes)) if g.shape[0]]
         return out.index_add_(0, rows_out, torch.cat(parts))
@@ -249,13 +251,13 @@ class FrozenViT:
         self.depth = sum(1 for k in self.t if k.endswith(".norm1.weight"))
         self.dim = self.t["cls_token"].shape[-1]
         self.patch = self.t["patch_embed.proj.weight"].shape[-1]
-        self._pos = {}
+        self._pos: dict[tuple[int, int], torch.Tensor] = {}
 
     def pos_embed(self, h: int, w: int) -> torch.Tensor:
         gh, gw = h // self.patch, w // self.patch
         if (gh, gw) not in self._pos:
             pos = self.t["pos_embed"]
-            n = int(round(math.sqrt(pos.shape[1] - 1)))
+            n = round(math.sqrt(pos.shape[1] - 1))
             if gh * gw != n * n or h != w:
                 grid = pos[:, 1:].reshape(1, n, n, self.dim).permute(0, 3, 1, 2)
                 grid = Fn.interpolate(grid, size=(gh, gw), mode="bicubic", align_corners=False)
@@ -321,7 +323,7 @@ class Head2D(nn.Module):
         n, d, gh, gw = tokens.shape
         rows = self.proj(tokens.permute(0, 2, 3, 1).reshape(n * gh * gw, d))
         out = None
-        for idx, wt in zip(sampler["corners"], sampler["weights"]):
+        for idx, wt in zip(sampler["corners"], sampler["weights"], strict=False):
             term = rows[idx] * wt
             out = term if out is None else out + term
         return Fn.normalize(out, dim=1)
@@ -368,14 +370,14 @@ def prepare(arr: dict, pixel_stride: int = 1, patch: int = 14, maps_needed: bool
     builds its own maps (a batch of ``kernel_maps = "none"`` has none)."""
     images = arr["images"]
     levels = sum(1 for name in arr if name.endswith("_nbr_starts"))
-    maps = {"rows": [int(arr["l0_coords"].shape[0])] if not levels else [],
-            "nbr": [], "down": [], "up": []}
-    for l in range(levels):
-        maps["rows"].append(int(arr[f"l{l}_coords"].shape[0]))
-        nbr, starts = arr[f"l{l}_nbr"].astype(np.int64), arr[f"l{l}_nbr_starts"].astype(np.int64)
+    maps: dict[str, list[Any]] = {"rows": [int(arr["l0_coords"].shape[0])] if not levels else [],
+                                  "nbr": [], "down": [], "up": []}
+    for lv in range(levels):
+        maps["rows"].append(int(arr[f"l{lv}_coords"].shape[0]))
+        nbr, starts = arr[f"l{lv}_nbr"].astype(np.int64), arr[f"l{lv}_nbr_starts"].astype(np.int64)
         maps["nbr"].append((long(nbr[:, 0]), long(nbr[:, 1]), [int(v) for v in starts]))
-        if l + 1 < levels:
-            dn, ds = arr[f"l{l}_down"].astype(np.int64), arr[f"l{l}_down_starts"].astype(np.int64)
+        if lv + 1 < levels:
+            dn, ds = arr[f"l{lv}_down"].astype(np.int64), arr[f"l{lv}_down_starts"].astype(np.int64)
             child, parent, ds = long(dn[:, 0]), long(dn[:, 1]), [int(v) for v in ds]
             maps["down"].append((child, parent, ds))
             maps["up"].append((parent, child, ds))
@@ -523,7 +525,7 @@ def synthetic_batch(seed: int, points: int, height: int, width: int, b: int = 2,
     images = rng.integers(0, 256, size=(n_img, height, width, 3), dtype=np.uint8)
 
     xyz, inten, point_clouds, sweeps = [], [], [0], []
-    for bb in range(b):
+    for _ in range(b):
         for c in range(c_per):
             n = points * (2 if c == f else 1)
             r = np.minimum(2.0 + rng.exponential(12.0, n), 80.0)
@@ -554,8 +556,8 @@ def synthetic_batch(seed: int, points: int, height: int, width: int, b: int = 2,
         return np.where(table_keys[pos] == q, pos, -1)
 
     sections_levels = []
-    for l in range(levels):
-        cl = coords[l]
+    for lv in range(levels):
+        cl = coords[lv]
         keys = encode(cl)  # np.unique sorts rows lexicographically, so keys are sorted
         assert (np.diff(keys) > 0).all()
         pairs, starts = [], [0]
@@ -566,11 +568,11 @@ def synthetic_batch(seed: int, points: int, height: int, width: int, b: int = 2,
             pairs.append(np.stack([src[out_rows], out_rows], 1))
             starts.append(starts[-1] + len(out_rows))
         rows = np.searchsorted(cl[:, 0], np.arange(b * c_per + 1))
-        sections_levels += [(f"l{l}_coords", cl.astype(np.int32)), (f"l{l}_clouds", rows.astype(np.uint32)),
-                            (f"l{l}_nbr", np.concatenate(pairs).astype(np.uint32)),
-                            (f"l{l}_nbr_starts", np.array(starts, np.uint32))]
-        if l + 1 < levels:
-            parent_keys = encode(coords[l + 1])
+        sections_levels += [(f"l{lv}_coords", cl.astype(np.int32)), (f"l{lv}_clouds", rows.astype(np.uint32)),
+                            (f"l{lv}_nbr", np.concatenate(pairs).astype(np.uint32)),
+                            (f"l{lv}_nbr_starts", np.array(starts, np.uint32))]
+        if lv + 1 < levels:
+            parent_keys = encode(coords[lv + 1])
             parent = lookup(parent_keys, np.concatenate([cl[:, :1], cl[:, 1:] >> 1], 1))
             assert (parent >= 0).all()
             pos = cl[:, 1:] & 1
@@ -578,7 +580,7 @@ def synthetic_batch(seed: int, points: int, height: int, width: int, b: int = 2,
             order = np.argsort(kid, kind="stable")
             dn = np.stack([order, parent[order]], 1)
             ds = np.concatenate([[0], np.cumsum(np.bincount(kid, minlength=8))])
-            sections_levels += [(f"l{l}_down", dn.astype(np.uint32)), (f"l{l}_down_starts", ds.astype(np.uint32))]
+            sections_levels += [(f"l{lv}_down", dn.astype(np.uint32)), (f"l{lv}_down_starts", ds.astype(np.uint32))]
 
     # Pairings: about a third of the points, each on a random pixel of its frame's images.
     pp, pi, ppx, psp, pairing_clouds = [], [], [], [], [0]
@@ -622,7 +624,8 @@ def synthetic_batch(seed: int, points: int, height: int, width: int, b: int = 2,
         ("pairing_superpixel", np.concatenate(psp).astype(np.uint32)),
         ("pairing_clouds", np.array(pairing_clouds, np.uint32)),
         ("voxel_features", pts[first]),
-    ] + sections_levels
+        *sections_levels,
+    ]
     assert len(pts[first]) == V0
     return encode_batch(sections, b)
 
@@ -670,7 +673,7 @@ def make_step(batch: dict, vit, unet, head3d, head2d, opt):
         t.append(time.perf_counter())
         opt.step()
         t.append(time.perf_counter())
-        phases = dict(zip(("vit", "forward", "backward", "update"), np.diff(t)))
+        phases = dict(zip(("vit", "forward", "backward", "update"), np.diff(t), strict=False))
         return losses, phases
 
     return step
@@ -703,6 +706,7 @@ def self_test(seed: int) -> None:
         out = superflow_losses(pf[ix["pairing_point"]], xf.permute(0, 2, 3, 1).reshape(-1, d),
                                ix, (wt["sc"], wt["tc"], wt["d2s"]))
         out["total"].backward()
+        assert pf.grad is not None and xf.grad is not None
         ex = fx["expected"]
         for got, want in ((out["l_sc"], ex["l_sc"]), (out["l_tc"], ex["l_tc"]),
                           (out["l_d2s"], ex["l_d2s_infonce"]),
@@ -757,8 +761,8 @@ def self_test(seed: int) -> None:
     data = synthetic_batch(seed, 500, 56, 112)
     _, arrays = load(data)
     batch = prepare(arrays, pixel_stride=4)
-    for l in range(4):  # every voxel has one parent and the up map covers every child
-        assert len(batch["maps"]["down"][l][0]) == batch["maps"]["rows"][l]
+    for lv in range(4):  # every voxel has one parent and the up map covers every child
+        assert len(batch["maps"]["down"][lv][0]) == batch["maps"]["rows"][lv]
     print(f"synthetic batch reads back: {batch['summary']}")
     vit, unet, head3d, head2d = build("tiny", seed=seed)
     params = [*unet.parameters(), *head3d.parameters(), *head2d.parameters()]

@@ -61,6 +61,7 @@ from __future__ import annotations
 import json
 import os
 import sys
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -92,11 +93,11 @@ def image(b: int, f: int, k: int) -> int:
 
 def make_inputs() -> dict:
     rng = np.random.default_rng(SEED)
-    I = F * FIRST[B]
+    n_img = F * FIRST[B]
     # Ids per frame; the key frame has fewer ids than the others in sample 0 and more in
     # sample 1, so that s < min(n[b][1], n[b][f]) bounds L_tc from either side.
     num_sp = [[7, 5, 6], [6, 7, 5]]
-    superpixels = np.zeros((I, H, W), dtype=np.int64)
+    superpixels = np.zeros((n_img, H, W), dtype=np.int64)
     absent = {}  # (b, f) -> ids absent from every image of the frame
     for b in range(B):
         for f in range(F):
@@ -131,7 +132,10 @@ def make_inputs() -> dict:
     point_clouds = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     n_points = int(point_clouds[-1])
 
-    pairing_point, pairing_image, pairing_pixel, pairing_sp = [], [], [], []
+    pairing_point: list[int] = []
+    pairing_image: list[int] = []
+    pairing_pixel: list[tuple[int, int]] = []
+    pairing_sp: list[int] = []
     pairing_clouds = [0]
     for b in range(B):
         for c in range(C):
@@ -163,7 +167,7 @@ def make_inputs() -> dict:
     point_features = rng.standard_normal((n_points, D)).astype(np.float32)
     point_features /= np.linalg.norm(point_features, axis=1, keepdims=True).astype(np.float32)
     point_features = point_features.astype(np.float32)
-    pixel_features = rng.standard_normal((I, D, H, W)).astype(np.float32)
+    pixel_features = rng.standard_normal((n_img, D, H, W)).astype(np.float32)
     pixel_features /= np.linalg.norm(pixel_features, axis=1, keepdims=True).astype(np.float32)
     pixel_features = pixel_features.astype(np.float32)
 
@@ -194,7 +198,8 @@ def info_nce_loop(a: list[torch.Tensor], b: list[torch.Tensor]) -> torch.Tensor:
     for i in range(m):
         logits = [torch.dot(a[i], b[j]) / TAU for j in range(m)]
         top = max(float(x.detach()) for x in logits)
-        lse = top + torch.log(sum(torch.exp(x - top) for x in logits))
+        # m > 0: the sum is of tensors, never the empty sum's 0
+        lse = top + torch.log(cast(torch.Tensor, sum(torch.exp(x - top) for x in logits)))
         total = total + (lse - logits[i])
     return total / m
 
@@ -224,7 +229,7 @@ def losses_loop(inp: dict, pf: torch.Tensor, xf: torch.Tensor) -> dict:
                 cnt += 1
         return (acc / cnt if cnt else acc), cnt
 
-    out = {"l_sc_frames": [], "slots": {"sc": [], "tc": [], "d2s": 0}, "l_tc_terms": []}
+    out: dict[str, Any] = {"l_sc_frames": [], "slots": {"sc": [], "tc": [], "d2s": 0}, "l_tc_terms": []}
     for f in range(F):
         a, bb = [], []
         for b in range(B):
@@ -262,7 +267,7 @@ def losses_loop(inp: dict, pf: torch.Tensor, xf: torch.Tensor) -> dict:
     out["slots"]["d2s"] = len(key)
     if key:
         cos = [torch.dot(x, y) / (torch.sqrt(torch.dot(x, x)) * torch.sqrt(torch.dot(y, y)))
-               for x, y in zip(key, dense)]
+               for x, y in zip(key, dense, strict=False)]
         out["l_d2s_cosine"] = sum(1 - c for c in cos) / len(cos)
     else:
         out["l_d2s_cosine"] = torch.zeros((), dtype=torch.float64)
@@ -286,17 +291,17 @@ def info_nce_mat(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 def losses_mat(inp: dict, pf: torch.Tensor, xf: torch.Tensor) -> dict:
     n = inp["num_superpixels"]
-    I = F * FIRST[B]
+    n_img = F * FIRST[B]
     smax = max(max(r) for r in n)
     # Superpixel slot of frame (b, f), id s: (b*F + f)*smax + s. Pixel j = (img, r, c).
-    sp = torch.as_tensor(inp["superpixels"]).reshape(I, H * W)
+    sp = torch.as_tensor(inp["superpixels"]).reshape(n_img, H * W)
     img_frame = torch.tensor([b * F + f for b in range(B) for f in range(F)
                               for _ in range(CAMERAS[b])])
     slot_px = (img_frame[:, None] * smax + sp).reshape(-1)
-    onehot_px = torch.zeros(B * F * smax, I * H * W, dtype=torch.float64)
-    onehot_px[slot_px, torch.arange(I * H * W)] = 1.0
+    onehot_px = torch.zeros(B * F * smax, n_img * H * W, dtype=torch.float64)
+    onehot_px[slot_px, torch.arange(n_img * H * W)] = 1.0
     cpx = onehot_px.sum(1)
-    pix = xf.permute(0, 2, 3, 1).reshape(I * H * W, D)
+    pix = xf.permute(0, 2, 3, 1).reshape(n_img * H * W, D)
     q = (onehot_px @ pix) / cpx.clamp(min=1)[:, None]
     q = q.reshape(B, F, smax, D)
     cpx = cpx.reshape(B, F, smax)
@@ -318,7 +323,7 @@ def losses_mat(inp: dict, pf: torch.Tensor, xf: torch.Tensor) -> dict:
     def valid(b, limit):
         return torch.arange(smax) < limit
 
-    out = {"l_sc_frames": [], "l_tc_terms": []}
+    out: dict[str, Any] = {"l_sc_frames": [], "l_tc_terms": []}
     for f in range(F):
         rows_a, rows_b = [], []
         for b in range(B):
@@ -335,12 +340,12 @@ def losses_mat(inp: dict, pf: torch.Tensor, xf: torch.Tensor) -> dict:
             rows_b.append(kf[b, f][m])
         out["l_tc_terms"].append(info_nce_mat(torch.cat(rows_a), torch.cat(rows_b)))
     out["l_tc"] = torch.stack(out["l_tc_terms"]).mean()
-    ka, kd = [], []
+    ka_rows, kd_rows = [], []
     for b in range(B):
         m = valid(b, n[b][KEY]) & (cpt[b, KEY] > 0) & (cpt[b, F] > 0)
-        ka.append(kf[b, KEY][m])
-        kd.append(kf[b, F][m])
-    ka, kd = torch.cat(ka), torch.cat(kd)
+        ka_rows.append(kf[b, KEY][m])
+        kd_rows.append(kf[b, F][m])
+    ka, kd = torch.cat(ka_rows), torch.cat(kd_rows)
     if ka.shape[0]:
         out["l_d2s_cosine"] = (1 - torch.nn.functional.cosine_similarity(ka, kd, dim=1, eps=0.0)).mean()
     else:
@@ -362,6 +367,7 @@ def evaluate(fn, inp: dict) -> dict:
         xf = torch.tensor(inp["pixel_features"], dtype=torch.float64, requires_grad=True)
         out = fn(inp, pf, xf)
         out[f"total_{form}"].backward()
+        assert pf.grad is not None and xf.grad is not None
         res[f"grad_point_features_{form}"] = pf.grad.numpy().reshape(-1).copy()
         res[f"grad_pixel_features_{form}"] = xf.grad.numpy().reshape(-1).copy()
         for key in ("l_sc", "l_tc", "l_d2s_cosine", "l_d2s_infonce", "total_cosine",
@@ -395,7 +401,7 @@ def main() -> None:
     s = ref["slots"]
     assert all(x > 0 for x in s["sc"] + s["tc"]) and s["d2s"] > 0, s
     total_ids = [sum(inp["num_superpixels"][b][f] for b in range(B)) for f in range(F)]
-    assert any(a < t for a, t in zip(s["sc"], total_ids)), (s, total_ids)
+    assert any(a < t for a, t in zip(s["sc"], total_ids, strict=False)), (s, total_ids)
     # Pairings must agree with the superpixel maps.
     pp = inp["pairing_pixel"]
     assert (inp["superpixels"][inp["pairing_image"], pp[:, 0], pp[:, 1]]

@@ -123,7 +123,7 @@ def resize_matrix(n_in: int, n_out: int) -> torch.Tensor:
     for o in range(n_out):
         src = (o + 0.5) * n_in / n_out - 0.5
         i0 = math.floor(src)
-        for tap, wt in zip(range(i0 - 1, i0 + 3), cubic_weights(src - i0)):
+        for tap, wt in zip(range(i0 - 1, i0 + 3), cubic_weights(src - i0), strict=False):
             m[o, min(max(tap, 0), n_in - 1)] += wt
     return m
 
@@ -143,7 +143,7 @@ def plain_forward(t: dict, x: torch.Tensor, heads: int, eps: float = 1e-6):
     tok = tok.flatten(2).transpose(1, 2)  # [1, gh*gw, D], patches row-major
     d = tok.shape[-1]
     pos = t["pos_embed"]
-    n = int(round(math.sqrt(pos.shape[1] - 1)))
+    n = round(math.sqrt(pos.shape[1] - 1))
     if gh * gw != n * n or x.shape[2] != x.shape[3]:
         patch = resize_pos(pos[0, 1:].reshape(n, n, d), gh, gw).reshape(1, gh * gw, d)
         pos = torch.cat([pos[:, :1], patch], dim=1)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from itertools import pairwise
 from typing import Any
 
 import numpy as np
@@ -181,7 +182,7 @@ def read_batch(header_bytes: Any, payload: Any) -> tuple[np.void, dict[str, np.n
                   f"aligned to its {dtype.itemsize}-byte elements")
     filled = sorted((offset, offset + len_bytes, name) for name, _, _, offset, len_bytes in sections
                     if len_bytes > 0)  # an empty section holds no bytes, so overlaps nothing
-    for (_, end_a, name_a), (start_b, _, name_b) in zip(filled, filled[1:]):
+    for (_, end_a, name_a), (start_b, _, name_b) in pairwise(filled):
         if start_b < end_a:
             _fail("rule 3", f"sections `{name_a}` and `{name_b}` overlap")
 

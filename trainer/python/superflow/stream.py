@@ -9,50 +9,45 @@ tensors of ``batch.torch()``, anything made from them without a copy). A view ke
 the release stays valid; the hand-back waits until the last one is garbage-collected.
 A stream holds at most ``max_held`` batches that way; the receive that would hold more
 raises :class:`TooManyBatchesHeld` naming them.
+
+What the stream asks the pipeline is in modules of its own: the schedule request
+(:mod:`superflow.schedule`) and the resume request (:mod:`superflow.resume`).
 """
 
 from __future__ import annotations
 
 import ctypes
+import functools
 import gc
 import os
 import socket
 import time
-import warnings
 from collections.abc import Iterator
 from typing import Any
 
 import iceoryx2 as iox2
 
 from . import ranks
-from .batch import Batch, SectionArray, header_record, position_of
+from .batch import Batch, SectionArray
 from .errors import (
     PipelineTimeout,
     PlanMismatch,
-    ResumeRefused,
-    RunComplete,
-    ScheduleUnavailable,
     StreamNotPicklable,
     SuperflowError,
     TooManyBatchesHeld,
 )
 from .format import RUN_CHARS
 from .memory import Memory
+from .resume import ResumeClient
+from .schedule import ScheduleClient
 from .wire import (
     MAX_BORROWED,
     MAX_BUFFER,
     MAX_NODES,
     MAX_PUBLISHERS,
     MAX_SUBSCRIBERS,
-    REFUSALS,
-    RUN_COMPLETE,
-    UNKNOWN,
     BatchHeaderWords,
-    ResumeReply,
-    ResumeRequest,
     Schedule,
-    ScheduleReply,
-    ScheduleRequest,
 )
 
 __all__ = ["Batch", "Epoch", "SectionArray", "Stream"]
@@ -60,11 +55,6 @@ __all__ = ["Batch", "Epoch", "SectionArray", "Stream"]
 # How long one wait on the ready event lasts before the queue is looked at again (a
 # wake-up sent before the listener existed is not lost).
 _WAIT_SLICE_MS = 100
-
-# How long a stream waits for the schedule of a pipeline that publishes (it answers from
-# a thread of its own, within milliseconds); one that does not answer by then has no
-# schedule service (an older pipeline, or one whose service failed to start).
-_SCHEDULE_WAIT_S = 5.0
 
 
 class Stream:
@@ -144,16 +134,13 @@ class Stream:
         self._held: set[Memory] = set()
         self._current: Batch | None = None
         self._pending: Batch | None = None  # received, handed out by the next next()
-        self._stash: Any = None
-        self._schedule: Schedule | None = None
-        self._schedule_client: Any = None
-        self._schedule_missing: set[int] = set()  # publishers that did not answer
+        # Bound to the ports, not to the stream: a stream dropped leaves its services at once.
+        self._schedules = ScheduleClient(self._node, run, self.service, rank,
+                                         functools.partial(_attached, self._node, self._batches))
+        self._resumes = ResumeClient(self._node, run, self.service, rank)
         self._position: tuple[int, int] | None = None  # of the next batch, once known
         self._ended = False
         self._last: tuple[int, int, int] | None = None  # publisher, epoch, step
-        # After a resume: batches of that publisher numbered below this belong to the old
-        # position (one may still be on its way when the answer comes): dropped.
-        self._floor: tuple[int, int] | None = None
 
     # -- receiving -------------------------------------------------------------------
 
@@ -169,12 +156,12 @@ class Stream:
 
     def _wait(self, deadline: float | None) -> Any:
         """The next sample, blocking on the ready event until ``deadline``."""
-        if self._stash is not None:
-            sample, self._stash = self._stash, None
+        sample = self._resumes.take()
+        if sample is not None:
             return sample
         while True:
             sample = self._receive_sample()
-            if sample is not None and self._before_floor(sample):
+            if sample is not None and self._resumes.before_floor(sample):
                 sample.delete()
                 continue
             if sample is not None:
@@ -190,19 +177,9 @@ class Stream:
                 _WAIT_SLICE_MS, int((deadline - now) * 1000)))
             self._listener.timed_wait(iox2.Duration.from_millis(slice_ms))
 
-    def _before_floor(self, sample: Any) -> bool:
-        """Whether ``sample`` is a batch of the position a resume left."""
-        return (self._floor is not None
-                and sample.header.publisher_id.value == self._floor[0]
-                and int(header_record(sample)["sequence"]) < self._floor[1])
-
     def pipeline_attached(self) -> bool:
         """Whether a pipeline publishes on this stream (dead ones are cleaned up first)."""
-        try:
-            self._node.try_cleanup_dead_nodes()
-        except Exception:  # best effort, as the Rust subscriber does
-            pass
-        return bool(self._batches.dynamic_config.number_of_publishers > 0)
+        return _attached(self._node, self._batches)
 
     def held(self) -> list[tuple[int, int]]:
         """``(epoch, step)`` of the batches this stream holds: the current one and released
@@ -245,7 +222,7 @@ class Stream:
             # (the new one may start the epoch elsewhere).
             _, epoch, step = self._last
             sample.delete()
-            schedule = self._schedule
+            schedule = self._schedules.known
             if schedule is not None and schedule.publisher == self._last[0] and schedule.global_batch:
                 self.resume(epoch, sample=schedule.consumed(epoch, step + 1))
             else:
@@ -261,17 +238,7 @@ class Stream:
     def _mark(self, batch: Batch) -> None:
         """Marks whether ``batch`` ends its epoch and the stream, from the schedule of the
         pipeline that sent it."""
-        schedule = self._schedule
-        if schedule is None or schedule.publisher != batch.publisher:
-            if batch.publisher in self._schedule_missing:
-                schedule = None
-            else:
-                schedule = self._ask_schedule(time.monotonic() + _SCHEDULE_WAIT_S)
-                if schedule is None:
-                    self._schedule_missing.add(batch.publisher)
-                    warnings.warn(f"run {self.run!r}: the pipeline publishing {self.service!r} "
-                                  "did not say how its epochs are scheduled: the stream will "
-                                  "not end by itself", RuntimeWarning, stacklevel=3)
+        schedule = self._schedules.of(batch.publisher)
         if schedule is None:
             self._position = None
             return
@@ -316,75 +283,7 @@ class Stream:
         pipeline that publishes but does not answer within 5 s raises
         :class:`ScheduleUnavailable` (it has no schedule service: the stream cannot know
         where epochs end)."""
-        if self._schedule is not None:
-            return self._schedule
-        timeout_s = self.timeout_s if timeout_s is None else timeout_s
-        deadline = None if timeout_s is None else time.monotonic() + timeout_s
-        schedule = self._ask_schedule(deadline, _SCHEDULE_WAIT_S)
-        if schedule is not None:
-            return schedule
-        if self.pipeline_attached():
-            raise ScheduleUnavailable(
-                f"run {self.run!r}: the pipeline publishing {self.service!r} did not answer "
-                f"the schedule request on 'superflow/{self.run}/schedule' within "
-                f"{_SCHEDULE_WAIT_S:.0f} s (an older pipeline, or its schedule service failed "
-                "to start: see its log), so the stream cannot know where epochs end; iterate "
-                "the stream itself (`for batch in stream`) and count steps instead",
-                self.run, self.service)
-        raise PipelineTimeout(f"run {self.run!r}: no pipeline answered the schedule request "
-                              f"of {self.service!r} within {timeout_s} s (no pipeline publishes "
-                              "on it)", self.run, self.service)
-
-    def _ask_schedule(self, deadline: float | None,
-                      patience_s: float | None = None) -> Schedule | None:
-        """Asks the pipeline for this stream's schedule; None when none answers by
-        ``deadline``, or (``patience_s``) when a pipeline has been publishing for that
-        long without answering. The answer is kept (it belongs to the publisher named in
-        it)."""
-        try:
-            if self._schedule_client is None:
-                service = (
-                    self._node.service_builder(
-                        iox2.ServiceName.new(f"superflow/{self.run}/schedule"))
-                    .request_response(ScheduleRequest, ScheduleReply)
-                    .max_clients(MAX_SUBSCRIBERS * 4)
-                    .max_servers(MAX_PUBLISHERS)
-                    .max_nodes(MAX_NODES * 2)
-                    .open_or_create()
-                )
-                self._schedule_client = (service, service.client_builder().create())
-        except Exception as e:
-            raise SuperflowError(f"run {self.run!r}: opening its schedule service "
-                                 f"'superflow/{self.run}/schedule' (a pipeline of another "
-                                 f"superflow version?): {e}", self.run, self.service) from e
-        client = self._schedule_client[1]
-        request = ScheduleRequest(rank=self.rank or 0, broadcast=int(self.rank is None))
-        attached_since = None
-        while True:
-            # A fresh client may not be connected to the server yet: resend until one
-            # answers.
-            pending = client.send_copy(request)
-            attempt = time.monotonic()
-            while time.monotonic() - attempt < 0.5:
-                response = pending.receive()
-                if response is not None:
-                    reply = ScheduleReply.from_buffer_copy(response.payload().contents)
-                    response.delete()
-                    if not reply.known:
-                        raise SuperflowError(
-                            f"run {self.run!r}: the pipeline has no stream {self.service!r} "
-                            f"({REFUSALS[1]})", self.run, self.service)
-                    self._schedule = Schedule.of(reply)
-                    return self._schedule
-                if deadline is not None and time.monotonic() >= deadline:
-                    return None
-                time.sleep(0.005)
-            if patience_s is not None:
-                now = time.monotonic()
-                if attached_since is None and self.pipeline_attached():
-                    attached_since = attempt
-                if attached_since is not None and now - attached_since >= patience_s:
-                    return None
+        return self._schedules.require(self.timeout_s if timeout_s is None else timeout_s)
 
     def release_current(self) -> None:
         """Releases the batch handed out last, if it is still held."""
@@ -413,98 +312,13 @@ class Stream:
         self.release_current()
         # The requests go out while batches are taken off the queue: room for one.
         self._room(MAX_BORROWED)
-        try:
-            control = (
-                self._node.service_builder(iox2.ServiceName.new(f"superflow/{self.run}/control"))
-                .request_response(ResumeRequest, ResumeReply)
-                .max_clients(MAX_SUBSCRIBERS * 4)
-                .max_servers(MAX_PUBLISHERS)
-                .max_nodes(MAX_NODES * 2)
-                .open_or_create()
-            )
-            client = control.client_builder().create()
-        except Exception as e:
-            raise SuperflowError(f"run {self.run!r}: opening its control service: {e}",
-                                 self.run, self.service) from e
-        if sample is None:
-            expected = step
-            request = ResumeRequest(rank=self.rank or 0, broadcast=int(self.rank is None),
-                                     epoch=epoch, step=step, sample=UNKNOWN,
-                                     global_batch=UNKNOWN)
-        else:
-            # The step the answer will name: a step boundary of the pipeline's schedule, or
-            # step 0 of an epoch made to start at `sample`.
-            schedule = self._ask_schedule(time.monotonic() + 2.0)
-            expected = 0 if schedule is None else schedule.step_at(epoch, sample)
-            request = ResumeRequest(rank=self.rank or 0, broadcast=int(self.rank is None),
-                                     epoch=epoch, step=UNKNOWN, sample=sample,
-                                     global_batch=UNKNOWN if global_batch is None
-                                     else global_batch)
-        if self._stash is not None:
-            self._stash.delete()
-            self._stash = None
-        started = time.monotonic()
-        # The pipeline's server may not have connected to this fresh client yet (or the
-        # pipeline is restarting): resend until one answers.
-        while time.monotonic() - started < timeout_s:
-            pending = client.send_copy(request)
-            attempt = time.monotonic()
-            while time.monotonic() - attempt < 0.5 and time.monotonic() - started < timeout_s:
-                response = pending.receive()
-                if response is not None:
-                    reply = ResumeReply.from_buffer_copy(response.payload().contents)
-                    response.delete()
-                    return self._accept(reply, epoch, step if sample is None else None, sample)
-                # No answer yet: keep the queue moving (a pipeline blocked on this full
-                # queue could not answer); keep only a batch at the asked position.
-                received = self._receive_sample()
-                if received is None:
-                    time.sleep(0.002)
-                elif self._stash is None and position_of(received) == (epoch, expected):
-                    self._stash = received
-                else:
-                    received.delete()
-        where = f"({epoch}, {step})" if sample is None else f"epoch {epoch} sample {sample}"
-        raise PipelineTimeout(f"run {self.run!r}: no pipeline answered the request to resume "
-                              f"{self.service!r} at {where} within {timeout_s} s",
-                              self.run, self.service)
-
-    def _accept(self, reply: ResumeReply, epoch: int, step: int | None,
-                sample: int | None) -> None:
-        if not reply.accepted:
-            where = f"({epoch}, {step})" if sample is None else f"epoch {epoch} sample {sample}"
-            if reply.reason == RUN_COMPLETE:
-                raise RunComplete(
-                    f"run {self.run!r}: the run is complete ({reply.epoch} epochs): nothing is "
-                    f"left to serve on {self.service!r} at {where}", self.run, self.service,
-                    int(reply.epoch))
-            raise ResumeRefused(
-                f"run {self.run!r}: the pipeline refused to resume {self.service!r} at "
-                f"{where}: {REFUSALS.get(reply.reason, f'reason {reply.reason}')}",
-                self.run, self.service)
-        publisher = (reply.publisher_hi << 64) | reply.publisher_lo
-        self._floor = (publisher, int(reply.next_sequence))
-
-        def new(received: Any) -> bool:
-            return bool(received.header.publisher_id.value == publisher
-                        and int(header_record(received)["sequence"]) >= reply.next_sequence)
-
-        if self._stash is not None and not new(self._stash):
-            self._stash.delete()
-            self._stash = None
-        while self._stash is None:
-            received = self._receive_sample()
-            if received is None:
-                break
-            if new(received):
-                self._stash = received
-            else:
-                received.delete()
+        reply = self._resumes.request(epoch, step, sample, global_batch, timeout_s,
+                                      self._receive_sample, self._schedules)
         self._last = None
         self._ended = False
         self._position = (int(reply.epoch), int(reply.step))
         # The pipeline may deal the epoch differently now (a resume by sample): ask again.
-        self._schedule = None
+        self._schedules.forget()
 
     def state_dict(self) -> dict[str, int]:
         """Where the whole job stands, for a checkpoint: ``{"epoch", "samples",
@@ -558,14 +372,10 @@ class Stream:
             self._pending.release()
             self._pending = None
         self.release_current()
-        if self._stash is not None:
-            self._stash.delete()
-            self._stash = None
+        self._resumes.drop()
         for memory in list(self._held):
             memory.detach()
-        if self._schedule_client is not None:
-            self._schedule_client[1].delete()
-            self._schedule_client = None
+        self._schedules.close()
         for port in ("_subscriber", "_listener"):
             obj = getattr(self, port, None)
             if obj is not None:
@@ -593,6 +403,15 @@ class Stream:
 
     def __repr__(self) -> str:
         return f"Stream(run={self.run!r}, service={self.service!r})"
+
+
+def _attached(node: Any, batches: Any) -> bool:
+    """Whether a publisher is on ``batches``, after ``node`` cleaned up dead ones."""
+    try:
+        node.try_cleanup_dead_nodes()
+    except Exception:  # best effort, as the Rust subscriber does
+        pass
+    return bool(batches.dynamic_config.number_of_publishers > 0)
 
 
 def check_plans(run: str, service: str, everyone: list[dict[str, Any]]) -> None:
@@ -654,7 +473,7 @@ class Epoch:
             elif batch.epoch != epoch:
                 stream._pending = batch
                 return
-            schedule = stream._schedule
+            schedule = stream._schedules.known
             if not (self.drop_uneven and schedule is not None
                     and schedule.publisher == batch.publisher
                     and batch.step >= schedule.min_steps_in(batch.epoch)):

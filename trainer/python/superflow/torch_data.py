@@ -11,8 +11,8 @@ pickling the dataset (spawn, forkserver) raises :class:`StreamNotPicklable`. Eac
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-from typing import Any, Callable
+from collections.abc import Callable, Iterator
+from typing import Any
 
 from .batch import Batch
 from .errors import StreamNotPicklable, WorkersUnsupported

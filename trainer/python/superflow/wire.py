@@ -1,6 +1,6 @@
 """What crosses iceoryx2 besides the batches: the service settings every superflow
 process shares, and the request/response types of the control and schedule services,
-mirrored from ``schemas/src/service.rs`` (field for field: iceoryx2 refuses a peer whose
+mirrored from ``schemas/src/service/messages.rs`` (field for field: iceoryx2 refuses a peer whose
 type differs in name or size)."""
 
 from __future__ import annotations
@@ -10,12 +10,12 @@ from typing import NamedTuple
 
 from .format import HEADER_SIZE
 
-# The service settings every superflow process uses (schemas/src/service.rs, `qos`):
+# The service settings every superflow process uses (schemas/src/service/open.rs, `qos`):
 # iceoryx2 refuses to open a service with other ones. MAX_BORROWED bounds the batches a
 # subscriber holds at once, so `max_held` too.
 MAX_SUBSCRIBERS, MAX_BUFFER, MAX_BORROWED, MAX_PUBLISHERS, MAX_NODES = 8, 4, 2, 2, 16
 
-# A field of a resume request that is not known (schemas/src/service.rs `UNKNOWN`).
+# A field of a resume request that is not known (schemas/src/service/messages.rs `UNKNOWN`).
 UNKNOWN = (1 << 64) - 1
 
 
