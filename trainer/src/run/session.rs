@@ -125,6 +125,7 @@ impl Session<'_> {
     /// Steps until the run's length, the end of the stream (the last batch of the
     /// pipeline's last epoch, from its schedule) or a stop signal.
     pub fn train(&mut self) -> Result<(), RunError> {
+        self.end_if_nothing_left()?;
         while self.trainer.step_count() < self.steps {
             let t = Instant::now();
             let batch = match self.held.take() {
@@ -288,6 +289,34 @@ impl Session<'_> {
                 }
             }
         }
+    }
+
+    /// A run resumed where its stream holds no batch any more has ended before its first
+    /// batch, which would never come: a data-parallel job resumed on more ranks than the
+    /// last epoch has samples left for gives some ranks an empty share of it. Such a rank
+    /// then joins the others' steps without a gradient until their streams end too.
+    fn end_if_nothing_left(&mut self) -> Result<(), RunError> {
+        let Some(at) = self.stream.next() else {
+            return Ok(()); // a fresh start: the first batch says where the stream is
+        };
+        let Some(reply) = self
+            .subscription
+            .schedule(SCHEDULE_WAIT)?
+            .filter(|r| r.known == 1)
+        else {
+            return Ok(());
+        };
+        let last_epoch = reply.epochs > 0 && at.epoch + 1 >= reply.epochs;
+        if last_epoch && at.batch >= reply.steps_in(at.epoch) {
+            tracing::info!(
+                epoch = at.epoch,
+                batch = at.batch,
+                "this stream holds no batch after the position resumed at (its share of the last epoch is empty): it has ended"
+            );
+            self.ended = true;
+        }
+        self.schedule = Some(reply);
+        Ok(())
     }
 
     /// Asks the pipeline `origin` how this stream is scheduled, once per pipeline process.
