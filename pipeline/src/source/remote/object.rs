@@ -3,7 +3,9 @@
 //! is never read as two versions: a replaced object fails its reads as
 //! [`SourceError::Replaced`]. Three buffers spare requests:
 //! * the tail (one suffix GET): the footer and summary a scan reads first;
-//! * the read-ahead window while a scan goes through the file front to back;
+//! * the read-ahead window while a scan goes through the file front to back, and a small
+//!   object read whole by it, until its drive is assembled (see
+//!   [`RemoteObject::release_scan`]);
 //! * the prefetched ranges ([`super::prefetch`]) of the samples about to be built.
 //!
 //! Anything else is one GET of exactly the bytes asked for, split into parts fetched in
@@ -35,7 +37,7 @@ const READ_AHEAD_PARTS: u64 = 4;
 /// assembly of their drives ([`RemoteObject::release_scan`]), over all objects.
 const SCANNED_CAP: u64 = 256 << 20;
 
-/// The bytes kept so now.
+/// The bytes of whole objects kept now, over all objects.
 static SCANNED_BYTES: AtomicU64 = AtomicU64::new(0);
 
 /// One object, as listed: its URL, key, size and ETag.
