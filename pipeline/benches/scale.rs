@@ -19,6 +19,10 @@
 #[path = "../../tests/src/bench/common.rs"]
 mod common;
 
+#[allow(dead_code)]
+#[path = "../../tests/src/bench/transport.rs"]
+mod transport;
+
 use anyhow::{Context, anyhow, bail};
 use common::{arg_count, arg_value, load_average};
 use std::path::{Path, PathBuf};
@@ -298,27 +302,10 @@ fn first_batch(inputs: &Path, cache: &Path, dir: &Path) -> anyhow::Result<f64> {
 /// process, attached before the service starts (the service publishes once a subscriber
 /// is there). The service is then stopped with SIGTERM, which releases its shared memory.
 fn first_published(inputs: &Path, cache: &Path, dir: &Path) -> anyhow::Result<f64> {
-    use iceoryx2::prelude::*;
-    use superflow_schemas::service as names;
     let prefix = format!("sfscale{}", std::process::id());
     let run = "scale";
-    let iox = names::iceoryx2_config(Some(&prefix))?;
-    let name = names::batches_service(run)?;
-    let node = NodeBuilder::new()
-        .config(&iox)
-        .create::<ipc::Service>()
-        .map_err(|e| anyhow!("iceoryx2 node: {e:?}"))?;
-    let service = names::open_batch_service(&node, &name)?;
-    let ready = names::open_ready_service(&node, &name)?;
-    let listener = ready
-        .listener_builder()
-        .create()
-        .map_err(|e| anyhow!("{name}: listener: {e:?}"))?;
-    let subscriber = service
-        .subscriber_builder()
-        .buffer_size(1)
-        .create()
-        .map_err(|e| anyhow!("{name}: subscriber: {e:?}"))?;
+    let receiver = transport::BatchReceiver::open(&prefix, run, 1)?;
+    let (subscriber, listener) = (&receiver.subscriber, &receiver.listener);
     let log = dir.join("service.log");
     let started = Instant::now();
     let mut child = limited(false)
@@ -369,7 +356,7 @@ fn first_published(inputs: &Path, cache: &Path, dir: &Path) -> anyhow::Result<f6
         }
         std::thread::sleep(Duration::from_millis(10));
     }
-    drop((subscriber, listener, ready, service, node));
+    drop(receiver);
     // iceoryx2 leaves one management file per prefix; nothing else runs under this one.
     for entry in std::fs::read_dir("/dev/shm")?.flatten() {
         if entry.file_name().to_string_lossy().starts_with(&prefix) {

@@ -344,28 +344,11 @@ impl Runner {
         expected: u64,
         proxy: Option<&FaultProxy>,
     ) -> anyhow::Result<Served> {
-        use iceoryx2::prelude::*;
-        use superflow_schemas::service as names;
         self.runs += 1;
         let prefix = transport::prefix();
         let run = format!("os{}", self.runs);
-        let iox = names::iceoryx2_config(Some(&prefix))?;
-        let name = names::batches_service(&run)?;
-        let node = NodeBuilder::new()
-            .config(&iox)
-            .create::<ipc::Service>()
-            .map_err(|e| anyhow!("iceoryx2 node: {e:?}"))?;
-        let service = names::open_batch_service(&node, &name)?;
-        let ready = names::open_ready_service(&node, &name)?;
-        let listener = ready
-            .listener_builder()
-            .create()
-            .map_err(|e| anyhow!("{name}: listener: {e:?}"))?;
-        let subscriber = service
-            .subscriber_builder()
-            .buffer_size(4)
-            .create()
-            .map_err(|e| anyhow!("{name}: subscriber: {e:?}"))?;
+        let receiver = transport::BatchReceiver::open(&prefix, &run, 4)?;
+        let (subscriber, listener) = (&receiver.subscriber, &receiver.listener);
         let metrics_port = free_port()?;
         let log = self.dir.join(format!("{run}.log"));
         if let Some(proxy) = proxy {
@@ -448,7 +431,7 @@ impl Runner {
             }
             std::thread::sleep(Duration::from_millis(10));
         }
-        drop((subscriber, listener, ready, service, node));
+        drop(receiver);
         if let Err(e) = outcome {
             bail!(
                 "{e}; the service's log:\n{}",

@@ -264,3 +264,58 @@ pub fn publish_report(file: &str, report: &str, left: &[String]) -> anyhow::Resu
     anyhow::ensure!(left.is_empty(), "left in /dev/shm: {left:?}");
     Ok(())
 }
+
+/// A subscriber of run `run`'s broadcast batches under the iceoryx2 prefix `prefix`, with
+/// the listener of their ready event, and the node and services that keep both open: how
+/// a bench receives from the real `superflow-pipeline` service. Dropped in field order.
+pub struct BatchReceiver {
+    /// The batches.
+    pub subscriber: iceoryx2::port::subscriber::Subscriber<
+        ipc::Service,
+        [u8],
+        superflow_schemas::batch::BatchHeader,
+    >,
+    /// The ready event: woken when a batch was published.
+    pub listener: iceoryx2::port::listener::Listener<ipc::Service>,
+    _ready: superflow_schemas::service::ReadyService,
+    _service: superflow_schemas::service::BatchService,
+    _node: Node<ipc::Service>,
+}
+
+impl std::fmt::Debug for BatchReceiver {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("BatchReceiver").finish_non_exhaustive()
+    }
+}
+
+impl BatchReceiver {
+    /// Opens (or creates) the run's batch and ready services and subscribes, with a
+    /// receive queue of `buffer` batches.
+    pub fn open(prefix: &str, run: &str, buffer: usize) -> anyhow::Result<Self> {
+        use superflow_schemas::service as names;
+        let iox = names::iceoryx2_config(Some(prefix))?;
+        let name = names::batches_service(run)?;
+        let node = NodeBuilder::new()
+            .config(&iox)
+            .create::<ipc::Service>()
+            .map_err(|e| anyhow::anyhow!("iceoryx2 node: {e:?}"))?;
+        let service = names::open_batch_service(&node, &name)?;
+        let ready = names::open_ready_service(&node, &name)?;
+        let listener = ready
+            .listener_builder()
+            .create()
+            .map_err(|e| anyhow::anyhow!("{name}: listener: {e:?}"))?;
+        let subscriber = service
+            .subscriber_builder()
+            .buffer_size(buffer)
+            .create()
+            .map_err(|e| anyhow::anyhow!("{name}: subscriber: {e:?}"))?;
+        Ok(Self {
+            subscriber,
+            listener,
+            _ready: ready,
+            _service: service,
+            _node: node,
+        })
+    }
+}
