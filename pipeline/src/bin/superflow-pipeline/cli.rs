@@ -158,8 +158,8 @@ pub enum Command {
     },
 }
 
-/// The service's flags a subcommand reads: every other one of [`SERVICE_FLAGS`] means
-/// nothing to it, and is refused rather than silently ignored.
+/// The service's flags a subcommand reads: every other flag of the service means nothing
+/// to it, and is refused rather than silently ignored.
 fn flags_read_by(command: &Command) -> &'static [&'static str] {
     match command {
         Command::Batch { .. } => &["run", "batch_size"],
@@ -170,23 +170,15 @@ fn flags_read_by(command: &Command) -> &'static [&'static str] {
     }
 }
 
-/// The flags of the service (no subcommand), by clap id. The drive and configuration
-/// flags (`--mcap`, `--dataset`, `--config`, `--index-cache`) mean the same to every
-/// subcommand.
-const SERVICE_FLAGS: &[&str] = &[
-    "run",
-    "mode",
-    "world_size",
-    "host_rank",
-    "host_count",
-    "batch_size",
-    "epochs",
-    "subscribers",
-    "start_epoch",
-    "start_step",
-    "start_sample",
-    "metrics_addr",
-    "iox_prefix",
+/// The top-level flags (by clap id) that mean the same to every subcommand; every other
+/// top-level flag is the service's, a flag added later included.
+const SHARED_FLAGS: &[&str] = &[
+    "mcap",
+    "dataset",
+    "config",
+    "index_cache",
+    "help",
+    "version",
 ];
 
 /// The command line, parsed; a service flag given on the command line to a subcommand
@@ -204,7 +196,12 @@ pub fn parse() -> Args {
     let name = matches.subcommand_name().unwrap_or_default();
     let sub = matches.subcommand_matches(name).unwrap_or(&matches);
     let read = flags_read_by(command);
-    for id in SERVICE_FLAGS.iter().filter(|id| !read.contains(id)) {
+    let service_flags: Vec<String> = cmd
+        .get_arguments()
+        .map(|arg| arg.get_id().as_str().to_owned())
+        .filter(|id| !SHARED_FLAGS.contains(&id.as_str()) && !read.contains(&id.as_str()))
+        .collect();
+    for id in &service_flags {
         // A global flag is known to both; the others to the top level alone.
         let given = [&matches, sub].iter().any(|m| {
             m.ids().any(|known| known.as_str() == *id)
