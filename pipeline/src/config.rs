@@ -20,7 +20,7 @@
 
 use crate::drive::groups::validate_groups;
 use crate::drive::{DatasetGroup, IngestConfig, LabelConfig};
-use crate::publish::{Mode, ServiceConfig};
+use crate::publish::{Mode, Order, ServiceConfig};
 use crate::sample::SampleConfig;
 use serde::{Deserialize, Serialize};
 use std::path::Path;
@@ -62,6 +62,8 @@ pub struct Overrides {
     pub epochs: Option<u64>,
     /// `[service] min_subscribers`.
     pub min_subscribers: Option<u32>,
+    /// `[service] order`.
+    pub order: Option<Order>,
 }
 
 /// A configuration file that cannot be used.
@@ -146,6 +148,9 @@ impl PipelineConfig {
         }
         if let Some(n) = overrides.min_subscribers {
             service.min_subscribers = n;
+        }
+        if let Some(order) = overrides.order {
+            service.order = order;
         }
     }
 
@@ -348,6 +353,31 @@ mod tests {
         assert_eq!(
             config.service.validate().unwrap_err().setting,
             "service.world_size"
+        );
+    }
+
+    #[test]
+    fn blocks_must_give_each_batch_distinct_blocks() {
+        let mut config = PipelineConfig::default();
+        config.apply(&Overrides {
+            order: Some(Order::Blocks),
+            world_size: Some(8),
+            ..Overrides::default()
+        });
+        // 8 ranks of 4 over 16 open blocks: rank r's batch would take 2 blocks.
+        let e = config.service.validate().unwrap_err();
+        assert_eq!(e.setting, "service.open_blocks");
+        assert!(e.to_string().contains("open 32"), "{e}");
+        config.service.open_blocks = 32;
+        assert!(config.service.validate().is_ok());
+        // Any count prime to the ranks spreads a batch as well.
+        config.service.open_blocks = 33;
+        assert!(config.service.validate().is_ok());
+        config.service.world_size = 1;
+        config.service.open_blocks = 3;
+        assert_eq!(
+            config.service.validate().unwrap_err().setting,
+            "service.open_blocks"
         );
     }
 

@@ -1,6 +1,7 @@
 //! `[service]` of `pipeline.toml`: the stream's mode, ranks and hosts, batch size,
-//! prefetch, epochs, subscriber waits and linger, with their ranges.
+//! prefetch, epochs, the epoch's order, subscriber waits and linger, with their ranges.
 
+use crate::sample::EpochOrder;
 use serde::{Deserialize, Serialize};
 use superflow_common::InvalidSetting;
 use superflow_schemas::service::qos;
@@ -15,6 +16,19 @@ pub enum Mode {
     Broadcast,
     /// `world_size` streams on `superflow/<run>/rank/<r>`.
     Shard,
+}
+
+/// How an epoch's samples are ordered: `[service] order` and `--order`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+pub enum Order {
+    /// Every sample of the epoch shuffled.
+    #[default]
+    Global,
+    /// Blocks of `block_length` consecutive keyframes of one drive, shuffled, served
+    /// `open_blocks` side by side: a frame shared by neighbouring keyframes is built
+    /// once.
+    Blocks,
 }
 
 /// `[service]` of `pipeline.toml`.
@@ -36,6 +50,13 @@ pub struct ServiceConfig {
     pub prefetch: u32,
     /// Epochs to stream; 0 streams forever.
     pub epochs: u64,
+    /// How each epoch's samples are ordered.
+    pub order: Order,
+    /// Under `order = "blocks"`: keyframes a block, at most.
+    pub block_length: u32,
+    /// Under `order = "blocks"`: blocks served side by side (the same on every host of
+    /// a job, and across an elastic resume: it is part of the order).
+    pub open_blocks: u32,
     /// How often a publisher waiting on a full subscriber checks whether it died, ms.
     pub dead_node_check_ms: u64,
     /// Subscribers each stream waits for before its first batch (a batch published to
@@ -56,6 +77,9 @@ impl Default for ServiceConfig {
             batch_size: 4,
             prefetch: 2,
             epochs: 0,
+            order: Order::Global,
+            block_length: 8,
+            open_blocks: 16,
             dead_node_check_ms: 500,
             min_subscribers: 1,
             linger_secs: 600,
@@ -102,6 +126,28 @@ impl ServiceConfig {
                 ),
             ));
         }
+        within("service.block_length", self.block_length, 1..=4096)?;
+        within("service.open_blocks", self.open_blocks, 1..=4096)?;
+        if self.order == Order::Blocks {
+            // Rank r's batch is positions r, r + R, r + 2R, ... of a global step: they
+            // fall in distinct open blocks when open / gcd(open, R) ≥ batch.
+            let ranks = self.streams() * self.host_count;
+            let open = self.open_blocks;
+            let apart = open / gcd(open, ranks);
+            if apart < self.batch_size {
+                let least = ranks * self.batch_size;
+                return Err(InvalidSetting::new(
+                    "service.open_blocks",
+                    open,
+                    format!(
+                        "a batch of {} on each of {ranks} ranks would take samples from \
+                         {apart} blocks; open {least} (or another multiple of {ranks} \
+                         of at least {least})",
+                        self.batch_size
+                    ),
+                ));
+            }
+        }
         if self.dead_node_check_ms == 0 {
             return Err(InvalidSetting::new(
                 "service.dead_node_check_ms",
@@ -112,6 +158,25 @@ impl ServiceConfig {
         Ok(())
     }
 
+    /// The order of the epochs' samples.
+    pub fn epoch_order(&self) -> EpochOrder {
+        match self.order {
+            Order::Global => EpochOrder::Global,
+            Order::Blocks => EpochOrder::Blocks {
+                length: self.block_length,
+                open: self.open_blocks,
+            },
+        }
+    }
+
+    /// How far apart in the run's order the samples built at once usually are: the
+    /// streams of a host are built in turn, a batch each, so two global batches cover
+    /// them (streams that drift further apart lose some reuse of shared frames, never
+    /// bytes).
+    pub fn positions_in_flight(&self) -> u64 {
+        2 * u64::from(self.batch_size) * u64::from(self.streams() * self.host_count)
+    }
+
     /// Streams of this host: 1 in broadcast mode, `world_size` in shard mode.
     pub(super) fn streams(&self) -> u32 {
         match self.mode {
@@ -119,4 +184,12 @@ impl ServiceConfig {
             Mode::Shard => self.world_size,
         }
     }
+}
+
+/// Greatest common divisor (1 for `gcd(0, 0)`).
+fn gcd(mut a: u32, mut b: u32) -> u32 {
+    while b != 0 {
+        (a, b) = (b, a % b);
+    }
+    a.max(1)
 }

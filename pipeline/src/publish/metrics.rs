@@ -41,6 +41,12 @@ pub struct Metrics {
     pub resumes: AtomicU64,
     /// Messages skipped while indexing the drives.
     pub skipped_messages: AtomicU64,
+    /// Shared frames (sweeps, images) found built, under the `blocks` order.
+    pub frame_hits: AtomicU64,
+    /// Shared frames built.
+    pub frame_misses: AtomicU64,
+    /// Bytes the shared frames hold now.
+    pub frame_bytes: AtomicU64,
 }
 
 impl Metrics {
@@ -154,6 +160,16 @@ impl Metrics {
                 "# HELP {name} {help}\n# TYPE {name} {kind}\n{name} {shown}\n"
             ));
         }
+        let (hits, misses, held) = (
+            self.frame_hits.load(Ordering::Relaxed),
+            self.frame_misses.load(Ordering::Relaxed),
+            self.frame_bytes.load(Ordering::Relaxed),
+        );
+        out.push_str(&format!(
+            "# HELP superflow_frame_hits_total Shared frames found built (order = blocks)\n# TYPE superflow_frame_hits_total counter\nsuperflow_frame_hits_total {hits}\n\
+             # HELP superflow_frame_misses_total Shared frames built (order = blocks)\n# TYPE superflow_frame_misses_total counter\nsuperflow_frame_misses_total {misses}\n\
+             # HELP superflow_frame_bytes Bytes held by shared frames\n# TYPE superflow_frame_bytes gauge\nsuperflow_frame_bytes {held}\n"
+        ));
         let skipped = self.skipped_messages.load(Ordering::Relaxed);
         out.push_str(&format!(
             "# HELP superflow_skipped_messages Messages skipped while indexing\n# TYPE superflow_skipped_messages gauge\nsuperflow_skipped_messages {skipped}\n"

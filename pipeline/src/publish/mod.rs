@@ -42,7 +42,7 @@ mod schedule;
 mod serve;
 mod side_tasks;
 
-pub use config::{Mode, ServiceConfig};
+pub use config::{Mode, Order, ServiceConfig};
 pub use error::ServiceError;
 pub use metrics::Metrics;
 pub use plan_id::PlanId;

@@ -21,7 +21,7 @@ pub struct PlanId {
     /// Distinct keyframes of the whole dataset (every host's share, before the dataset
     /// groups' repeats).
     pub keyframes: u64,
-    /// xxh3-64 over little-endian bytes of the seed, the sample recipe, the dataset
+    /// xxh3-64 over little-endian bytes of the seed, the sample recipe, the epoch order, the dataset
     /// groups (name, repeat, drive count) and per drive its camera count, keyframe count
     /// and the stamps of each keyframe's sweeps. File paths are left out: each host
     /// mounts its drives where it likes.
@@ -41,6 +41,12 @@ impl PlanId {
         // value that cannot be written (none can) still digests as the empty text, the
         // same on every host.
         h.bytes(serde_json::to_string(config).unwrap_or_default().as_bytes());
+        // The epoch's order: it says which keyframe each position names.
+        h.bytes(
+            serde_json::to_string(&builder.mix().order)
+                .unwrap_or_default()
+                .as_bytes(),
+        );
         h.u64(dataset.groups.len() as u64);
         for group in &dataset.groups {
             h.bytes(group.name.as_bytes());

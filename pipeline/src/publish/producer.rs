@@ -114,6 +114,16 @@ impl Producer<'_> {
                 advised.retain(|&(_, e, s)| e == epoch && s > step);
             }
             let samples = self.build(&slots, stream, epoch, step);
+            if let Some(cache) = self.builder.frame_cache() {
+                let stats = cache.stats();
+                for (to, from) in [
+                    (&self.metrics.frame_hits, &stats.hits),
+                    (&self.metrics.frame_misses, &stats.misses),
+                    (&self.metrics.frame_bytes, &stats.bytes),
+                ] {
+                    to.store(from.load(Ordering::Relaxed), Ordering::Relaxed);
+                }
+            }
             // Advance this stream unless a resume moved it meanwhile. A batch whose
             // samples all failed goes too: left out, its subscribers would wait forever
             // for the step that ends their epoch.

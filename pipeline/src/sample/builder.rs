@@ -7,8 +7,9 @@
 //! `(seed, epoch, index)`.
 
 use super::cloud::DenseCloud;
-use super::epochs::EpochMix;
+use super::epochs::{EpochMix, EpochOrder};
 use super::error::SampleError;
+use super::frames::FrameCache;
 use super::load::{FrameInputs, SampleContext};
 use super::plan::{KeyframeRef, Plan};
 use super::recipe::{SampleConfig, SuperpixelSource};
@@ -26,6 +27,8 @@ pub struct SampleBuilder<'d> {
     mix: EpochMix,
     class_superpixels: Vec<bool>,
     slic_sidecar: Vec<bool>,
+    /// Frames shared by neighbouring samples (the `blocks` order only).
+    frames: Option<FrameCache>,
 }
 
 /// Whether `drive`'s superpixels come from its class maps under `source`.
@@ -93,7 +96,37 @@ impl<'d> SampleBuilder<'d> {
             mix,
             class_superpixels,
             slic_sidecar,
+            frames: None,
         })
+    }
+
+    /// This builder with epochs in `order` (`global` unless told). Under `blocks` it
+    /// keeps the frames that the samples of open blocks share ([`FrameCache`]) for
+    /// `open + 1` positions after their last use: a block's next keyframe comes `open`
+    /// positions after the one before. A caller that builds positions out of order
+    /// (several streams, batches built ahead) widens that with
+    /// [`Self::keep_frames_for`].
+    pub fn with_order(mut self, order: EpochOrder) -> Self {
+        self.mix = self.mix.ordered(order);
+        self.frames = match order {
+            EpochOrder::Global => None,
+            EpochOrder::Blocks { open, .. } => Some(FrameCache::new(u64::from(open) + 1)),
+        };
+        self
+    }
+
+    /// Keeps shared frames `positions` more positions after their last use (samples
+    /// built up to that far apart in the run's order).
+    pub fn keep_frames_for(mut self, positions: u64) -> Self {
+        if let Some(cache) = &self.frames {
+            self.frames = Some(FrameCache::new(cache.keep() + positions));
+        }
+        self
+    }
+
+    /// The frames shared by neighbouring samples, when kept (the `blocks` order).
+    pub fn frame_cache(&self) -> Option<&FrameCache> {
+        self.frames.as_ref()
     }
 
     /// The dataset the samples come from.
@@ -180,6 +213,8 @@ impl<'d> SampleBuilder<'d> {
             slic_sidecar: self.slic_sidecar[key.drive as usize],
             chosen: &chosen,
             scan: &self.plan.scans[key.drive as usize],
+            frames: self.frames.as_ref(),
+            position: epoch * self.epoch_len() as u64 + index,
         };
         let key_frame = cfg
             .frame_offsets()

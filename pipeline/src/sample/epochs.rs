@@ -1,21 +1,60 @@
 //! What an epoch is made of when dataset groups are weighted ([`crate::drive::groups`]):
 //! the [`EpochMix`] of a plan says which keyframes, how many times each, form epoch `e`,
-//! and in which order.
+//! and in which order ([`EpochOrder`]).
 //!
 //! A group of `n` keyframes with `repeat = r` gives every keyframe `⌊r⌋` entries, plus
 //! one entry each for `round((r − ⌊r⌋)·n)` of them chosen afresh each epoch (seeded by
 //! `(seed, epoch, group)`): the count per epoch is exact, and a fraction of a group is
-//! a different subset every epoch. The entries of every group, in group order, are
-//! then shuffled by the epoch's seeded shuffle. An entry's position in the epoch keys
-//! its sample's draws, so the two entries of a keyframe served twice are two different
-//! samples (other cameras, flips and augmentation). With one group at `repeat = 1` the
+//! a different subset every epoch. An entry's position in the epoch keys its sample's
+//! draws, so the two entries of a keyframe served twice are two different samples
+//! (other cameras, flips and augmentation).
+//!
+//! The order of the entries is the epoch's seeded shuffle (`global`), or blocks of
+//! consecutive keyframes of one drive served side by side (`blocks`, see
+//! [`EpochOrder::Blocks`]). With one group at `repeat = 1` and the `global` order the
 //! epoch is the plan's [`Plan::epoch_order`], entry for entry.
 
 use super::plan::Plan;
 use super::rng::{Purpose, SampleRng};
 use crate::drive::DriveGroup;
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use std::ops::Range;
+
+/// How the entries of an epoch are ordered (`[service] order`, `block_length`,
+/// `open_blocks`). The order says which keyframe each position of the epoch names; the
+/// sample at a position is a function of `(seed, epoch, position)` and that keyframe
+/// alone, whichever order named it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum EpochOrder {
+    /// Every entry shuffled over the whole epoch.
+    #[default]
+    Global,
+    /// The entries cut into blocks of at most `length` consecutive keyframes of one
+    /// drive (a run's first block ends at a seeded phase, so block boundaries move from
+    /// epoch to epoch); the blocks shuffled; then `open` blocks served side by side,
+    /// position `p` taking the next keyframe of open block `p mod open`, and a block
+    /// that runs out replaced by the next one. Consecutive positions come from
+    /// different blocks while `open` are open, and each block's keyframes are served in
+    /// time order, `open` positions apart: the frames one keyframe shares with the next
+    /// are still at hand when the next is built.
+    Blocks {
+        /// Keyframes a block, at most.
+        length: u32,
+        /// Blocks open at once.
+        open: u32,
+    },
+}
+
+/// An epoch's order with the block of every position (positions of the `global` order
+/// are each a block of their own).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Arrangement {
+    /// The plan keyframe of each position.
+    pub keyframes: Vec<u32>,
+    /// The block of each position, numbered in serving order.
+    pub blocks: Vec<u32>,
+}
 
 /// Entries per epoch of a group of `keyframes` keyframes at `repeat`:
 /// `⌊r⌋·n + round((r − ⌊r⌋)·n)`.
@@ -70,6 +109,11 @@ pub struct EpochMix {
     pub groups: Vec<GroupShare>,
     /// Entries per epoch, all groups.
     pub len: usize,
+    /// How the entries are ordered.
+    pub order: EpochOrder,
+    /// The drive of each plan keyframe (where blocks end).
+    #[serde(skip)]
+    drive_of: Vec<u32>,
 }
 
 impl EpochMix {
@@ -98,7 +142,15 @@ impl EpochMix {
         Self {
             groups: shares,
             len,
+            order: EpochOrder::Global,
+            drive_of: plan.keyframes.iter().map(|k| k.drive).collect(),
         }
+    }
+
+    /// This mix with its entries ordered by `order`.
+    pub fn ordered(mut self, order: EpochOrder) -> Self {
+        self.order = order;
+        self
     }
 
     /// One group of every keyframe at `repeat = 1`: the epoch is the plan's shuffle.
@@ -115,22 +167,78 @@ impl EpochMix {
     }
 
     /// The keyframes of `epoch`, one per entry, in the order they are served: each
-    /// group's entries (see the module documentation), then the epoch's shuffle.
+    /// group's entries (see the module documentation), in the epoch's order.
     pub fn order(&self, seed: u64, epoch: u64) -> Vec<u32> {
-        let mut order = Vec::with_capacity(self.len);
+        match self.order {
+            EpochOrder::Global => self.shuffled(seed, epoch),
+            EpochOrder::Blocks { .. } => self.arrange(seed, epoch).keyframes,
+        }
+    }
+
+    /// [`Self::order`] with the block of every position.
+    pub fn arrange(&self, seed: u64, epoch: u64) -> Arrangement {
+        match self.order {
+            EpochOrder::Global => {
+                let keyframes = self.shuffled(seed, epoch);
+                let blocks = (0..keyframes.len() as u32).collect();
+                Arrangement { keyframes, blocks }
+            }
+            EpochOrder::Blocks { length, open } => {
+                let blocks = self.blocks(seed, epoch, length.max(1) as usize);
+                interleave(blocks, open.max(1) as usize)
+            }
+        }
+    }
+
+    /// Every entry of `epoch` in runs of ascending keyframes: each whole repeat of a
+    /// group, then the keyframes drawn for its fraction.
+    fn runs(&self, seed: u64, epoch: u64) -> Vec<Vec<u32>> {
+        let mut runs = Vec::new();
         for (g, group) in self.groups.iter().enumerate() {
             for _ in 0..group.whole() {
-                order.extend(group.keyframes.clone());
+                runs.push(group.keyframes.clone().collect());
             }
             if group.extra() > 0 {
                 let share = Purpose::GroupShare { group: g as u32 };
                 let chosen =
                     SampleRng::new(seed, epoch, 0, share).choose(group.len(), group.extra());
-                order.extend(chosen.into_iter().map(|i| group.keyframes.start + i as u32));
+                runs.push(
+                    chosen
+                        .into_iter()
+                        .map(|i| group.keyframes.start + i as u32)
+                        .collect(),
+                );
             }
         }
+        runs
+    }
+
+    /// The `global` order: every entry, shuffled.
+    fn shuffled(&self, seed: u64, epoch: u64) -> Vec<u32> {
+        let mut order: Vec<u32> = self.runs(seed, epoch).concat();
         SampleRng::new(seed, epoch, 0, Purpose::Shuffle).shuffle(&mut order);
         order
+    }
+
+    /// The blocks of `epoch`, shuffled: each run cut where its drive changes, then into
+    /// blocks of `length` after a first one of a seeded `1..=length`.
+    fn blocks(&self, seed: u64, epoch: u64, length: usize) -> Vec<Vec<u32>> {
+        let mut blocks = Vec::new();
+        let mut piece = 0u32;
+        for run in self.runs(seed, epoch) {
+            for same_drive in
+                run.chunk_by(|a, b| self.drive_of[*a as usize] == self.drive_of[*b as usize])
+            {
+                let phase = Purpose::BlockPhase { run: piece };
+                piece += 1;
+                let first = 1 + SampleRng::new(seed, epoch, 0, phase).below(length as u64) as usize;
+                let (head, rest) = same_drive.split_at(first.min(same_drive.len()));
+                blocks.push(head.to_vec());
+                blocks.extend(rest.chunks(length).map(<[u32]>::to_vec));
+            }
+        }
+        SampleRng::new(seed, epoch, 0, Purpose::Shuffle).shuffle(&mut blocks);
+        blocks
     }
 
     /// The share of the epoch of each group, in `0..=1`.
@@ -139,6 +247,41 @@ impl EpochMix {
             .iter()
             .map(|g| g.per_epoch as f64 / self.len.max(1) as f64)
             .collect()
+    }
+}
+
+/// `blocks` served `open` side by side: position `p` takes the next keyframe of open
+/// block `p mod open`; a block that runs out is replaced by the next one, and once none
+/// is left the open ones go on round the fewer places.
+fn interleave(blocks: Vec<Vec<u32>>, open: usize) -> Arrangement {
+    let len = blocks.iter().map(Vec::len).sum();
+    let mut keyframes = Vec::with_capacity(len);
+    let mut block_of = Vec::with_capacity(len);
+    let mut next = blocks.into_iter().enumerate();
+    // (block number, its keyframes, how many are served)
+    let mut lanes: Vec<(u32, Vec<u32>, usize)> = Vec::with_capacity(open);
+    for (b, block) in next.by_ref().take(open) {
+        lanes.push((b as u32, block, 0));
+    }
+    while !lanes.is_empty() {
+        let mut lane = 0;
+        while lane < lanes.len() {
+            let (b, block, served) = &mut lanes[lane];
+            if let Some(&k) = block.get(*served) {
+                *served += 1;
+                keyframes.push(k);
+                block_of.push(*b);
+                lane += 1;
+            } else if let Some((b, block)) = next.next() {
+                lanes[lane] = (b as u32, block, 0);
+            } else {
+                lanes.remove(lane);
+            }
+        }
+    }
+    Arrangement {
+        keyframes,
+        blocks: block_of,
     }
 }
 
@@ -244,5 +387,90 @@ mod tests {
         let mut order = mix.order(0, 0);
         order.sort_unstable();
         assert_eq!(order, [0, 1, 2, 3, 4]);
+    }
+
+    #[test]
+    fn blocks_hold_the_same_entries_as_the_global_order() {
+        // Weighted groups too: a fraction, a whole repeat, a repeat and a half.
+        let plan = plan(&[4, 8, 5, 4, 30]);
+        let groups = [
+            group("a", 0.5, 0..2),
+            group("b", 2.0, 2..3),
+            group("c", 1.5, 3..5),
+        ];
+        let global = EpochMix::new(&plan, &groups);
+        let blocks =
+            EpochMix::new(&plan, &groups).ordered(EpochOrder::Blocks { length: 4, open: 3 });
+        for epoch in 0..5 {
+            let mut a = global.order(11, epoch);
+            let arranged = blocks.arrange(11, epoch);
+            assert_eq!(arranged.keyframes, blocks.order(11, epoch));
+            let mut b = arranged.keyframes.clone();
+            a.sort_unstable();
+            b.sort_unstable();
+            assert_eq!(a, b, "the same entries, each as often");
+        }
+    }
+
+    #[test]
+    fn a_block_is_consecutive_keyframes_of_one_drive_served_open_apart() {
+        let plan = plan(&[10, 3, 17, 9]);
+        let (length, open) = (4u32, 3usize);
+        let mix = EpochMix::whole(&plan).ordered(EpochOrder::Blocks {
+            length,
+            open: open as u32,
+        });
+        let drive_of = |k: u32| plan.keyframes[k as usize].drive;
+        let mut firsts = Vec::new();
+        for epoch in 0..6 {
+            let a = mix.arrange(5, epoch);
+            assert_eq!(a, mix.arrange(5, epoch), "seeded");
+            let count = a.blocks.iter().max().map_or(0, |b| b + 1);
+            let mut first_length = Vec::new();
+            for b in 0..count {
+                let positions: Vec<usize> =
+                    (0..a.blocks.len()).filter(|&p| a.blocks[p] == b).collect();
+                let keys: Vec<u32> = positions.iter().map(|&p| a.keyframes[p]).collect();
+                assert!(
+                    !keys.is_empty() && keys.len() <= length as usize,
+                    "{keys:?}"
+                );
+                assert!(
+                    keys.windows(2).all(|w| w[1] == w[0] + 1),
+                    "consecutive, in time order: {keys:?}"
+                );
+                assert!(
+                    keys.iter().all(|&k| drive_of(k) == drive_of(keys[0])),
+                    "one drive"
+                );
+                first_length.push((keys[0], keys.len()));
+            }
+            firsts.push(first_length);
+            // While every place is taken, `open` consecutive positions are `open` blocks.
+            let full = a.blocks.len() - 2 * (length as usize) * open;
+            for p in 0..full {
+                let mut window: Vec<u32> = a.blocks[p..p + open].to_vec();
+                window.sort_unstable();
+                window.dedup();
+                assert_eq!(window.len(), open, "positions {p}.. of epoch {epoch}");
+            }
+        }
+        firsts.dedup();
+        assert!(firsts.len() > 1, "blocks change with the epoch");
+    }
+
+    #[test]
+    fn one_open_block_serves_blocks_whole_one_after_another() {
+        let plan = plan(&[6, 5]);
+        let mix = EpochMix::whole(&plan).ordered(EpochOrder::Blocks { length: 2, open: 1 });
+        let a = mix.arrange(1, 0);
+        assert!(
+            a.blocks
+                .windows(2)
+                .all(|w| w[1] == w[0] || w[1] == w[0] + 1)
+        );
+        let mut sorted = a.keyframes.clone();
+        sorted.sort_unstable();
+        assert_eq!(sorted, (0..11).collect::<Vec<u32>>());
     }
 }

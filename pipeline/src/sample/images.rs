@@ -4,6 +4,7 @@
 //! the resized image.
 
 use super::error::SampleError;
+use super::frames::{PreparedImage, copy_mirrored};
 use super::image_ops;
 use super::load::{SampleContext, elapsed, with_cache};
 use super::plan::camera_frame_for;
@@ -39,34 +40,122 @@ struct RawImage {
 }
 
 impl SampleContext<'_> {
-    /// The image of camera `camera_index` of the drive for the sweep at `lidar_stamp`
+    /// The image of camera `camera_index` of the drive for the sweep at index `sweep`
     /// (the one nearest the LiDAR's scan of it, see `timing.rs`), resized and maybe flipped
     /// (the draw of frame `frame_pos`, camera slot `slot`), with its superpixels; also
-    /// the number of superpixel ids it uses and the time spent.
+    /// the number of superpixel ids it uses and the time spent. With a frame cache the
+    /// image is prepared unflipped once and flipped on the way out (the same bytes).
     pub(super) fn load_image(
         &self,
         camera_index: usize,
-        lidar_stamp: Stamp,
+        sweep: u32,
         frame_pos: u32,
         slot: usize,
     ) -> Result<(SampleImage, u32, StageTimes), SampleError> {
         let cfg = self.config;
+        let camera = &self.drive.cameras[camera_index];
+        let flipped = self.flip_draw(frame_pos, slot);
+        let (prepared, mut times) = match self.frames {
+            None => self.prepare_image(camera_index, sweep, flipped)?,
+            Some(cache) => {
+                let key = (self.id.drive, sweep, camera_index as u32);
+                let (held, times) = cache.image(key, self.position, || {
+                    self.prepare_image(camera_index, sweep, false)
+                })?;
+                let width = cfg.image_width as usize;
+                let image = PreparedImage {
+                    rgb: copy_mirrored(&held.rgb, width, 3, flipped),
+                    labels: held
+                        .labels
+                        .as_ref()
+                        .map(|(l, count)| (copy_mirrored(l, width, 1, flipped), *count)),
+                    mirrored: flipped,
+                    calibration: held.calibration.clone(),
+                    ..*held
+                };
+                (image, times)
+            }
+        };
+        debug_assert_eq!(prepared.mirrored, flipped);
+        let (superpixels, count) = match prepared.labels {
+            Some(labels) => labels,
+            None => {
+                let t = Instant::now();
+                let seg = slic(
+                    &prepared.rgb,
+                    cfg.image_width as usize,
+                    cfg.image_height as usize,
+                    &cfg.slic,
+                );
+                times.superpixels += elapsed(t);
+                (seg.labels, seg.count)
+            }
+        };
+        Ok((
+            SampleImage {
+                camera: camera.name.clone(),
+                topic: camera.image_topic.clone(),
+                stamp: prepared.frame.stamp,
+                scan_offset_nanos: prepared.scan_offset_nanos,
+                native_size: prepared.native,
+                flipped,
+                rgb: prepared.rgb,
+                superpixels,
+                camera_from_lidar: prepared.camera_from_lidar,
+                calibration: prepared.calibration,
+            },
+            count,
+            times,
+        ))
+    }
+
+    /// Whether image slot `slot` of frame `frame_pos` is flipped (the sample's draw).
+    fn flip_draw(&self, frame_pos: u32, slot: usize) -> bool {
+        SampleRng::new(
+            self.config.seed,
+            self.id.epoch,
+            self.id.index,
+            Purpose::ImageFlip {
+                frame: frame_pos,
+                slot: slot as u32,
+            },
+        )
+        .bernoulli(self.config.image_flip_probability)
+    }
+
+    /// The image of camera `camera_index` for sweep `sweep`: read, checked, resized and
+    /// mirrored when `mirrored` (in one pass), with the superpixels the recording holds
+    /// for it (class map or SLIC sidecar, mirrored alike); computed SLIC is left to the
+    /// caller.
+    fn prepare_image(
+        &self,
+        camera_index: usize,
+        sweep: u32,
+        mirrored: bool,
+    ) -> Result<(PreparedImage, StageTimes), SampleError> {
+        let cfg = self.config;
         let mut times = StageTimes::default();
         let camera = &self.drive.cameras[camera_index];
         let moments = &self.scan.offsets_nanos[camera_index];
+        let lidar_stamp = self
+            .drive
+            .lidar
+            .as_ref()
+            .map(|l| l.sweeps[sweep as usize].stamp)
+            .unwrap_or_default();
         let mut raw = self.read_camera(camera, moments, lidar_stamp, &mut times)?;
         let t = Instant::now();
-        let (rgb, flipped) = self.resize_and_flip(&raw.image, frame_pos, slot);
+        let rgb = cfg.resized_rgb(&raw.image, mirrored);
         buffers::give_back(std::mem::take(&mut raw.image.data));
         times.images += elapsed(t);
 
         let t_sp = Instant::now();
         let mut class_decode = 0;
-        let (superpixels, count) = if self.class_superpixels {
-            let (map, decode) = self.class_map(camera, &raw, flipped)?;
+        let labels = if self.class_superpixels {
+            let (map, decode) = self.class_map(camera, &raw, mirrored)?;
             class_decode = decode;
             times.decode += decode;
-            (map, cfg.num_classes)
+            Some((map, cfg.num_classes))
         } else if let Some(stream) = camera.slic.as_ref().filter(|_| self.slic_sidecar) {
             let size = (cfg.image_width, cfg.image_height);
             let read = with_cache(|cache| {
@@ -78,36 +167,25 @@ impl SampleContext<'_> {
                 stamp: raw.frame.stamp,
                 reason: Box::new(reason),
             })?;
-            if flipped {
+            if mirrored {
                 image_ops::flip_horizontal(&mut labels, cfg.image_width as usize, 1);
             }
-            (labels, count)
+            Some((labels, count))
         } else {
-            let seg = slic(
-                &rgb,
-                cfg.image_width as usize,
-                cfg.image_height as usize,
-                &cfg.slic,
-            );
-            (seg.labels, seg.count)
+            None
         };
         times.superpixels += elapsed(t_sp).saturating_sub(class_decode);
-        Ok((
-            SampleImage {
-                camera: camera.name.clone(),
-                topic: camera.image_topic.clone(),
-                stamp: raw.frame.stamp,
-                scan_offset_nanos: raw.scan_offset_nanos,
-                native_size: raw.native,
-                flipped,
-                rgb,
-                superpixels,
-                camera_from_lidar: raw.camera_from_lidar,
-                calibration: raw.calibration,
-            },
-            count,
-            times,
-        ))
+        let image = PreparedImage {
+            frame: raw.frame,
+            scan_offset_nanos: raw.scan_offset_nanos,
+            calibration: raw.calibration,
+            native: raw.native,
+            camera_from_lidar: raw.camera_from_lidar,
+            rgb,
+            labels,
+            mirrored,
+        };
+        Ok((image, times))
     }
 
     /// An image of `camera` that is wrong, naming the drive's files, topic and stamp.
@@ -181,23 +259,6 @@ impl SampleContext<'_> {
             native,
             camera_from_lidar,
         })
-    }
-
-    /// `image` resized to the recipe's size and flipped (in the same pass) when the draw
-    /// of frame `frame_pos`, slot `slot` says so; also whether it was.
-    fn resize_and_flip(&self, image: &Image, frame_pos: u32, slot: usize) -> (Vec<u8>, bool) {
-        let cfg = self.config;
-        let flipped = SampleRng::new(
-            cfg.seed,
-            self.id.epoch,
-            self.id.index,
-            Purpose::ImageFlip {
-                frame: frame_pos,
-                slot: slot as u32,
-            },
-        )
-        .bernoulli(cfg.image_flip_probability);
-        (cfg.resized_rgb(image, flipped), flipped)
     }
 
     /// The class map of `raw` (within [`CLASS_MAP_TOLERANCE_NANOS`] of it) as

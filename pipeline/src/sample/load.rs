@@ -7,6 +7,7 @@
 
 use super::deskew::deskew_in_place;
 use super::error::SampleError;
+use super::frames::{FrameCache, SweepEntry};
 use super::recipe::SampleConfig;
 use super::timing::CameraScan;
 use super::types::{SampleId, SampleImage, StageTimes};
@@ -56,6 +57,11 @@ pub(super) struct SampleContext<'a> {
     pub chosen: &'a [usize],
     /// When the drive's LiDAR scans each camera.
     pub scan: &'a CameraScan,
+    /// Frames shared with the neighbouring samples (the `blocks` order), if kept.
+    pub frames: Option<&'a FrameCache>,
+    /// The sample's position in the run (`epoch × samples per epoch + index`): how the
+    /// frame cache tells what is still in use.
+    pub position: u64,
 }
 
 /// A sweep decoded, de-skewed and in its LiDAR frame at its stamp.
@@ -106,8 +112,28 @@ impl SampleContext<'_> {
             })
     }
 
-    /// Decodes sweep `sweep` and de-skews it when configured and it has per-point time.
+    /// Sweep `sweep`, decoded and de-skewed ([`Self::decode_sweep`]) or from the frame
+    /// cache.
     pub(super) fn load_sweep(&self, sweep: u32) -> Result<LoadedSweep, SampleError> {
+        let Some(cache) = self.frames else {
+            let (entry, times) = self.decode_sweep(sweep)?;
+            return Ok(LoadedSweep {
+                cloud: entry.cloud,
+                dropped: entry.dropped,
+                times,
+            });
+        };
+        let key = (self.id.drive, sweep);
+        let (entry, times) = cache.sweep(key, self.position, || self.decode_sweep(sweep))?;
+        Ok(LoadedSweep {
+            cloud: entry.cloud.clone(),
+            dropped: entry.dropped,
+            times,
+        })
+    }
+
+    /// Decodes sweep `sweep` and de-skews it when configured and it has per-point time.
+    fn decode_sweep(&self, sweep: u32) -> Result<(SweepEntry, StageTimes), SampleError> {
         let drive = self.drive;
         let mut times = StageTimes::default();
         let lidar = self.lidar()?;
@@ -137,11 +163,11 @@ impl SampleContext<'_> {
             })?;
             times.sweeps += elapsed(t);
         }
-        Ok(LoadedSweep {
+        let entry = SweepEntry {
             cloud,
             dropped: decoded.dropped_non_finite as u64,
-            times,
-        })
+        };
+        Ok((entry, times))
     }
 
     /// Sweep `sweep` moved into the LiDAR frame of sweep `key`:
@@ -178,19 +204,13 @@ impl SampleContext<'_> {
         frame_pos: u32,
         sweep: u32,
     ) -> Result<FrameInputs, SampleError> {
-        let drive = self.drive;
         let (sweep_result, images) = rayon::join(
             || self.load_sweep(sweep),
             || {
-                let lidar_stamp = drive
-                    .lidar
-                    .as_ref()
-                    .map(|l| l.sweeps[sweep as usize].stamp)
-                    .unwrap_or_default();
                 self.chosen
                     .par_iter()
                     .enumerate()
-                    .map(|(slot, &c)| self.load_image(c, lidar_stamp, frame_pos, slot))
+                    .map(|(slot, &c)| self.load_image(c, sweep, frame_pos, slot))
                     .collect::<Result<Vec<_>, _>>()
             },
         );

@@ -8,6 +8,8 @@
 //! * [`plan`]: the keyframes and their context sweeps, the epoch's shuffled order;
 //! * [`epochs`]: [`EpochMix`], the keyframes of each epoch when dataset groups are
 //!   weighted (`repeat`);
+//! * [`frames`]: [`FrameCache`], the frames that neighbouring samples share, built once
+//!   under the `blocks` order;
 //! * [`timing`]: when the LiDAR scans each camera, which matches images to sweeps;
 //! * [`builder`]: [`SampleBuilder`], a sample from its loaded parts (`load.rs`: sweeps
 //!   and frames; `images.rs`: one camera image with its superpixels; `cloud.rs`: the
@@ -43,6 +45,7 @@ pub mod deskew;
 pub mod epochs;
 mod error;
 pub mod export;
+pub mod frames;
 pub mod image_ops;
 mod images;
 pub mod kernel_maps;
@@ -60,8 +63,9 @@ pub mod voxel;
 
 pub use augment::Augmentation;
 pub use builder::SampleBuilder;
-pub use epochs::EpochMix;
+pub use epochs::{Arrangement, EpochMix, EpochOrder};
 pub use error::{SampleError, SuperpixelsFault};
+pub use frames::FrameCache;
 pub use images::CLASS_MAP_TOLERANCE_NANOS;
 pub use plan::{KeyframeRef, Plan};
 pub use recipe::{KernelMaps, SampleConfig};

@@ -28,6 +28,12 @@ pub enum Purpose {
         /// The group's position in the dataset.
         group: u32,
     },
+    /// Where the first block of run `run` of an epoch's entries ends, under the
+    /// `blocks` order (drawn with index 0).
+    BlockPhase {
+        /// The run's position among the epoch's runs.
+        run: u32,
+    },
 }
 
 impl Purpose {
@@ -40,6 +46,7 @@ impl Purpose {
             }
             Purpose::Augment { cloud } => 4 | (u64::from(cloud) << 8),
             Purpose::GroupShare { group } => 5 | (u64::from(group) << 8),
+            Purpose::BlockPhase { run } => 6 | (u64::from(run) << 8),
         }
     }
 }

@@ -641,3 +641,71 @@ fn sample_writes_foxglove_files_from_the_command_line() {
     );
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// Under the `blocks` order a frame shared by neighbouring keyframes is built once and
+/// reused; every sample's bytes are still those of the same `(keyframe, epoch, index)`
+/// built cold, on every sample drive, with class maps and with SLIC.
+#[test]
+fn blocks_reuse_frames_and_build_the_bytes_of_cold_samples() {
+    use superflow_pipeline::batch::{BatchShape, batch_bytes};
+    use superflow_pipeline::sample::EpochOrder;
+    use superflow_schemas::batch::BatchMeta;
+
+    let drives: Vec<_> = Dialect::ALL
+        .into_iter()
+        .map(|d| sample_drive(d).unwrap().path)
+        .collect();
+    let ds = Dataset::open(&drives, &Default::default()).unwrap();
+    for superpixels in [SuperpixelSource::Auto, SuperpixelSource::Slic] {
+        let config = SampleConfig {
+            superpixels,
+            ..SampleConfig::default()
+        };
+        let order = EpochOrder::Blocks { length: 3, open: 2 };
+        let blocks = SampleBuilder::new(&ds, config.clone())
+            .unwrap()
+            .with_order(order);
+        let cold = SampleBuilder::new(&ds, config.clone()).unwrap();
+        let shape = BatchShape::of(&config);
+        let meta = BatchMeta {
+            run: "blocks".into(),
+            epoch: 0,
+            step: 0,
+            seed: config.seed,
+            sequence: 0,
+            created_unix_nanos: 0,
+            sample_count: 1,
+            flags: 0,
+        };
+        let mut flips = [0usize; 2];
+        for epoch in 0..2 {
+            let order = blocks.epoch_order(epoch);
+            assert!(order.len() >= 10, "{} keyframes", order.len());
+            for (index, &keyframe) in order.iter().enumerate() {
+                let warm = blocks.build(epoch, index as u64).unwrap();
+                let fresh = cold
+                    .build_keyframe(keyframe as usize, epoch, index as u64)
+                    .unwrap();
+                for image in warm.frames.iter().flat_map(|f| &f.images) {
+                    flips[usize::from(image.flipped)] += 1;
+                }
+                let bytes =
+                    |s: &Sample| batch_bytes(std::slice::from_ref(s), shape, &meta).unwrap();
+                assert!(
+                    bytes(&warm) == bytes(&fresh),
+                    "{superpixels:?}: epoch {epoch}, position {index} (keyframe {keyframe})"
+                );
+                assert_eq!(content(warm), content(fresh));
+            }
+        }
+        let stats = blocks.frame_cache().unwrap().stats();
+        let hits = stats.hits.load(std::sync::atomic::Ordering::Relaxed);
+        let misses = stats.misses.load(std::sync::atomic::Ordering::Relaxed);
+        // Neighbouring keyframes share two of their three frames.
+        assert!(
+            hits > misses / 2,
+            "{superpixels:?}: {hits} hits, {misses} misses"
+        );
+        assert!(flips[0] > 0 && flips[1] > 0, "{flips:?}");
+    }
+}

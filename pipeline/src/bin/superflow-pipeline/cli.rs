@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use superflow_pipeline::config::{Overrides, PipelineConfig};
 use superflow_pipeline::drive::DatasetGroup;
 use superflow_pipeline::drive::groups::validate_groups;
-use superflow_pipeline::publish::{Mode, ResumeAt};
+use superflow_pipeline::publish::{Mode, Order, ResumeAt};
 
 /// Streams SuperFlow training batches from recorded drives to trainers over shared memory.
 #[derive(Debug, Parser)]
@@ -52,6 +52,11 @@ pub struct Args {
     /// `batch` writes).
     #[arg(long, global = true)]
     pub batch_size: Option<u32>,
+    /// How each epoch's samples are ordered (overrides `[service] order`): `global`
+    /// shuffles them all; `blocks` serves blocks of neighbouring keyframes side by side,
+    /// building each shared frame once.
+    #[arg(long, value_enum)]
+    pub order: Option<Order>,
     /// Epochs to stream, 0 = forever (overrides `[service] epochs`).
     #[arg(long)]
     pub epochs: Option<u64>,
@@ -287,6 +292,7 @@ impl Args {
             batch_size: self.batch_size,
             epochs: self.epochs,
             min_subscribers: self.subscribers,
+            order: self.order,
         })
     }
 }

@@ -34,7 +34,9 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
             "drive indexed"
         );
     }
-    let builder = SampleBuilder::new(&dataset, config.sample.clone())?;
+    let builder = SampleBuilder::new(&dataset, config.sample.clone())?
+        .with_order(config.service.epoch_order())
+        .keep_frames_for(config.service.positions_in_flight());
     tracing::info!(
         keyframes = builder.plan().keyframes.len(),
         samples_per_epoch = builder.epoch_len(),

@@ -1,0 +1,353 @@
+//! What neighbouring samples share, built once: under the `blocks` order
+//! ([`super::EpochOrder::Blocks`]) a keyframe's triplet shares two of its three frames
+//! with the next keyframe of its block, built `open` positions later. The
+//! [`FrameCache`] keeps each frame's de-skewed sweep and each camera's image — decoded,
+//! resized, before the flip — with its class map or sidecar superpixels (resized, before
+//! the flip), so the samples that use a frame decode it once.
+//!
+//! An entry lives while it is in use: it is dropped once no sample within `keep`
+//! positions of the newest one built has asked for it (positions count across epochs).
+//! The `blocks` order serves a block's keyframes `open` positions apart, so every entry
+//! that a still-open block will ask for again is kept, and memory is bounded by what the
+//! open blocks' frames hold (`keep` positions' worth of frames).
+//!
+//! What comes out of the cache is what building it afresh gives, byte for byte: the
+//! flip is applied on the way out (the same bytes as the fused resize-and-flip, see
+//! `image_ops::resize_bilinear_mirrored`), and nothing in an entry depends on the sample
+//! that built it.
+
+use super::types::StageTimes;
+use nalgebra::Isometry3;
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex, PoisonError};
+use superflow_schemas::sensor::{CameraCalibration, PointCloud};
+
+use crate::drive::FrameRef;
+
+/// A sweep, decoded and de-skewed (in its LiDAR frame at its stamp).
+#[derive(Debug, Clone)]
+pub(super) struct SweepEntry {
+    /// The points.
+    pub cloud: PointCloud,
+    /// Non-finite points dropped when decoding.
+    pub dropped: u64,
+}
+
+/// A camera's image for one sweep: decoded, resized and maybe mirrored, with its
+/// superpixels when they come from the recording (class maps, a SLIC sidecar).
+#[derive(Debug, Clone)]
+pub(super) struct PreparedImage {
+    /// Where the image is in the drive.
+    pub frame: FrameRef,
+    /// Its stamp minus the moment the LiDAR scanned the camera's direction.
+    pub scan_offset_nanos: i64,
+    /// The calibration in force at its stamp.
+    pub calibration: CameraCalibration,
+    /// Size of the stored image, which the calibration describes.
+    pub native: (u32, u32),
+    /// LiDAR (at the sweep stamp) → camera (at the image stamp).
+    pub camera_from_lidar: Isometry3<f64>,
+    /// RGB8 at the recipe's size.
+    pub rgb: Vec<u8>,
+    /// Superpixel ids at the recipe's size and their count, when read from the
+    /// recording (computed SLIC runs on the final, maybe flipped, image instead).
+    pub labels: Option<(Vec<u32>, u32)>,
+    /// Whether `rgb` and `labels` are mirrored left to right.
+    pub mirrored: bool,
+}
+
+/// What an entry is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+enum Key {
+    Sweep { drive: u32, sweep: u32 },
+    Image { drive: u32, sweep: u32, camera: u32 },
+}
+
+#[derive(Debug, Clone)]
+enum Value {
+    Sweep(Arc<SweepEntry>),
+    Image(Arc<PreparedImage>),
+}
+
+impl Value {
+    fn bytes(&self) -> u64 {
+        match self {
+            Value::Sweep(s) => {
+                let c = &s.cloud;
+                let n = c.len() as u64;
+                n * 16
+                    + c.ring.as_ref().map_or(0, |_| n * 2)
+                    + c.time_offset_secs.as_ref().map_or(0, |_| n * 4)
+                    + c.label.as_ref().map_or(0, |_| n * 4)
+            }
+            Value::Image(i) => {
+                i.rgb.len() as u64 + i.labels.as_ref().map_or(0, |(l, _)| l.len() as u64 * 4)
+            }
+        }
+    }
+}
+
+struct Slot {
+    value: Value,
+    /// The newest position that asked for it.
+    used: u64,
+}
+
+#[derive(Default)]
+struct Entries {
+    map: HashMap<Key, Slot>,
+    /// The newest position seen.
+    newest: u64,
+    /// The position up to which entries were last swept for age.
+    swept: u64,
+    bytes: u64,
+}
+
+/// Counters of a [`FrameCache`] (hits, misses, what it holds).
+#[derive(Debug, Default)]
+pub struct FrameCacheStats {
+    /// Lookups that found their entry.
+    pub hits: AtomicU64,
+    /// Lookups that built it.
+    pub misses: AtomicU64,
+    /// Bytes held now.
+    pub bytes: AtomicU64,
+    /// The most bytes held at once.
+    pub peak_bytes: AtomicU64,
+}
+
+/// Frames shared by the samples of open blocks (see the module documentation).
+pub struct FrameCache {
+    entries: Mutex<Entries>,
+    keep: u64,
+    stats: FrameCacheStats,
+}
+
+impl std::fmt::Debug for FrameCache {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("FrameCache")
+            .field("keep", &self.keep)
+            .field("stats", &self.stats)
+            .finish_non_exhaustive()
+    }
+}
+
+impl FrameCache {
+    /// A cache that keeps an entry while a sample within `keep` positions of the newest
+    /// one asked for it.
+    pub fn new(keep: u64) -> Self {
+        Self {
+            entries: Mutex::new(Entries::default()),
+            keep: keep.max(1),
+            stats: FrameCacheStats::default(),
+        }
+    }
+
+    /// How many positions an entry outlives its last use.
+    pub fn keep(&self) -> u64 {
+        self.keep
+    }
+
+    /// Its counters.
+    pub fn stats(&self) -> &FrameCacheStats {
+        &self.stats
+    }
+
+    /// Sweep `sweep` of drive `drive` for the sample at run position `position`, built
+    /// by `build` unless held.
+    pub(super) fn sweep<E>(
+        &self,
+        (drive, sweep): (u32, u32),
+        position: u64,
+        build: impl FnOnce() -> Result<(SweepEntry, StageTimes), E>,
+    ) -> Result<(Arc<SweepEntry>, StageTimes), E> {
+        let key = Key::Sweep { drive, sweep };
+        let got = self.get_or(key, position, || {
+            build().map(|(s, t)| (Value::Sweep(Arc::new(s)), t))
+        })?;
+        match got {
+            (Value::Sweep(s), t) => Ok((s, t)),
+            (Value::Image(_), _) => unreachable!("a sweep key holds a sweep"),
+        }
+    }
+
+    /// The image of camera `camera` for sweep `sweep` of drive `drive`, not mirrored,
+    /// for the sample at run position `position`, built by `build` unless held.
+    pub(super) fn image<E>(
+        &self,
+        (drive, sweep, camera): (u32, u32, u32),
+        position: u64,
+        build: impl FnOnce() -> Result<(PreparedImage, StageTimes), E>,
+    ) -> Result<(Arc<PreparedImage>, StageTimes), E> {
+        let key = Key::Image {
+            drive,
+            sweep,
+            camera,
+        };
+        let got = self.get_or(key, position, || {
+            build().map(|(i, t)| (Value::Image(Arc::new(i)), t))
+        })?;
+        match got {
+            (Value::Image(i), t) => Ok((i, t)),
+            (Value::Sweep(_), _) => unreachable!("an image key holds an image"),
+        }
+    }
+
+    /// The entry of `key`, built outside the lock on a miss (two samples that miss the
+    /// same entry at once both build it; the bytes are the same).
+    fn get_or<E>(
+        &self,
+        key: Key,
+        position: u64,
+        build: impl FnOnce() -> Result<(Value, StageTimes), E>,
+    ) -> Result<(Value, StageTimes), E> {
+        {
+            let mut entries = self.lock();
+            entries.newest = entries.newest.max(position);
+            if let Some(slot) = entries.map.get_mut(&key) {
+                slot.used = slot.used.max(position);
+                self.stats.hits.fetch_add(1, Ordering::Relaxed);
+                return Ok((slot.value.clone(), StageTimes::default()));
+            }
+        }
+        self.stats.misses.fetch_add(1, Ordering::Relaxed);
+        let (value, times) = build()?;
+        let mut entries = self.lock();
+        let bytes = value.bytes();
+        let previous = entries.map.insert(
+            key,
+            Slot {
+                value: value.clone(),
+                used: position,
+            },
+        );
+        entries.bytes += bytes;
+        if let Some(previous) = previous {
+            entries.bytes -= previous.value.bytes();
+        }
+        self.drop_unused(&mut entries);
+        self.stats.bytes.store(entries.bytes, Ordering::Relaxed);
+        self.stats
+            .peak_bytes
+            .fetch_max(entries.bytes, Ordering::Relaxed);
+        Ok((value, times))
+    }
+
+    /// Drops the entries no sample within `keep` positions of the newest asked for
+    /// (looked for once every `keep / 4` positions: entries may outlive their use by
+    /// that much).
+    fn drop_unused(&self, entries: &mut Entries) {
+        let step = (self.keep / 4).max(1);
+        if entries.newest < entries.swept + step {
+            return;
+        }
+        entries.swept = entries.newest;
+        let Some(oldest) = entries.newest.checked_sub(self.keep) else {
+            return;
+        };
+        let mut freed = 0;
+        entries.map.retain(|_, slot| {
+            let keep = slot.used >= oldest;
+            if !keep {
+                freed += slot.value.bytes();
+            }
+            keep
+        });
+        entries.bytes -= freed;
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, Entries> {
+        self.entries.lock().unwrap_or_else(PoisonError::into_inner)
+    }
+}
+
+/// `data` (rows of `width × channels` values) as it is, or mirrored left to right, in a
+/// new buffer.
+pub(super) fn copy_mirrored<T: Copy>(
+    data: &[T],
+    width: usize,
+    channels: usize,
+    mirrored: bool,
+) -> Vec<T> {
+    if !mirrored {
+        return data.to_vec();
+    }
+    let stride = width * channels;
+    let mut out = Vec::with_capacity(data.len());
+    if stride == 0 {
+        return data.to_vec();
+    }
+    for row in data.chunks_exact(stride) {
+        for px in row.chunks_exact(channels).rev() {
+            out.extend_from_slice(px);
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sweep(points: usize) -> SweepEntry {
+        SweepEntry {
+            cloud: PointCloud {
+                xyz: vec![[0.0; 3]; points],
+                intensity: vec![0.0; points],
+                ..PointCloud::default()
+            },
+            dropped: 0,
+        }
+    }
+
+    #[test]
+    fn an_entry_is_built_once_while_in_use_and_dropped_after() {
+        let cache = FrameCache::new(8);
+        let built = std::cell::Cell::new(0);
+        let get = |sweep: u32, position: u64| {
+            cache
+                .sweep::<()>((0, sweep), position, || {
+                    built.set(built.get() + 1);
+                    Ok((self::sweep(10), StageTimes::default()))
+                })
+                .unwrap()
+        };
+        get(1, 0);
+        get(1, 5);
+        get(1, 12);
+        assert_eq!(built.get(), 1, "used within 8 positions each time");
+        get(2, 30);
+        get(2, 31);
+        assert_eq!(built.get(), 2);
+        // Sweep 1 was last used at 12: gone by 30 + 8.
+        get(3, 40);
+        get(1, 41);
+        assert_eq!(built.get(), 4, "sweep 1 was dropped and built again");
+        assert_eq!(cache.stats().hits.load(Ordering::Relaxed), 3);
+        assert_eq!(cache.stats().misses.load(Ordering::Relaxed), 4);
+        assert!(cache.stats().bytes.load(Ordering::Relaxed) <= 3 * 160);
+    }
+
+    #[test]
+    fn a_failed_build_is_not_kept() {
+        let cache = FrameCache::new(8);
+        let e = cache.sweep((0, 0), 0, || Err::<(SweepEntry, StageTimes), _>("bad"));
+        assert_eq!(e.unwrap_err(), "bad");
+        let ok = cache.sweep::<&str>((0, 0), 1, || Ok((sweep(3), StageTimes::default())));
+        assert_eq!(ok.unwrap().0.cloud.len(), 3);
+    }
+
+    #[test]
+    fn mirrored_copies_reverse_each_rows_pixels() {
+        let rgb: Vec<u8> = (0..12).collect();
+        assert_eq!(copy_mirrored(&rgb, 2, 3, false), rgb);
+        assert_eq!(
+            copy_mirrored(&rgb, 2, 3, true),
+            [3, 4, 5, 0, 1, 2, 9, 10, 11, 6, 7, 8]
+        );
+        let mut flipped = rgb.clone();
+        super::super::image_ops::flip_horizontal(&mut flipped, 2, 3);
+        assert_eq!(copy_mirrored(&rgb, 2, 3, true), flipped);
+    }
+}
