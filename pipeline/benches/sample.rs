@@ -23,6 +23,7 @@ static ALLOCATOR: superflow_common::memory::Allocator = superflow_common::memory
 
 fn main() -> anyhow::Result<()> {
     superflow_common::memory::keep_freed_pages();
+    superflow_common::memory::small_pages_only();
     let n = arg_count("--samples")?.unwrap_or(48);
     let cores = cores();
     println!(

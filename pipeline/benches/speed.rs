@@ -46,9 +46,14 @@ mod chart;
 mod common;
 #[path = "speed/floor.rs"]
 mod floor;
+#[path = "speed/order.rs"]
+mod order;
 #[allow(dead_code)]
 #[path = "../../tests/src/bench/sample.rs"]
 mod sample;
+#[allow(dead_code)]
+#[path = "../../tests/src/bench/transport.rs"]
+mod transport;
 
 use common::{arg_count, arg_value, cores, flag, load_average};
 use sample::{one_and_all, stage_cells, stage_ms, throughput};
@@ -256,6 +261,14 @@ fn parse_size(size: &str) -> anyhow::Result<(u32, u32)> {
         .ok_or_else(|| anyhow::anyhow!("{size}: expected WIDTHxHEIGHT"))
 }
 
+/// Minor page faults of this process so far (`/proc/self/stat`, the 10th field).
+fn minor_faults() -> anyhow::Result<u64> {
+    let stat = std::fs::read_to_string("/proc/self/stat")?;
+    let rest = stat.rsplit_once(')').map_or("", |(_, r)| r);
+    let field = rest.split_whitespace().nth(10 - 3).unwrap_or("0");
+    Ok(field.parse()?)
+}
+
 /// `--loop N`: `n` class-map samples of the drive at `path` one after the other on one
 /// thread, after a warm-up epoch; prints ms a sample and its stages.
 fn profile_loop(path: &std::path::Path, n: usize, maps: KernelMaps) -> anyhow::Result<()> {
@@ -276,9 +289,11 @@ fn profile_loop(path: &std::path::Path, n: usize, maps: KernelMaps) -> anyhow::R
         .map(|f| f.cloud.xyz.len())
         .sum();
     sample::throughput(&builder, builder.plan().keyframes.len(), 1)?;
+    let faults = minor_faults()?;
     let (per_s, times) = sample::throughput(&builder, n, 1)?;
+    let faults = minor_faults()? - faults;
     println!(
-        "{}: {n} samples on 1 thread, {:.0} points a frame: {:.2} ms a sample | {} |",
+        "{}: {n} samples on 1 thread, {:.0} points a frame: {:.2} ms a sample | {} | {faults} minor faults",
         path.display(),
         points as f64 / builder.config().temporal_frames as f64,
         1e3 / per_s,
@@ -287,8 +302,60 @@ fn profile_loop(path: &std::path::Path, n: usize, maps: KernelMaps) -> anyhow::R
     Ok(())
 }
 
+/// `--orders`: the `global` and `blocks` orders side by side at each size, in the
+/// builder and in the service (`speed/order.rs`).
+fn orders(
+    sizes: &str,
+    columns: Option<usize>,
+    maps: KernelMaps,
+    regenerate: bool,
+) -> anyhow::Result<()> {
+    let copies = arg_count("--copies")?.unwrap_or(3);
+    let epochs = arg_count("--epochs")?.unwrap_or(3) as u64;
+    let cores = cores();
+    let binary = PathBuf::from(env!("CARGO_BIN_EXE_superflow-pipeline"));
+    println!(
+        "{copies} copies of the nuScenes-sized drive (nuscenes2mcap layout, class maps), default recipe{}; {epochs} epochs after a warm-up one, batches of 4 built in turn (a batch's samples in parallel); load average {} at start",
+        columns.map_or(String::new(), |c| format!(", {c} LiDAR columns")),
+        load_average(3)
+    );
+    println!(
+        "| size | order | ms/sample 1 core | samples/s {cores} cores | decode | sweeps | images | projection | superpixels | voxels+maps | frames found built % | frames held, most MB |"
+    );
+    println!("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    let mut services = Vec::new();
+    for size in sizes.split(',').filter(|s| !s.is_empty()) {
+        let (w, h) = parse_size(size)?;
+        let path = drive(Dialect::Foxglove, w, h, columns, regenerate)?;
+        let paths = order::copies(&path, copies)?;
+        for (name, run) in order::runs(&paths, maps, epochs, cores)? {
+            println!("{}", order::row(size, name, &run));
+        }
+        for (name, _) in order::ORDERS {
+            let (cpu_ms, samples, wall) = order::service(&binary, &paths, name, epochs)?;
+            services.push(format!(
+                "| {size} | {name} | {cpu_ms:.1} | {samples} | {wall:.1} |"
+            ));
+        }
+    }
+    println!(
+        "stage columns: ms a sample on 1 core; blocks: 8 keyframes, 16 open (the service's defaults)"
+    );
+    println!();
+    println!("| size | order | service CPU ms/sample | samples | wall s |");
+    println!("|---|---|---:|---:|---:|");
+    for row in services {
+        println!("{row}");
+    }
+    println!(
+        "the service: superflow-pipeline --epochs {epochs} --batch-size 2 from a warm index cache, every batch received; its process CPU (user + system, start-up included) over the samples"
+    );
+    Ok(())
+}
+
 fn main() -> anyhow::Result<()> {
     superflow_common::memory::keep_freed_pages();
+    superflow_common::memory::small_pages_only();
     let n = arg_count("--samples")?.unwrap_or(48);
     let n_slic = arg_count("--slic-samples")?.unwrap_or(12);
     let sizes = arg_value("--sizes").unwrap_or_else(|| "800x450,1600x900".into());
@@ -300,6 +367,9 @@ fn main() -> anyhow::Result<()> {
         Some("none") => KernelMaps::None,
         Some(other) => anyhow::bail!("--kernel-maps {other}: expected unet or none"),
     };
+    if flag("--orders") {
+        return orders(&sizes, columns, maps, regenerate);
+    }
     if let Some(n) = arg_count("--loop")? {
         let size = sizes.split(',').next().unwrap_or_default();
         let (w, h) = parse_size(size)?;

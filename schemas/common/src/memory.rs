@@ -10,7 +10,8 @@
 //! "mimalloc: keeping freed pages").
 //!
 //! The binaries declare `#[global_allocator] static A: Allocator = Allocator;` and call
-//! [`keep_freed_pages`] first thing in `main`.
+//! [`keep_freed_pages`] first thing in `main`; the pipeline also calls
+//! [`small_pages_only`].
 
 /// The global allocator of superflow's binaries and benches.
 pub use mimalloc::MiMalloc as Allocator;
@@ -26,6 +27,32 @@ pub fn keep_freed_pages() {
     // thread-safe. The option index is checked by a test against the linked mimalloc.
     unsafe {
         libmimalloc_sys::mi_option_set(PURGE_DELAY, -1);
+    }
+}
+
+/// Turns transparent huge pages off for this process (`PR_SET_THP_DISABLE`); returns
+/// whether the kernel agreed.
+///
+/// mimalloc advises huge pages for its arenas. With them, a big table's place in the
+/// cache follows its virtual address (a 2 MiB page is contiguous in physical memory),
+/// and where mimalloc put a sample's neighbour and down-sampling tables decides, for the
+/// whole life of the process since freed pages are kept, whether they evict each other:
+/// the same build ran 25 % slower in voxels and maps one run in four, and a fault on a
+/// fresh huge page zeroes 2 MiB. With 4 KiB pages the kernel scatters physical pages, and
+/// every process runs alike at the same mean speed (pipeline/docs/FIELD_NOTES.md,
+/// "Transparent huge pages").
+pub fn small_pages_only() -> bool {
+    #[cfg(target_os = "linux")]
+    {
+        #[allow(unsafe_code)]
+        // SAFETY: `prctl(PR_SET_THP_DISABLE, 1, 0, 0, 0)` sets a flag on this process's
+        // memory map; it reads no pointer and has no other effect.
+        let rc = unsafe { libc::prctl(libc::PR_SET_THP_DISABLE, 1, 0, 0, 0) };
+        rc == 0
+    }
+    #[cfg(not(target_os = "linux"))]
+    {
+        false
     }
 }
 
@@ -49,5 +76,15 @@ mod tests {
         keep_freed_pages();
         // SAFETY: as above.
         assert_eq!(unsafe { libmimalloc_sys::mi_option_get(PURGE_DELAY) }, -1);
+    }
+
+    #[test]
+    #[cfg(target_os = "linux")]
+    #[allow(unsafe_code)]
+    fn small_pages_only_turns_huge_pages_off() {
+        assert!(small_pages_only());
+        // SAFETY: reading the flag has no preconditions.
+        let disabled = unsafe { libc::prctl(libc::PR_GET_THP_DISABLE, 0, 0, 0, 0) };
+        assert_eq!(disabled, 1);
     }
 }

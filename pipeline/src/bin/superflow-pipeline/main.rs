@@ -57,6 +57,7 @@ fn run(args: &Args) -> anyhow::Result<()> {
 
 fn main() -> std::process::ExitCode {
     superflow_common::memory::keep_freed_pages();
+    superflow_common::memory::small_pages_only();
     superflow_common::logging::init();
     superflow_pipeline::source::raise_open_file_limit();
     match run(&cli::parse()) {
