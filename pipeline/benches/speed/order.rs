@@ -77,6 +77,18 @@ pub struct Run {
     pub peak_mb: Option<f64>,
 }
 
+/// What [`epochs_on`] measured.
+struct Measured {
+    /// Wall seconds of the measured epochs.
+    secs: f64,
+    /// Samples built in them.
+    samples: usize,
+    /// Their stage times.
+    times: StageTimes,
+    /// Shared frames found built / looked up, and the most MB they held.
+    cache: Option<(f64, f64)>,
+}
+
 /// Epochs `epochs` (after a warm-up epoch) of `dataset` under `order`, on `threads`
 /// threads, batch by batch.
 fn epochs_on(
@@ -85,7 +97,7 @@ fn epochs_on(
     order: EpochOrder,
     epochs: std::ops::Range<u64>,
     threads: usize,
-) -> anyhow::Result<(f64, usize, StageTimes, Option<(f64, f64)>)> {
+) -> anyhow::Result<Measured> {
     let builder = SampleBuilder::new(dataset, config.clone())?
         .with_order(order)
         .keep_frames_for(2 * BATCH as u64);
@@ -130,7 +142,12 @@ fn epochs_on(
         let peak = s.peak_bytes.load(std::sync::atomic::Ordering::Relaxed) as f64 / 1e6;
         (hits as f64 / (hits + misses).max(1) as f64, peak)
     });
-    Ok((secs, samples, times, cache))
+    Ok(Measured {
+        secs,
+        samples,
+        times,
+        cache,
+    })
 }
 
 /// Each order's run over `paths`: `epochs` epochs on one core, then on `cores`.
@@ -147,18 +164,17 @@ pub fn runs(
     };
     let mut out = Vec::new();
     for (name, order) in ORDERS {
-        let (secs, samples, times, cache) = epochs_on(&dataset, &config, order, 1..1 + epochs, 1)?;
-        let (secs_all, samples_all, _, _) =
-            epochs_on(&dataset, &config, order, 1..1 + epochs, cores)?;
+        let one = epochs_on(&dataset, &config, order, 1..1 + epochs, 1)?;
+        let all = epochs_on(&dataset, &config, order, 1..1 + epochs, cores)?;
         out.push((
             name,
             Run {
-                ms_one: secs * 1e3 / samples as f64,
-                per_s_all: samples_all as f64 / secs_all,
-                times,
-                samples,
-                hit_rate: cache.map(|c| c.0),
-                peak_mb: cache.map(|c| c.1),
+                ms_one: one.secs * 1e3 / one.samples as f64,
+                per_s_all: all.samples as f64 / all.secs,
+                times: one.times,
+                samples: one.samples,
+                hit_rate: one.cache.map(|c| c.0),
+                peak_mb: one.cache.map(|c| c.1),
             },
         ));
     }
@@ -209,7 +225,7 @@ pub fn service(
     let dataset = Dataset::open(paths, &IngestConfig::default())?;
     let expected =
         epochs * SampleBuilder::new(&dataset, SampleConfig::default())?.epoch_len() as u64;
-    let receiver = transport::BatchReceiver::open(&prefix, &run, 8)?;
+    let receiver = transport::BatchReceiver::open(&prefix, &run, 4)?;
     let started = Instant::now();
     let mut child = Command::new(binary)
         .arg("--mcap")

@@ -9,7 +9,7 @@
 use super::cloud::DenseCloud;
 use super::epochs::{EpochMix, EpochOrder};
 use super::error::SampleError;
-use super::frames::FrameCache;
+use super::frames::{FrameCache, FrameKey, LastUses};
 use super::load::{FrameInputs, SampleContext};
 use super::plan::{KeyframeRef, Plan};
 use super::recipe::{SampleConfig, SuperpixelSource};
@@ -110,7 +110,10 @@ impl<'d> SampleBuilder<'d> {
         self.mix = self.mix.ordered(order);
         self.frames = match order {
             EpochOrder::Global => None,
-            EpochOrder::Blocks { open, .. } => Some(FrameCache::new(u64::from(open) + 1)),
+            EpochOrder::Blocks { open, .. } => {
+                crate::source::keep_chunks_for_blocks(open as usize);
+                Some(FrameCache::new(u64::from(open) + 1))
+            }
         };
         self
     }
@@ -178,6 +181,47 @@ impl<'d> SampleBuilder<'d> {
         self.build_keyframe(order[index as usize] as usize, epoch, index)
     }
 
+    /// The cameras of `drive` that sample `index` of `epoch` uses, in slot order.
+    fn chosen_cameras(&self, drive: &Drive, epoch: u64, index: u64) -> Vec<usize> {
+        let m = drive.cameras.len();
+        let k = (self.config.cameras as usize).min(m);
+        SampleRng::new(self.config.seed, epoch, index, Purpose::Cameras).choose(m, k)
+    }
+
+    /// The last run position of `epoch` that asks for each frame: every position's
+    /// temporal frames (sweep and chosen cameras' images) and dense-cloud sweeps.
+    fn frame_uses(&self, epoch: u64) -> LastUses {
+        let mut uses = LastUses::new();
+        let base = epoch * self.epoch_len() as u64;
+        for (index, &keyframe) in self.epoch_order(epoch).iter().enumerate() {
+            let position = base + index as u64;
+            let key = &self.plan.keyframes[keyframe as usize];
+            let drive = key.drive;
+            let chosen =
+                self.chosen_cameras(&self.dataset.drives[drive as usize], epoch, index as u64);
+            for &sweep in &key.frame_sweeps {
+                uses.insert(FrameKey::Sweep { drive, sweep }, position);
+                for &camera in &chosen {
+                    let camera = camera as u32;
+                    uses.insert(
+                        FrameKey::Image {
+                            drive,
+                            sweep,
+                            camera,
+                        },
+                        position,
+                    );
+                }
+            }
+            for earlier in 1..=self.config.dense_sweeps {
+                if let Some(sweep) = key.sweep.checked_sub(earlier) {
+                    uses.insert(FrameKey::Sweep { drive, sweep }, position);
+                }
+            }
+        }
+        uses
+    }
+
     /// The sample of plan keyframe `keyframe` with the draws of `(epoch, index)`.
     pub fn build_keyframe(
         &self,
@@ -202,9 +246,11 @@ impl<'d> SampleBuilder<'d> {
             drive: key.drive,
             sweep: key.sweep,
         };
-        let m = drive.cameras.len();
-        let k = (cfg.cameras as usize).min(m);
-        let chosen = SampleRng::new(cfg.seed, epoch, index, Purpose::Cameras).choose(m, k);
+        let chosen = self.chosen_cameras(drive, epoch, index);
+        let last_uses = self
+            .frames
+            .as_ref()
+            .map(|cache| cache.last_uses(epoch, || self.frame_uses(epoch)));
         let ctx = SampleContext {
             config: cfg,
             drive,
@@ -215,6 +261,7 @@ impl<'d> SampleBuilder<'d> {
             scan: &self.plan.scans[key.drive as usize],
             frames: self.frames.as_ref(),
             position: epoch * self.epoch_len() as u64 + index,
+            last_uses: last_uses.as_deref(),
         };
         let key_frame = cfg
             .frame_offsets()

@@ -1,29 +1,30 @@
 //! What neighbouring samples share, built once: under the `blocks` order
 //! ([`super::EpochOrder::Blocks`]) a keyframe's triplet shares two of its three frames
 //! with the next keyframe of its block, built `open` positions later. The
-//! [`FrameCache`] keeps each frame's de-skewed sweep and each camera's image — decoded,
-//! resized, before the flip — with its class map or sidecar superpixels (resized, before
-//! the flip), so the samples that use a frame decode it once.
+//! [`FrameCache`] keeps each frame's de-skewed sweep and each camera's image as decoded,
+//! with its decoded class map or sidecar superpixels, so the samples that use a frame
+//! decompress and decode it once; each sample resizes and flips its own copy (one pass,
+//! as a cold build does).
 //!
-//! An entry lives while it is in use: it is dropped once no sample within `keep`
-//! positions of the newest one built has asked for it (positions count across epochs).
-//! The `blocks` order serves a block's keyframes `open` positions apart, so every entry
-//! that a still-open block will ask for again is kept, and memory is bounded by what the
-//! open blocks' frames hold (`keep` positions' worth of frames).
+//! An entry lives while a sample still to be built will ask for it: the builder works out
+//! from the epoch's order the last position that uses each frame ([`LastUses`]), and the
+//! entry goes when that sample takes it. What the samples of open blocks share with
+//! their next keyframes is all that stays: under the defaults (16 open blocks, 3 of 6
+//! cameras, triplets 0.5 s apart) about two frames' sweeps and four or five images per
+//! camera slot of each open block. Entries whose last user failed, or lives on another
+//! host, go once no sample within `keep` positions of the newest one has asked for them
+//! (positions count across epochs).
 //!
-//! What comes out of the cache is what building it afresh gives, byte for byte: the
-//! flip is applied on the way out (the same bytes as the fused resize-and-flip, see
-//! `image_ops::resize_bilinear_mirrored`), and nothing in an entry depends on the sample
-//! that built it.
+//! What comes out of the cache is what reading it afresh gives, byte for byte: nothing
+//! in an entry depends on the sample that read it (the flip, a draw of the sample, comes
+//! after).
 
+use super::images::CameraRead;
 use super::types::StageTimes;
-use nalgebra::Isometry3;
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
-use superflow_schemas::sensor::{CameraCalibration, PointCloud};
-
-use crate::drive::FrameRef;
+use superflow_schemas::sensor::PointCloud;
 
 /// A sweep, decoded and de-skewed (in its LiDAR frame at its stamp).
 #[derive(Debug, Clone)]
@@ -34,40 +35,22 @@ pub(super) struct SweepEntry {
     pub dropped: u64,
 }
 
-/// A camera's image for one sweep: decoded, resized and maybe mirrored, with its
-/// superpixels when they come from the recording (class maps, a SLIC sidecar).
-#[derive(Debug, Clone)]
-pub(super) struct PreparedImage {
-    /// Where the image is in the drive.
-    pub frame: FrameRef,
-    /// Its stamp minus the moment the LiDAR scanned the camera's direction.
-    pub scan_offset_nanos: i64,
-    /// The calibration in force at its stamp.
-    pub calibration: CameraCalibration,
-    /// Size of the stored image, which the calibration describes.
-    pub native: (u32, u32),
-    /// LiDAR (at the sweep stamp) → camera (at the image stamp).
-    pub camera_from_lidar: Isometry3<f64>,
-    /// RGB8 at the recipe's size.
-    pub rgb: Vec<u8>,
-    /// Superpixel ids at the recipe's size and their count, when read from the
-    /// recording (computed SLIC runs on the final, maybe flipped, image instead).
-    pub labels: Option<(Vec<u32>, u32)>,
-    /// Whether `rgb` and `labels` are mirrored left to right.
-    pub mirrored: bool,
-}
-
 /// What an entry is.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
-enum Key {
+pub(super) enum FrameKey {
+    /// Sweep `sweep` of drive `drive`.
     Sweep { drive: u32, sweep: u32 },
+    /// Camera `camera`'s image for sweep `sweep` of drive `drive`.
     Image { drive: u32, sweep: u32, camera: u32 },
 }
+
+/// The last run position of an epoch that asks for each frame.
+pub(super) type LastUses = HashMap<FrameKey, u64>;
 
 #[derive(Debug, Clone)]
 enum Value {
     Sweep(Arc<SweepEntry>),
-    Image(Arc<PreparedImage>),
+    Image(Arc<CameraRead>),
 }
 
 impl Value {
@@ -81,9 +64,7 @@ impl Value {
                     + c.time_offset_secs.as_ref().map_or(0, |_| n * 4)
                     + c.label.as_ref().map_or(0, |_| n * 4)
             }
-            Value::Image(i) => {
-                i.rgb.len() as u64 + i.labels.as_ref().map_or(0, |(l, _)| l.len() as u64 * 4)
-            }
+            Value::Image(i) => i.bytes(),
         }
     }
 }
@@ -96,7 +77,9 @@ struct Slot {
 
 #[derive(Default)]
 struct Entries {
-    map: HashMap<Key, Slot>,
+    map: HashMap<FrameKey, Slot>,
+    /// The last uses of the epochs being built.
+    last_uses: Vec<(u64, Arc<LastUses>)>,
     /// The newest position seen.
     newest: u64,
     /// The position up to which entries were last swept for age.
@@ -154,16 +137,35 @@ impl FrameCache {
         &self.stats
     }
 
+    /// The last uses of `epoch`'s frames, worked out by `compute` the first time (the
+    /// epochs before `epoch − 1` are forgotten).
+    pub(super) fn last_uses(
+        &self,
+        epoch: u64,
+        compute: impl FnOnce() -> LastUses,
+    ) -> Arc<LastUses> {
+        if let Some((_, uses)) = self.lock().last_uses.iter().find(|(e, _)| *e == epoch) {
+            return uses.clone();
+        }
+        let uses = Arc::new(compute());
+        let mut entries = self.lock();
+        entries
+            .last_uses
+            .retain(|(e, _)| *e + 1 >= epoch && *e != epoch);
+        entries.last_uses.push((epoch, uses.clone()));
+        uses
+    }
+
     /// Sweep `sweep` of drive `drive` for the sample at run position `position`, built
-    /// by `build` unless held.
+    /// by `build` unless held; `last`: no later sample asks for it.
     pub(super) fn sweep<E>(
         &self,
         (drive, sweep): (u32, u32),
-        position: u64,
+        (position, last): (u64, bool),
         build: impl FnOnce() -> Result<(SweepEntry, StageTimes), E>,
     ) -> Result<(Arc<SweepEntry>, StageTimes), E> {
-        let key = Key::Sweep { drive, sweep };
-        let got = self.get_or(key, position, || {
+        let key = FrameKey::Sweep { drive, sweep };
+        let got = self.get_or(key, (position, last), || {
             build().map(|(s, t)| (Value::Sweep(Arc::new(s)), t))
         })?;
         match got {
@@ -172,20 +174,21 @@ impl FrameCache {
         }
     }
 
-    /// The image of camera `camera` for sweep `sweep` of drive `drive`, not mirrored,
-    /// for the sample at run position `position`, built by `build` unless held.
+    /// The image of camera `camera` for sweep `sweep` of drive `drive` as read, for the
+    /// sample at run position `position`, read by `build` unless held; `last`: no later
+    /// sample asks for it.
     pub(super) fn image<E>(
         &self,
         (drive, sweep, camera): (u32, u32, u32),
-        position: u64,
-        build: impl FnOnce() -> Result<(PreparedImage, StageTimes), E>,
-    ) -> Result<(Arc<PreparedImage>, StageTimes), E> {
-        let key = Key::Image {
+        (position, last): (u64, bool),
+        build: impl FnOnce() -> Result<(CameraRead, StageTimes), E>,
+    ) -> Result<(Arc<CameraRead>, StageTimes), E> {
+        let key = FrameKey::Image {
             drive,
             sweep,
             camera,
         };
-        let got = self.get_or(key, position, || {
+        let got = self.get_or(key, (position, last), || {
             build().map(|(i, t)| (Value::Image(Arc::new(i)), t))
         })?;
         match got {
@@ -195,36 +198,47 @@ impl FrameCache {
     }
 
     /// The entry of `key`, built outside the lock on a miss (two samples that miss the
-    /// same entry at once both build it; the bytes are the same).
+    /// same entry at once both build it; the bytes are the same). The last use takes the
+    /// entry out, or does not put it in.
     fn get_or<E>(
         &self,
-        key: Key,
-        position: u64,
+        key: FrameKey,
+        (position, last): (u64, bool),
         build: impl FnOnce() -> Result<(Value, StageTimes), E>,
     ) -> Result<(Value, StageTimes), E> {
         {
             let mut entries = self.lock();
             entries.newest = entries.newest.max(position);
-            if let Some(slot) = entries.map.get_mut(&key) {
-                slot.used = slot.used.max(position);
+            let found = if last {
+                entries.map.remove(&key).map(|slot| {
+                    entries.bytes -= slot.value.bytes();
+                    slot.value
+                })
+            } else {
+                entries.map.get_mut(&key).map(|slot| {
+                    slot.used = slot.used.max(position);
+                    slot.value.clone()
+                })
+            };
+            if let Some(value) = found {
                 self.stats.hits.fetch_add(1, Ordering::Relaxed);
-                return Ok((slot.value.clone(), StageTimes::default()));
+                self.stats.bytes.store(entries.bytes, Ordering::Relaxed);
+                return Ok((value, StageTimes::default()));
             }
         }
         self.stats.misses.fetch_add(1, Ordering::Relaxed);
         let (value, times) = build()?;
         let mut entries = self.lock();
-        let bytes = value.bytes();
-        let previous = entries.map.insert(
-            key,
-            Slot {
+        if !last {
+            let bytes = value.bytes();
+            let slot = Slot {
                 value: value.clone(),
                 used: position,
-            },
-        );
-        entries.bytes += bytes;
-        if let Some(previous) = previous {
-            entries.bytes -= previous.value.bytes();
+            };
+            if let Some(previous) = entries.map.insert(key, slot) {
+                entries.bytes -= previous.value.bytes();
+            }
+            entries.bytes += bytes;
         }
         self.drop_unused(&mut entries);
         self.stats.bytes.store(entries.bytes, Ordering::Relaxed);
@@ -307,7 +321,7 @@ mod tests {
         let built = std::cell::Cell::new(0);
         let get = |sweep: u32, position: u64| {
             cache
-                .sweep::<()>((0, sweep), position, || {
+                .sweep::<()>((0, sweep), (position, false), || {
                     built.set(built.get() + 1);
                     Ok((self::sweep(10), StageTimes::default()))
                 })
@@ -332,10 +346,35 @@ mod tests {
     #[test]
     fn a_failed_build_is_not_kept() {
         let cache = FrameCache::new(8);
-        let e = cache.sweep((0, 0), 0, || Err::<(SweepEntry, StageTimes), _>("bad"));
+        let e = cache.sweep((0, 0), (0, false), || {
+            Err::<(SweepEntry, StageTimes), _>("bad")
+        });
         assert_eq!(e.unwrap_err(), "bad");
-        let ok = cache.sweep::<&str>((0, 0), 1, || Ok((sweep(3), StageTimes::default())));
+        let ok = cache.sweep::<&str>((0, 0), (1, false), || Ok((sweep(3), StageTimes::default())));
         assert_eq!(ok.unwrap().0.cloud.len(), 3);
+    }
+
+    #[test]
+    fn the_last_use_takes_the_entry_out() {
+        let cache = FrameCache::new(100);
+        let built = std::cell::Cell::new(0);
+        let get = |position: u64, last: bool| {
+            cache
+                .sweep::<()>((3, 7), (position, last), || {
+                    built.set(built.get() + 1);
+                    Ok((sweep(10), StageTimes::default()))
+                })
+                .unwrap()
+        };
+        get(0, false);
+        assert!(cache.stats().bytes.load(Ordering::Relaxed) > 0);
+        get(1, true);
+        assert_eq!(built.get(), 1);
+        assert_eq!(cache.stats().bytes.load(Ordering::Relaxed), 0, "taken out");
+        // A frame used once is built and not kept.
+        get(2, true);
+        assert_eq!(built.get(), 2);
+        assert_eq!(cache.stats().bytes.load(Ordering::Relaxed), 0);
     }
 
     #[test]

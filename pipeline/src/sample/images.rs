@@ -1,10 +1,14 @@
 //! One camera image of a sample's frame: the image nearest the sweep, checked against
 //! its calibration and decoded, resized (bilinear) and maybe flipped, with its
-//! superpixels — the recording's class map (resized nearest, flipped alike) or SLIC on
-//! the resized image.
+//! superpixels — the recording's class map (resized nearest, flipped alike), a SLIC
+//! sidecar's labels, or SLIC on the resized image.
+//!
+//! Reading ([`CameraRead`]: the decoded image and its class map or sidecar labels, as
+//! stored) and finishing (resize, flip, superpixels) are apart: under the `blocks` order
+//! the read is kept in the frame cache and finished again by every sample that uses it.
 
 use super::error::SampleError;
-use super::frames::{PreparedImage, copy_mirrored};
+use super::frames::{FrameKey, copy_mirrored};
 use super::image_ops;
 use super::load::{SampleContext, elapsed, with_cache};
 use super::plan::camera_frame_for;
@@ -23,20 +27,55 @@ use superflow_schemas::sensor::{CameraCalibration, Image, PixelFormat};
 /// Class maps are matched to images by stamp within this tolerance.
 pub const CLASS_MAP_TOLERANCE_NANOS: i64 = 1_000_000;
 
-/// A camera image decoded and checked against its calibration, before resizing.
-struct RawImage {
+/// A camera image decoded and checked against its calibration, before resizing, with
+/// what the recording holds of its superpixels.
+#[derive(Debug, Clone)]
+pub(super) struct CameraRead {
     /// Where the image is in the drive.
-    frame: FrameRef,
+    pub frame: FrameRef,
     /// Its stamp minus the moment the LiDAR scanned the camera's direction.
-    scan_offset_nanos: i64,
+    pub scan_offset_nanos: i64,
     /// The calibration in force at its stamp.
-    calibration: CameraCalibration,
+    pub calibration: CameraCalibration,
     /// The decoded RGB8 image (at a reduced scale when the recipe allows it).
-    image: Image,
+    pub image: Image,
     /// Size of the stored image, which the calibration describes.
-    native: (u32, u32),
+    pub native: (u32, u32),
     /// LiDAR (at the sweep stamp) → camera (at the image stamp).
-    camera_from_lidar: Isometry3<f64>,
+    pub camera_from_lidar: Isometry3<f64>,
+    /// Its superpixels as recorded.
+    pub superpixels: RecordedSuperpixels,
+}
+
+/// The superpixels a recording holds for an image.
+#[derive(Debug, Clone)]
+pub(super) enum RecordedSuperpixels {
+    /// A class map at the image's stored size, checked against the classes.
+    ClassMap(Image),
+    /// SLIC labels from the sidecar at the recipe's size, and their count.
+    Sidecar(Vec<u32>, u32),
+    /// None: SLIC runs on the resized image.
+    Computed,
+}
+
+impl CameraRead {
+    /// Bytes held.
+    pub fn bytes(&self) -> u64 {
+        let sp = match &self.superpixels {
+            RecordedSuperpixels::ClassMap(map) => map.data.len(),
+            RecordedSuperpixels::Sidecar(labels, _) => labels.len() * 4,
+            RecordedSuperpixels::Computed => 0,
+        };
+        (self.image.data.len() + sp) as u64
+    }
+
+    /// Gives the decode buffers back to their pool.
+    fn give_back(self) {
+        buffers::give_back(self.image.data);
+        if let RecordedSuperpixels::ClassMap(map) = self.superpixels {
+            buffers::give_back(map.data);
+        }
+    }
 }
 
 impl SampleContext<'_> {
@@ -44,7 +83,7 @@ impl SampleContext<'_> {
     /// (the one nearest the LiDAR's scan of it, see `timing.rs`), resized and maybe flipped
     /// (the draw of frame `frame_pos`, camera slot `slot`), with its superpixels; also
     /// the number of superpixel ids it uses and the time spent. With a frame cache the
-    /// image is prepared unflipped once and flipped on the way out (the same bytes).
+    /// read is shared with the other samples of the frame.
     pub(super) fn load_image(
         &self,
         camera_index: usize,
@@ -52,61 +91,27 @@ impl SampleContext<'_> {
         frame_pos: u32,
         slot: usize,
     ) -> Result<(SampleImage, u32, StageTimes), SampleError> {
-        let cfg = self.config;
-        let camera = &self.drive.cameras[camera_index];
         let flipped = self.flip_draw(frame_pos, slot);
-        let (prepared, mut times) = match self.frames {
-            None => self.prepare_image(camera_index, sweep, flipped)?,
+        match self.frames {
+            None => {
+                let (read, mut times) = self.read_camera_frame(camera_index, sweep)?;
+                let (image, count) = self.finish_image(camera_index, &read, flipped, &mut times);
+                read.give_back();
+                Ok((image, count, times))
+            }
             Some(cache) => {
                 let key = (self.id.drive, sweep, camera_index as u32);
-                let (held, times) = cache.image(key, self.position, || {
-                    self.prepare_image(camera_index, sweep, false)
-                })?;
-                let width = cfg.image_width as usize;
-                let image = PreparedImage {
-                    rgb: copy_mirrored(&held.rgb, width, 3, flipped),
-                    labels: held
-                        .labels
-                        .as_ref()
-                        .map(|(l, count)| (copy_mirrored(l, width, 1, flipped), *count)),
-                    mirrored: flipped,
-                    calibration: held.calibration.clone(),
-                    ..*held
-                };
-                (image, times)
+                let used = self.use_of(FrameKey::Image {
+                    drive: key.0,
+                    sweep,
+                    camera: key.2,
+                });
+                let (read, mut times) =
+                    cache.image(key, used, || self.read_camera_frame(camera_index, sweep))?;
+                let (image, count) = self.finish_image(camera_index, &read, flipped, &mut times);
+                Ok((image, count, times))
             }
-        };
-        debug_assert_eq!(prepared.mirrored, flipped);
-        let (superpixels, count) = match prepared.labels {
-            Some(labels) => labels,
-            None => {
-                let t = Instant::now();
-                let seg = slic(
-                    &prepared.rgb,
-                    cfg.image_width as usize,
-                    cfg.image_height as usize,
-                    &cfg.slic,
-                );
-                times.superpixels += elapsed(t);
-                (seg.labels, seg.count)
-            }
-        };
-        Ok((
-            SampleImage {
-                camera: camera.name.clone(),
-                topic: camera.image_topic.clone(),
-                stamp: prepared.frame.stamp,
-                scan_offset_nanos: prepared.scan_offset_nanos,
-                native_size: prepared.native,
-                flipped,
-                rgb: prepared.rgb,
-                superpixels,
-                camera_from_lidar: prepared.camera_from_lidar,
-                calibration: prepared.calibration,
-            },
-            count,
-            times,
-        ))
+        }
     }
 
     /// Whether image slot `slot` of frame `frame_pos` is flipped (the sample's draw).
@@ -123,16 +128,13 @@ impl SampleContext<'_> {
         .bernoulli(self.config.image_flip_probability)
     }
 
-    /// The image of camera `camera_index` for sweep `sweep`: read, checked, resized and
-    /// mirrored when `mirrored` (in one pass), with the superpixels the recording holds
-    /// for it (class map or SLIC sidecar, mirrored alike); computed SLIC is left to the
-    /// caller.
-    fn prepare_image(
+    /// Reads camera `camera_index`'s image for sweep `sweep` with its recorded
+    /// superpixels (class map checked, sidecar labels as stored).
+    pub(super) fn read_camera_frame(
         &self,
         camera_index: usize,
         sweep: u32,
-        mirrored: bool,
-    ) -> Result<(PreparedImage, StageTimes), SampleError> {
+    ) -> Result<(CameraRead, StageTimes), SampleError> {
         let cfg = self.config;
         let mut times = StageTimes::default();
         let camera = &self.drive.cameras[camera_index];
@@ -143,49 +145,78 @@ impl SampleContext<'_> {
             .as_ref()
             .map(|l| l.sweeps[sweep as usize].stamp)
             .unwrap_or_default();
-        let mut raw = self.read_camera(camera, moments, lidar_stamp, &mut times)?;
-        let t = Instant::now();
-        let rgb = cfg.resized_rgb(&raw.image, mirrored);
-        buffers::give_back(std::mem::take(&mut raw.image.data));
-        times.images += elapsed(t);
-
+        let mut read = self.read_camera(camera, moments, lidar_stamp, &mut times)?;
         let t_sp = Instant::now();
         let mut class_decode = 0;
-        let labels = if self.class_superpixels {
-            let (map, decode) = self.class_map(camera, &raw, mirrored)?;
+        read.superpixels = if self.class_superpixels {
+            let (map, decode) = self.class_map(camera, &read)?;
             class_decode = decode;
             times.decode += decode;
-            Some((map, cfg.num_classes))
+            RecordedSuperpixels::ClassMap(map)
         } else if let Some(stream) = camera.slic.as_ref().filter(|_| self.slic_sidecar) {
             let size = (cfg.image_width, cfg.image_height);
-            let read = with_cache(|cache| {
-                sidecar::read_labels(self.drive, stream, raw.frame.stamp, size, cache)
+            let labels = with_cache(|cache| {
+                sidecar::read_labels(self.drive, stream, read.frame.stamp, size, cache)
             });
-            let (mut labels, count) = read.map_err(|reason| SampleError::Superpixels {
+            let (labels, count) = labels.map_err(|reason| SampleError::Superpixels {
                 files: self.drive.file_list(),
                 topic: stream.topic.clone(),
-                stamp: raw.frame.stamp,
+                stamp: read.frame.stamp,
                 reason: Box::new(reason),
             })?;
-            if mirrored {
-                image_ops::flip_horizontal(&mut labels, cfg.image_width as usize, 1);
-            }
-            Some((labels, count))
+            RecordedSuperpixels::Sidecar(labels, count)
         } else {
-            None
+            RecordedSuperpixels::Computed
         };
         times.superpixels += elapsed(t_sp).saturating_sub(class_decode);
-        let image = PreparedImage {
-            frame: raw.frame,
-            scan_offset_nanos: raw.scan_offset_nanos,
-            calibration: raw.calibration,
-            native: raw.native,
-            camera_from_lidar: raw.camera_from_lidar,
-            rgb,
-            labels,
-            mirrored,
+        Ok((read, times))
+    }
+
+    /// `read` at the recipe's size, flipped when `flipped` (resize and flip in one
+    /// pass), with its superpixels alike; also their count. Adds the time to `times`.
+    fn finish_image(
+        &self,
+        camera_index: usize,
+        read: &CameraRead,
+        flipped: bool,
+        times: &mut StageTimes,
+    ) -> (SampleImage, u32) {
+        let cfg = self.config;
+        let camera = &self.drive.cameras[camera_index];
+        let t = Instant::now();
+        let rgb = cfg.resized_rgb(&read.image, flipped);
+        times.images += elapsed(t);
+        let t = Instant::now();
+        let (width, height) = (cfg.image_width as usize, cfg.image_height as usize);
+        let (superpixels, count) = match &read.superpixels {
+            RecordedSuperpixels::ClassMap(map) => {
+                // Resized, flipped and widened in one pass.
+                let size = [map.width as usize, map.height as usize];
+                let ids = image_ops::resize_nearest(&map.data, size, [width, height], flipped);
+                (ids, cfg.num_classes)
+            }
+            RecordedSuperpixels::Sidecar(labels, count) => {
+                (copy_mirrored(labels, width, 1, flipped), *count)
+            }
+            RecordedSuperpixels::Computed => {
+                let seg = slic(&rgb, width, height, &cfg.slic);
+                (seg.labels, seg.count)
+            }
         };
-        Ok((image, times))
+        times.superpixels += elapsed(t);
+        let image = SampleImage {
+            camera: camera.name.clone(),
+            topic: camera.image_topic.clone(),
+            stamp: read.frame.stamp,
+            scan_offset_nanos: read.scan_offset_nanos,
+            native_size: read.native,
+            flipped,
+            rgb,
+            superpixels,
+            camera_from_lidar: read.camera_from_lidar,
+            calibration: read.calibration.clone(),
+        };
+        (image, count)
     }
 
     /// An image of `camera` that is wrong, naming the drive's files, topic and stamp.
@@ -207,7 +238,7 @@ impl SampleContext<'_> {
         moments: &[i64],
         lidar_stamp: Stamp,
         times: &mut StageTimes,
-    ) -> Result<RawImage, SampleError> {
+    ) -> Result<CameraRead, SampleError> {
         let drive = self.drive;
         let (frame, scan_offset_nanos) = camera_frame_for(camera, lidar_stamp, moments)
             .ok_or_else(|| {
@@ -251,25 +282,25 @@ impl SampleContext<'_> {
             frame.stamp,
         )
         .map_err(|e| self.transform_error(format!("{} from LiDAR", camera.name), frame.stamp, e))?;
-        Ok(RawImage {
+        Ok(CameraRead {
             frame: *frame,
             scan_offset_nanos,
             calibration,
             image,
             native,
             camera_from_lidar,
+            superpixels: RecordedSuperpixels::Computed,
         })
     }
 
-    /// The class map of `raw` (within [`CLASS_MAP_TOLERANCE_NANOS`] of it) as
-    /// superpixels: checked, resized (nearest) and flipped like the image. Also the
-    /// time spent decoding it.
+    /// The class map of `raw` (within [`CLASS_MAP_TOLERANCE_NANOS`] of it), decoded and
+    /// checked against the image's size and the classes. Also the time spent decoding
+    /// it.
     fn class_map(
         &self,
         camera: &CameraStream,
-        raw: &RawImage,
-        flipped: bool,
-    ) -> Result<(Vec<u32>, u64), SampleError> {
+        raw: &CameraRead,
+    ) -> Result<(Image, u64), SampleError> {
         let cfg = self.config;
         let stamp = raw.frame.stamp;
         let topic = camera.superpixel_topic.clone().unwrap_or_default();
@@ -308,11 +339,6 @@ impl SampleContext<'_> {
                 cfg.num_classes
             )));
         }
-        // Resized, flipped and widened in one pass.
-        let out_size = [cfg.image_width as usize, cfg.image_height as usize];
-        let size = [classes.width as usize, classes.height as usize];
-        let small = image_ops::resize_nearest(&classes.data, size, out_size, flipped);
-        buffers::give_back(classes.data);
-        Ok((small, decode))
+        Ok((classes, decode))
     }
 }

@@ -7,7 +7,7 @@
 
 use super::deskew::deskew_in_place;
 use super::error::SampleError;
-use super::frames::{FrameCache, SweepEntry};
+use super::frames::{FrameCache, FrameKey, LastUses, SweepEntry};
 use super::recipe::SampleConfig;
 use super::timing::CameraScan;
 use super::types::{SampleId, SampleImage, StageTimes};
@@ -62,6 +62,8 @@ pub(super) struct SampleContext<'a> {
     /// The sample's position in the run (`epoch × samples per epoch + index`): how the
     /// frame cache tells what is still in use.
     pub position: u64,
+    /// The last position of the epoch that asks for each frame (with `frames`).
+    pub last_uses: Option<&'a LastUses>,
 }
 
 /// A sweep decoded, de-skewed and in its LiDAR frame at its stamp.
@@ -112,6 +114,14 @@ impl SampleContext<'_> {
             })
     }
 
+    /// This sample's use of frame `key`: its position, and whether it is the last one.
+    pub(super) fn use_of(&self, key: FrameKey) -> (u64, bool) {
+        let last = self
+            .last_uses
+            .is_some_and(|uses| uses.get(&key) == Some(&self.position));
+        (self.position, last)
+    }
+
     /// Sweep `sweep`, decoded and de-skewed ([`Self::decode_sweep`]) or from the frame
     /// cache.
     pub(super) fn load_sweep(&self, sweep: u32) -> Result<LoadedSweep, SampleError> {
@@ -124,7 +134,11 @@ impl SampleContext<'_> {
             });
         };
         let key = (self.id.drive, sweep);
-        let (entry, times) = cache.sweep(key, self.position, || self.decode_sweep(sweep))?;
+        let used = self.use_of(FrameKey::Sweep {
+            drive: key.0,
+            sweep,
+        });
+        let (entry, times) = cache.sweep(key, used, || self.decode_sweep(sweep))?;
         Ok(LoadedSweep {
             cloud: entry.cloud.clone(),
             dropped: entry.dropped,

@@ -24,7 +24,7 @@ use super::tally::Decompressed;
 use mcap::records::{self, op};
 use std::borrow::Cow;
 use std::collections::VecDeque;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
 
 /// A few decompressed chunks, most recent last, for random access.
@@ -75,6 +75,24 @@ const SHARED_CHUNKS_PER_THREAD: usize = 4;
 /// leave by number first; larger ones by size).
 const SHARED_BYTES: usize = 64 << 20;
 
+/// Chunks the shared table keeps per open block of the `blocks` order: the samples of a
+/// block come back to the chunks of the frames they share (the other cameras of a frame
+/// are in the chunk its first sample decompressed).
+const SHARED_CHUNKS_PER_BLOCK: usize = 4;
+
+/// Bytes the shared table may hold per open block.
+const SHARED_BYTES_PER_BLOCK: usize = 8 << 20;
+
+/// Blocks served side by side ([`keep_chunks_for_blocks`]); 0 under the `global` order.
+static OPEN_BLOCKS: AtomicUsize = AtomicUsize::new(0);
+
+/// Sizes the shared table for `open` blocks served side by side (the `blocks` order):
+/// [`SHARED_CHUNKS_PER_BLOCK`] chunks and [`SHARED_BYTES_PER_BLOCK`] each, when that is
+/// more than the table holds for the threads.
+pub fn keep_chunks_for_blocks(open: usize) {
+    OPEN_BLOCKS.fetch_max(open, Ordering::Relaxed);
+}
+
 /// A chunk in the shared table: set once by the thread that decompresses it (`None` if
 /// that failed: each thread then reads it itself and reports its own error).
 type SharedSlot = Arc<OnceLock<Option<Arc<Held>>>>;
@@ -102,8 +120,11 @@ fn shared_slot(file: u64, key: CacheKey) -> SharedSlot {
             .map_or(0, |messages| messages.byte_len())
     };
     let mut held: usize = table.iter().map(|(_, _, slot)| bytes(slot)).sum();
-    let most = SHARED_CHUNKS_PER_THREAD * rayon::current_num_threads().max(1);
-    while table.len() > 1 && (table.len() > most || held > SHARED_BYTES) {
+    let blocks = OPEN_BLOCKS.load(Ordering::Relaxed);
+    let most = (SHARED_CHUNKS_PER_THREAD * rayon::current_num_threads().max(1))
+        .max(SHARED_CHUNKS_PER_BLOCK * blocks);
+    let most_bytes = SHARED_BYTES.max(SHARED_BYTES_PER_BLOCK * blocks);
+    while table.len() > 1 && (table.len() > most || held > most_bytes) {
         if let Some((_, _, oldest)) = table.pop_front() {
             // Saturating: a slot may be filled (outside the lock) after the count.
             held = held.saturating_sub(bytes(&oldest));

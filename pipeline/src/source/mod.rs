@@ -37,7 +37,7 @@ mod scan;
 mod summary;
 mod tally;
 
-pub use cache::ChunkCache;
+pub use cache::{ChunkCache, keep_chunks_for_blocks};
 pub use chunk::ChunkError;
 pub use damage::Damage;
 pub use error::SourceError;
