@@ -270,31 +270,63 @@ fn minor_faults() -> anyhow::Result<u64> {
 }
 
 /// `--loop N`: `n` class-map samples of the drive at `path` one after the other on one
-/// thread, after a warm-up epoch; prints ms a sample and its stages.
-fn profile_loop(path: &std::path::Path, n: usize, maps: KernelMaps) -> anyhow::Result<()> {
-    let dataset = Dataset::open(
-        std::slice::from_ref(&path.to_path_buf()),
-        &IngestConfig::default(),
-    )?;
+/// thread, after a warm-up epoch; prints ms a sample and its stages. With `--order
+/// blocks` the dataset is `copies` copies of the drive in the `blocks` order (the
+/// service's defaults) and `n` is rounded up to whole epochs.
+fn profile_loop(
+    path: &std::path::Path,
+    n: usize,
+    maps: KernelMaps,
+    blocks: Option<usize>,
+) -> anyhow::Result<()> {
+    let paths = match blocks {
+        Some(copies) => order::copies(path, copies)?,
+        None => vec![path.to_path_buf()],
+    };
+    let dataset = Dataset::open(&paths, &IngestConfig::default())?;
     let config = SampleConfig {
         superpixels: SuperpixelSource::Channel,
         kernel_maps: maps,
         ..SampleConfig::default()
     };
-    let builder = SampleBuilder::new(&dataset, config)?;
+    let mut builder = SampleBuilder::new(&dataset, config)?;
+    if blocks.is_some() {
+        builder = builder.with_order(order::ORDERS[1].1);
+    }
     let points: usize = builder
         .build(0, 0)?
         .frames
         .iter()
         .map(|f| f.cloud.xyz.len())
         .sum();
-    sample::throughput(&builder, builder.plan().keyframes.len(), 1)?;
+    let len = builder.epoch_len();
+    let n = if blocks.is_some() {
+        n.div_ceil(len) * len
+    } else {
+        n
+    };
+    // Whole epochs in order from epoch 1 (epoch 0 warms up), one thread.
+    let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build()?;
+    let run = |epochs: std::ops::Range<usize>, count: usize| {
+        pool.install(
+            || -> anyhow::Result<(f64, superflow_pipeline::sample::StageTimes)> {
+                let mut times = superflow_pipeline::sample::StageTimes::default();
+                let started = Instant::now();
+                for i in epochs.start * len..epochs.start * len + count {
+                    times.add(&builder.build((i / len) as u64, (i % len) as u64)?.times);
+                }
+                Ok((count as f64 / started.elapsed().as_secs_f64(), times))
+            },
+        )
+    };
+    run(0..1, len)?;
     let faults = minor_faults()?;
-    let (per_s, times) = sample::throughput(&builder, n, 1)?;
+    let (per_s, times) = run(1..2, n)?;
     let faults = minor_faults()? - faults;
     println!(
-        "{}: {n} samples on 1 thread, {:.0} points a frame: {:.2} ms a sample | {} | {faults} minor faults",
+        "{}: {n} samples on 1 thread{}, {:.0} points a frame: {:.2} ms a sample | {} | {faults} minor faults",
         path.display(),
+        if blocks.is_some() { ", blocks" } else { "" },
         points as f64 / builder.config().temporal_frames as f64,
         1e3 / per_s,
         stage_cells(&times, n)
@@ -310,6 +342,17 @@ fn orders(
     maps: KernelMaps,
     regenerate: bool,
 ) -> anyhow::Result<()> {
+    println!(
+        "850 drives of 40 keyframes (nuScenes' trainval), one epoch, the orders alone (3 seeds)"
+    );
+    println!(
+        "| ranks × batch | order | open blocks | distinct drives in a global batch % | rank batches from distinct blocks % | steps a block stays open on its rank |"
+    );
+    println!("|---|---|---:|---:|---:|---:|");
+    for row in order::statistics() {
+        println!("{row}");
+    }
+    println!();
     let copies = arg_count("--copies")?.unwrap_or(3);
     let epochs = arg_count("--epochs")?.unwrap_or(3) as u64;
     let cores = cores();
@@ -333,8 +376,14 @@ fn orders(
         }
         for (name, _) in order::ORDERS {
             let (cpu_ms, samples, wall) = order::service(&binary, &paths, name, epochs)?;
+            // One epoch more: the marginal cost of an epoch, and what start-up costs.
+            let (cpu_more, samples_more, _) = order::service(&binary, &paths, name, epochs + 1)?;
+            let total = |ms: f64, n: u64| ms * n as f64;
+            let marginal = (total(cpu_more, samples_more) - total(cpu_ms, samples))
+                / (samples_more - samples).max(1) as f64;
+            let start_s = (total(cpu_ms, samples) - marginal * samples as f64) / 1e3;
             services.push(format!(
-                "| {size} | {name} | {cpu_ms:.1} | {samples} | {wall:.1} |"
+                "| {size} | {name} | {cpu_ms:.1} | {marginal:.1} | {start_s:.2} | {samples} | {wall:.1} |"
             ));
         }
     }
@@ -342,13 +391,15 @@ fn orders(
         "stage columns: ms a sample on 1 core; blocks: 8 keyframes, 16 open (the service's defaults)"
     );
     println!();
-    println!("| size | order | service CPU ms/sample | samples | wall s |");
-    println!("|---|---|---:|---:|---:|");
+    println!(
+        "| size | order | service CPU ms/sample | of which an epoch's, ms/sample | start-up CPU s | samples | wall s |"
+    );
+    println!("|---|---|---:|---:|---:|---:|---:|");
     for row in services {
         println!("{row}");
     }
     println!(
-        "the service: superflow-pipeline --epochs {epochs} --batch-size 2 from a warm index cache, every batch received; its process CPU (user + system, start-up included) over the samples"
+        "the service: superflow-pipeline --epochs {epochs} --batch-size 2 from a warm index cache, every batch received; its process CPU (user + system, start-up included) over the samples; an epoch's: the difference to a run of one epoch more; start-up: the rest"
     );
     Ok(())
 }
@@ -374,7 +425,12 @@ fn main() -> anyhow::Result<()> {
         let size = sizes.split(',').next().unwrap_or_default();
         let (w, h) = parse_size(size)?;
         let path = drive(Dialect::Foxglove, w, h, columns, regenerate)?;
-        return profile_loop(&path, n, maps);
+        let blocks = match arg_value("--order").as_deref() {
+            None | Some("global") => None,
+            Some("blocks") => Some(arg_count("--copies")?.unwrap_or(3)),
+            Some(other) => anyhow::bail!("--order {other}: expected global or blocks"),
+        };
+        return profile_loop(&path, n, maps, blocks);
     }
     let cores = cores();
     let recipe = match maps {

@@ -307,3 +307,88 @@ fn index_cache(binary: &Path, paths: &[PathBuf]) -> anyhow::Result<PathBuf> {
     anyhow::ensure!(status.success(), "superflow-pipeline index: {status}");
     Ok(dir)
 }
+
+/// One layout of a job for [`statistics`]: ranks, batch per rank, open blocks.
+pub const LAYOUTS: [(usize, usize, u32); 3] = [(1, 4, 16), (8, 4, 32), (64, 4, 256)];
+
+/// How local and how mixed each order's batches are on a nuScenes-sized dataset (850
+/// drives of 40 keyframes; no decoding: the orders alone), for each of [`LAYOUTS`],
+/// averaged over 3 seeds: table rows of the share of distinct drives in a global batch,
+/// the share of rank batches drawn from distinct blocks, and how many steps a block stays
+/// open on its rank.
+pub fn statistics() -> Vec<String> {
+    use superflow_pipeline::sample::{EpochMix, KeyframeRef, Plan};
+    let (drives, per_drive) = (850u32, 40u32);
+    let mut plan = Plan::default();
+    for drive in 0..drives {
+        for sweep in 0..per_drive {
+            plan.keyframes.push(KeyframeRef {
+                drive,
+                sweep: sweep * 10,
+                frame_sweeps: vec![sweep * 10],
+                reused: 0,
+                worst_camera_offset_nanos: 0,
+            });
+        }
+    }
+    let mut rows = Vec::new();
+    for (ranks, batch, open) in LAYOUTS {
+        let orders = [
+            ("global", EpochOrder::Global),
+            ("blocks", EpochOrder::Blocks { length: 8, open }),
+        ];
+        for (name, order) in orders {
+            let mix = EpochMix::whole(&plan).ordered(order);
+            let (mut drives_share, mut distinct_blocks, mut open_steps) = (0.0, 0.0, 0.0);
+            let seeds = 3;
+            for seed in 0..seeds {
+                let a = mix.arrange(seed, 0);
+                let global = ranks * batch;
+                let steps = a.keyframes.len() / global;
+                let drive_of = |p: usize| plan.keyframes[a.keyframes[p] as usize].drive;
+                let mut shares = 0.0;
+                let mut distinct = 0usize;
+                // (rank, block) → (first step, last step)
+                let mut spans: std::collections::HashMap<(usize, u32), (usize, usize)> =
+                    std::collections::HashMap::new();
+                for step in 0..steps {
+                    let positions = step * global..(step + 1) * global;
+                    let mut seen: Vec<u32> = positions.clone().map(drive_of).collect();
+                    seen.sort_unstable();
+                    seen.dedup();
+                    shares += seen.len() as f64 / global as f64;
+                    for rank in 0..ranks {
+                        let mine: Vec<usize> = (0..batch)
+                            .map(|j| step * global + j * ranks + rank)
+                            .collect();
+                        let mut blocks: Vec<u32> = mine.iter().map(|&p| a.blocks[p]).collect();
+                        for &b in &blocks {
+                            let span = spans.entry((rank, b)).or_insert((step, step));
+                            span.1 = step;
+                        }
+                        blocks.sort_unstable();
+                        blocks.dedup();
+                        distinct += usize::from(blocks.len() == batch);
+                    }
+                }
+                drives_share += shares / steps as f64;
+                distinct_blocks += distinct as f64 / (steps * ranks) as f64;
+                open_steps += spans.values().map(|(f, l)| (l - f + 1) as f64).sum::<f64>()
+                    / spans.len().max(1) as f64;
+            }
+            let n = seeds as f64;
+            let layout = format!("{ranks} × {batch}");
+            let open_cell = match order {
+                EpochOrder::Global => "–".to_owned(),
+                EpochOrder::Blocks { open, .. } => open.to_string(),
+            };
+            rows.push(format!(
+                "| {layout} | {name} | {open_cell} | {:.1} | {:.1} | {:.1} |",
+                drives_share / n * 100.0,
+                distinct_blocks / n * 100.0,
+                open_steps / n,
+            ));
+        }
+    }
+    rows
+}

@@ -3,7 +3,8 @@
 //! sizes) in one run and one batch; weighted dataset groups (`--dataset NAME=PATH:REPEAT`)
 //! serving each keyframe exactly as often as their repeat says; and a job resumed on
 //! another number of ranks or hosts (`--start-sample`, or a resume request by sample)
-//! serving every sample of the epoch exactly once across the change.
+//! serving every sample of the epoch exactly once across the change, in the `global`
+//! and the `blocks` order.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests fail loudly on purpose
 
@@ -134,13 +135,14 @@ fn weighted_groups_of_two_rigs_serve_each_keyframe_as_their_repeat_says() {
 /// A job stopped after `steps` batches of each of its `before` ranks (on `hosts_before`
 /// hosts), resumed with `after` ranks on one host by `--start-sample` (or, `by_request`,
 /// by its subscribers asking to resume at that sample on a pipeline started afresh):
-/// every sample of the epoch served exactly once.
+/// every sample of the epoch served exactly once, in the epoch's `order`.
 fn resumed_on_another_size(
     tag: &str,
     (before, hosts_before): (u32, u32),
     steps: usize,
     after: u32,
     by_request: bool,
+    order: &str,
 ) {
     let drives = [
         path(sample_drive(Dialect::Ros2).unwrap().path),
@@ -161,6 +163,8 @@ fn resumed_on_another_size(
                 &BATCH.to_string(),
                 "--epochs",
                 "1",
+                "--order",
+                order,
             ]
             .map(String::from),
         );
@@ -261,17 +265,22 @@ fn resumed_on_another_size(
 
 #[test]
 fn a_job_of_two_ranks_resumed_on_three_serves_every_keyframe_once() {
-    resumed_on_another_size("el23", (2, 1), 1, 3, false);
+    resumed_on_another_size("el23", (2, 1), 1, 3, false, "global");
+}
+
+#[test]
+fn a_job_of_two_ranks_in_blocks_resumed_on_three_serves_every_keyframe_once() {
+    resumed_on_another_size("elb23", (2, 1), 1, 3, false, "blocks");
 }
 
 #[test]
 fn a_job_of_three_ranks_resumed_on_two_by_request_serves_every_keyframe_once() {
-    resumed_on_another_size("el32", (3, 1), 1, 2, true);
+    resumed_on_another_size("el32", (3, 1), 1, 2, true, "global");
 }
 
 #[test]
 fn a_job_of_two_hosts_resumed_on_one_serves_every_keyframe_once() {
-    resumed_on_another_size("elh21", (1, 2), 2, 1, false);
+    resumed_on_another_size("elh21", (1, 2), 2, 1, false, "global");
 }
 
 /// One epoch of three rigs (6, 2 and 1 cameras) through the service to the Rust trainer:
