@@ -7,6 +7,8 @@
 //! * [`paths`]: where the run's files go;
 //! * [`start`]: how the run begins ([`start::begin`]): fresh, `--resume`, or the
 //!   data-parallel start;
+//! * [`resume`]: asking the pipeline where the stream continues (a resumed start, a
+//!   pipeline restarted under a running session);
 //! * [`error`]: [`RunError`], why a run stops with an error;
 //! * [`job`]: joining the MPI job (`--ddp`);
 //! * [`session`]: the step loop, the periodic and final checkpoints;
@@ -16,6 +18,7 @@ pub mod error;
 pub mod job;
 pub mod options;
 pub mod paths;
+pub mod resume;
 pub mod session;
 pub mod signals;
 pub mod start;

@@ -5,7 +5,7 @@ use super::error::RunError;
 use super::job::Ddp;
 use super::options::RunOptions;
 use super::paths::RunPaths;
-use super::start::ask_resume;
+use super::resume::ask_resume;
 use crate::checkpoint::JobPosition;
 use crate::loss::LossValues;
 use crate::metrics::{self, DdpRecord, MetricsWriter, StepRecord};

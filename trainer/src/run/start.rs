@@ -1,16 +1,17 @@
 //! How a run starts ([`begin`], the one way in): fresh, from its newest checkpoint
 //! (`--resume`), or — a data-parallel job — as rank 0 decides, with every rank receiving
 //! rank 0's parameters. Resuming asks the pipeline where the stream continues
-//! ([`ask_resume`], which a running session also uses when its pipeline restarts).
+//! ([`super::resume::ask_resume`]).
 
 use super::error::RunError;
 use super::job::Ddp;
 use super::options::RunOptions;
 use super::paths::RunPaths;
+use super::resume::ask_resume;
 use crate::checkpoint::CheckpointState;
 use crate::metrics;
 use crate::stream::StreamPosition;
-use crate::subscribe::{ResumeAt, Subscription};
+use crate::subscribe::Subscription;
 use crate::train::Trainer;
 use std::path::PathBuf;
 use std::time::Duration;
@@ -49,30 +50,6 @@ pub fn begin(
         }
         Err(e) => Err(e),
     }
-}
-
-/// Asks the pipeline to continue this trainer's stream at `at`; the publisher that
-/// answered, and the position its next batch has there. A refusal is a
-/// [`ResumeRefused`] ([`RunError::run_complete`] tells a finished run).
-pub fn ask_resume(
-    subscription: &Subscription,
-    run: &str,
-    at: ResumeAt,
-    timeout: Duration,
-) -> Result<(u128, StreamPosition), RunError> {
-    let reply = subscription
-        .resume(at, timeout)
-        .map_err(|source| RunError::AskResume {
-            run: run.to_string(),
-            source,
-        })?;
-    if reply.accepted != 1 {
-        return Err(ResumeRefused::of(run, at, &reply).into());
-    }
-    Ok((
-        reply.publisher(),
-        StreamPosition::new(reply.epoch, reply.step),
-    ))
 }
 
 /// `--ddp`: whether every rank resumed (`Ok` with this rank's position), from what each
@@ -316,6 +293,7 @@ mod tests {
     use crate::config::TrainerConfig;
     use crate::loss::LossValues;
     use crate::metrics::{MetricsWriter, StepRecord};
+    use crate::subscribe::ResumeAt;
     use crate::unet::UNetPreset;
     use crate::vit::VitPreset;
     use superflow_schemas::service::ResumeReply;
