@@ -17,6 +17,7 @@ use super::rng::{Purpose, SampleRng};
 use super::types::{Cloud, Frame, Pair, Sample, SampleId, StageTimes};
 use crate::drive::{Dataset, Drive};
 use rayon::prelude::*;
+use std::sync::OnceLock;
 
 /// Builds samples of a dataset.
 #[derive(Debug)]
@@ -261,7 +262,7 @@ impl<'d> SampleBuilder<'d> {
             scan: &self.plan.scans[key.drive as usize],
             frames: self.frames.as_ref(),
             position: epoch * self.epoch_len() as u64 + index,
-            last_uses: last_uses.as_deref(),
+            last_uses: last_uses.as_deref().and_then(OnceLock::get),
         };
         let key_frame = cfg
             .frame_offsets()

@@ -1,10 +1,10 @@
 //! What neighbouring samples share, built once: under the `blocks` order
 //! ([`super::EpochOrder::Blocks`]) a keyframe's triplet shares two of its three frames
 //! with the next keyframe of its block, built `open` positions later. The
-//! [`FrameCache`] keeps each frame's de-skewed sweep and each camera's image as decoded,
-//! with its decoded class map or sidecar superpixels, so the samples that use a frame
-//! decompress and decode it once; each sample resizes and flips its own copy (one pass,
-//! as a cold build does).
+//! [`FrameCache`] keeps each frame's de-skewed sweep and each camera's image resized to
+//! the recipe's size, not flipped, with its class ids or sidecar superpixels alike, so
+//! the samples that use a frame decompress, decode and resize it once; each sample
+//! flips its own copy (the bytes of a cold build's one-pass resize-and-flip).
 //!
 //! An entry lives while a sample still to be built will ask for it: the builder works out
 //! from the epoch's order the last position that uses each frame ([`LastUses`]), and the
@@ -23,7 +23,7 @@ use super::images::CameraRead;
 use super::types::StageTimes;
 use std::collections::HashMap;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::{Arc, Mutex, PoisonError};
+use std::sync::{Arc, Mutex, OnceLock, PoisonError};
 use superflow_schemas::sensor::PointCloud;
 
 /// A sweep, decoded and de-skewed (in its LiDAR frame at its stamp).
@@ -79,7 +79,7 @@ struct Slot {
 struct Entries {
     map: HashMap<FrameKey, Slot>,
     /// The last uses of the epochs being built.
-    last_uses: Vec<(u64, Arc<LastUses>)>,
+    last_uses: Vec<(u64, Arc<OnceLock<LastUses>>)>,
     /// The newest position seen.
     newest: u64,
     /// The position up to which entries were last swept for age.
@@ -137,23 +137,27 @@ impl FrameCache {
         &self.stats
     }
 
-    /// The last uses of `epoch`'s frames, worked out by `compute` the first time (the
-    /// epochs before `epoch − 1` are forgotten).
+    /// The last uses of `epoch`'s frames, worked out by `compute` once (the samples that
+    /// ask meanwhile wait for it; epochs before `epoch − 1` are forgotten).
     pub(super) fn last_uses(
         &self,
         epoch: u64,
         compute: impl FnOnce() -> LastUses,
-    ) -> Arc<LastUses> {
-        if let Some((_, uses)) = self.lock().last_uses.iter().find(|(e, _)| *e == epoch) {
-            return uses.clone();
-        }
-        let uses = Arc::new(compute());
-        let mut entries = self.lock();
-        entries
-            .last_uses
-            .retain(|(e, _)| *e + 1 >= epoch && *e != epoch);
-        entries.last_uses.push((epoch, uses.clone()));
-        uses
+    ) -> Arc<OnceLock<LastUses>> {
+        let cell = {
+            let mut entries = self.lock();
+            match entries.last_uses.iter().find(|(e, _)| *e == epoch) {
+                Some((_, cell)) => cell.clone(),
+                None => {
+                    entries.last_uses.retain(|(e, _)| *e + 1 >= epoch);
+                    let cell = Arc::new(OnceLock::new());
+                    entries.last_uses.push((epoch, cell.clone()));
+                    cell
+                }
+            }
+        };
+        cell.get_or_init(compute);
+        cell
     }
 
     /// Sweep `sweep` of drive `drive` for the sample at run position `position`, built
@@ -276,26 +280,34 @@ impl FrameCache {
     }
 }
 
-/// `data` (rows of `width × channels` values) as it is, or mirrored left to right, in a
-/// new buffer.
-pub(super) fn copy_mirrored<T: Copy>(
+/// `data` (rows of `width` pixels of `C` values) as it is, or mirrored left to right, in
+/// a new buffer.
+pub(super) fn copy_mirrored<T: Copy + Default, const C: usize>(
     data: &[T],
     width: usize,
-    channels: usize,
     mirrored: bool,
 ) -> Vec<T> {
-    if !mirrored {
+    let stride = width * C;
+    if !mirrored || stride == 0 {
         return data.to_vec();
     }
-    let stride = width * channels;
-    let mut out = Vec::with_capacity(data.len());
-    if stride == 0 {
-        return data.to_vec();
-    }
-    for row in data.chunks_exact(stride) {
-        for px in row.chunks_exact(channels).rev() {
-            out.extend_from_slice(px);
+    let mut out = vec![T::default(); data.len()];
+    for (to, from) in out.chunks_exact_mut(stride).zip(data.chunks_exact(stride)) {
+        for (dst, src) in to.chunks_exact_mut(C).zip(from.chunks_exact(C).rev()) {
+            dst.copy_from_slice(src);
         }
+    }
+    out
+}
+
+/// Class ids (rows of `width`) widened to `u32`, mirrored left to right when `mirrored`.
+pub(super) fn widen_mirrored(ids: &[u8], width: usize, mirrored: bool) -> Vec<u32> {
+    if !mirrored || width == 0 {
+        return ids.iter().map(|&v| u32::from(v)).collect();
+    }
+    let mut out = Vec::with_capacity(ids.len());
+    for row in ids.chunks_exact(width) {
+        out.extend(row.iter().rev().map(|&v| u32::from(v)));
     }
     out
 }
@@ -380,13 +392,16 @@ mod tests {
     #[test]
     fn mirrored_copies_reverse_each_rows_pixels() {
         let rgb: Vec<u8> = (0..12).collect();
-        assert_eq!(copy_mirrored(&rgb, 2, 3, false), rgb);
+        assert_eq!(copy_mirrored::<u8, 3>(&rgb, 2, false), rgb);
         assert_eq!(
-            copy_mirrored(&rgb, 2, 3, true),
+            copy_mirrored::<u8, 3>(&rgb, 2, true),
             [3, 4, 5, 0, 1, 2, 9, 10, 11, 6, 7, 8]
         );
         let mut flipped = rgb.clone();
         super::super::image_ops::flip_horizontal(&mut flipped, 2, 3);
-        assert_eq!(copy_mirrored(&rgb, 2, 3, true), flipped);
+        assert_eq!(copy_mirrored::<u8, 3>(&rgb, 2, true), flipped);
+        let ids: Vec<u8> = (0..6).collect();
+        assert_eq!(widen_mirrored(&ids, 3, false), [0, 1, 2, 3, 4, 5]);
+        assert_eq!(widen_mirrored(&ids, 3, true), [2, 1, 0, 5, 4, 3]);
     }
 }

@@ -5,10 +5,12 @@
 //!
 //! Reading ([`CameraRead`]: the decoded image and its class map or sidecar labels, as
 //! stored) and finishing (resize, flip, superpixels) are apart: under the `blocks` order
-//! the read is kept in the frame cache and finished again by every sample that uses it.
+//! the read is kept in the frame cache at the recipe's size, unflipped
+//! ([`CameraRead::resized`]), and every sample that uses it flips its own copy — the
+//! bytes of the one-pass resize-and-flip of a cold build.
 
 use super::error::SampleError;
-use super::frames::{FrameKey, copy_mirrored};
+use super::frames::{FrameKey, copy_mirrored, widen_mirrored};
 use super::image_ops;
 use super::load::{SampleContext, elapsed, with_cache};
 use super::plan::camera_frame_for;
@@ -37,8 +39,8 @@ pub(super) struct CameraRead {
     pub scan_offset_nanos: i64,
     /// The calibration in force at its stamp.
     pub calibration: CameraCalibration,
-    /// The decoded RGB8 image (at a reduced scale when the recipe allows it).
-    pub image: Image,
+    /// Its pixels.
+    pub pixels: Pixels,
     /// Size of the stored image, which the calibration describes.
     pub native: (u32, u32),
     /// LiDAR (at the sweep stamp) → camera (at the image stamp).
@@ -47,11 +49,22 @@ pub(super) struct CameraRead {
     pub superpixels: RecordedSuperpixels,
 }
 
+/// An image's pixels.
+#[derive(Debug, Clone)]
+pub(super) enum Pixels {
+    /// RGB8 as decoded (at a reduced scale when the recipe allows it).
+    Decoded(Image),
+    /// RGB8 resized to the recipe's size, not flipped.
+    Resized(Vec<u8>),
+}
+
 /// The superpixels a recording holds for an image.
 #[derive(Debug, Clone)]
 pub(super) enum RecordedSuperpixels {
     /// A class map at the image's stored size, checked against the classes.
     ClassMap(Image),
+    /// The class map resized (nearest) to the recipe's size, not flipped.
+    ClassIds(Vec<u8>),
     /// SLIC labels from the sidecar at the recipe's size, and their count.
     Sidecar(Vec<u32>, u32),
     /// None: SLIC runs on the resized image.
@@ -61,17 +74,43 @@ pub(super) enum RecordedSuperpixels {
 impl CameraRead {
     /// Bytes held.
     pub fn bytes(&self) -> u64 {
+        let pixels = match &self.pixels {
+            Pixels::Decoded(image) => image.data.len(),
+            Pixels::Resized(rgb) => rgb.len(),
+        };
         let sp = match &self.superpixels {
             RecordedSuperpixels::ClassMap(map) => map.data.len(),
+            RecordedSuperpixels::ClassIds(ids) => ids.len(),
             RecordedSuperpixels::Sidecar(labels, _) => labels.len() * 4,
             RecordedSuperpixels::Computed => 0,
         };
-        (self.image.data.len() + sp) as u64
+        (pixels + sp) as u64
+    }
+
+    /// This read at `config`'s size, not flipped (what the frame cache keeps: the
+    /// recipe's size is usually far below the camera's); the decode buffers go back to
+    /// their pool.
+    fn resized(mut self, config: &super::recipe::SampleConfig) -> Self {
+        let out = [config.image_width as usize, config.image_height as usize];
+        if let Pixels::Decoded(image) = &mut self.pixels {
+            let rgb = config.resized_rgb(image, false);
+            buffers::give_back(std::mem::take(&mut image.data));
+            self.pixels = Pixels::Resized(rgb);
+        }
+        if let RecordedSuperpixels::ClassMap(map) = &mut self.superpixels {
+            let size = [map.width as usize, map.height as usize];
+            let ids = image_ops::resize_nearest::<u8, u8>(&map.data, size, out, false);
+            buffers::give_back(std::mem::take(&mut map.data));
+            self.superpixels = RecordedSuperpixels::ClassIds(ids);
+        }
+        self
     }
 
     /// Gives the decode buffers back to their pool.
     fn give_back(self) {
-        buffers::give_back(self.image.data);
+        if let Pixels::Decoded(image) = self.pixels {
+            buffers::give_back(image.data);
+        }
         if let RecordedSuperpixels::ClassMap(map) = self.superpixels {
             buffers::give_back(map.data);
         }
@@ -106,8 +145,13 @@ impl SampleContext<'_> {
                     sweep,
                     camera: key.2,
                 });
-                let (read, mut times) =
-                    cache.image(key, used, || self.read_camera_frame(camera_index, sweep))?;
+                let (read, mut times) = cache.image(key, used, || {
+                    let (read, mut times) = self.read_camera_frame(camera_index, sweep)?;
+                    let t = Instant::now();
+                    let read = read.resized(self.config);
+                    times.images += elapsed(t);
+                    Ok::<_, SampleError>((read, times))
+                })?;
                 let (image, count) = self.finish_image(camera_index, &read, flipped, &mut times);
                 Ok((image, count, times))
             }
@@ -183,11 +227,14 @@ impl SampleContext<'_> {
     ) -> (SampleImage, u32) {
         let cfg = self.config;
         let camera = &self.drive.cameras[camera_index];
+        let (width, height) = (cfg.image_width as usize, cfg.image_height as usize);
         let t = Instant::now();
-        let rgb = cfg.resized_rgb(&read.image, flipped);
+        let rgb = match &read.pixels {
+            Pixels::Decoded(image) => cfg.resized_rgb(image, flipped),
+            Pixels::Resized(rgb) => copy_mirrored::<u8, 3>(rgb, width, flipped),
+        };
         times.images += elapsed(t);
         let t = Instant::now();
-        let (width, height) = (cfg.image_width as usize, cfg.image_height as usize);
         let (superpixels, count) = match &read.superpixels {
             RecordedSuperpixels::ClassMap(map) => {
                 // Resized, flipped and widened in one pass.
@@ -195,8 +242,11 @@ impl SampleContext<'_> {
                 let ids = image_ops::resize_nearest(&map.data, size, [width, height], flipped);
                 (ids, cfg.num_classes)
             }
+            RecordedSuperpixels::ClassIds(ids) => {
+                (widen_mirrored(ids, width, flipped), cfg.num_classes)
+            }
             RecordedSuperpixels::Sidecar(labels, count) => {
-                (copy_mirrored(labels, width, 1, flipped), *count)
+                (copy_mirrored::<u32, 1>(labels, width, flipped), *count)
             }
             RecordedSuperpixels::Computed => {
                 let seg = slic(&rgb, width, height, &cfg.slic);
@@ -286,7 +336,7 @@ impl SampleContext<'_> {
             frame: *frame,
             scan_offset_nanos,
             calibration,
-            image,
+            pixels: Pixels::Decoded(image),
             native,
             camera_from_lidar,
             superpixels: RecordedSuperpixels::Computed,

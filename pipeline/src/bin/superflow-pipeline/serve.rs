@@ -41,6 +41,7 @@ pub fn run(args: &Args) -> anyhow::Result<()> {
         keyframes = builder.plan().keyframes.len(),
         samples_per_epoch = builder.epoch_len(),
         skipped_at_edges = builder.plan().skipped_at_edges,
+        order = ?builder.mix().order,
         "plan"
     );
     FleetReport::new(
