@@ -367,7 +367,7 @@ mod tests {
         // 8 ranks of 4 over 16 open blocks: rank r's batch would take 2 blocks.
         let e = config.service.validate().unwrap_err();
         assert_eq!(e.setting, "service.open_blocks");
-        assert!(e.to_string().contains("open 32"), "{e}");
+        assert!(e.to_string().contains("use 32"), "{e}");
         config.service.open_blocks = 32;
         assert!(config.service.validate().is_ok());
         // Any count prime to the ranks spreads a batch as well.

@@ -140,9 +140,9 @@ impl ServiceConfig {
                     "service.open_blocks",
                     open,
                     format!(
-                        "a batch of {} on each of {ranks} ranks would take samples from \
-                         {apart} blocks; open {least} (or another multiple of {ranks} \
-                         of at least {least})",
+                        "gives a batch of {} on each of {ranks} ranks only {apart} blocks to \
+                         draw from; use {least} (or another multiple of {ranks} of at least \
+                         {least})",
                         self.batch_size
                     ),
                 ));
