@@ -9,9 +9,9 @@
 //! An entry lives while a sample still to be built will ask for it: the builder works out
 //! from the epoch's order the last position that uses each frame ([`LastUses`]), and the
 //! entry goes when that sample takes it. What the samples of open blocks share with
-//! their next keyframes is all that stays: under the defaults (16 open blocks, 3 of 6
-//! cameras, triplets 0.5 s apart) about two frames' sweeps and four or five images per
-//! camera slot of each open block. Entries whose last user failed, or lives on another
+//! their next keyframes is all that stays: for each open block, about two frames' sweeps
+//! and the images of those frames that its samples have drawn so far (3 of 6 cameras a
+//! sample, so 3 to 6 a frame). Entries whose last user failed, or lives on another
 //! host, go once no sample within `keep` positions of the newest one has asked for them
 //! (positions count across epochs).
 //!
