@@ -214,10 +214,8 @@ impl<'d> SampleBuilder<'d> {
                     );
                 }
             }
-            for earlier in 1..=self.config.dense_sweeps {
-                if let Some(sweep) = key.sweep.checked_sub(earlier) {
-                    uses.insert(FrameKey::Sweep { drive, sweep }, position);
-                }
+            for sweep in earlier_sweeps(key, self.config.dense_sweeps) {
+                uses.insert(FrameKey::Sweep { drive, sweep }, position);
             }
         }
         uses
@@ -291,6 +289,12 @@ impl<'d> SampleBuilder<'d> {
     }
 }
 
+/// The sweeps before `key`'s that its dense cloud adds, nearest first (fewer at the
+/// start of a drive).
+fn earlier_sweeps(key: &KeyframeRef, dense_sweeps: u32) -> impl Iterator<Item = u32> + '_ {
+    (1..=dense_sweeps).filter_map(|j| key.sweep.checked_sub(j))
+}
+
 /// The temporal frames of `key` (sweep and images each) and the earlier sweeps of its
 /// dense cloud, all loaded in parallel; `key_frame` is the keyframe's position among
 /// the frames.
@@ -300,9 +304,7 @@ fn load_keyframe(
     key_frame: usize,
 ) -> Result<(Vec<FrameInputs>, DenseCloud), SampleError> {
     let dense_sweeps = ctx.config.dense_sweeps;
-    let earlier: Vec<u32> = (1..=dense_sweeps)
-        .filter_map(|j| key.sweep.checked_sub(j))
-        .collect();
+    let earlier: Vec<u32> = earlier_sweeps(key, dense_sweeps).collect();
     let (frames, dense_parts) = rayon::join(
         || {
             key.frame_sweeps

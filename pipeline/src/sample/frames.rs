@@ -30,7 +30,7 @@ use superflow_schemas::sensor::PointCloud;
 #[derive(Debug, Clone)]
 pub(super) struct SweepEntry {
     /// The points.
-    pub cloud: PointCloud,
+    pub cloud: Arc<PointCloud>,
     /// Non-finite points dropped when decoding.
     pub dropped: u64,
 }
@@ -318,11 +318,11 @@ mod tests {
 
     fn sweep(points: usize) -> SweepEntry {
         SweepEntry {
-            cloud: PointCloud {
+            cloud: Arc::new(PointCloud {
                 xyz: vec![[0.0; 3]; points],
                 intensity: vec![0.0; points],
                 ..PointCloud::default()
-            },
+            }),
             dropped: 0,
         }
     }

@@ -17,6 +17,7 @@ use crate::source::ChunkCache;
 use nalgebra::Point3;
 use rayon::prelude::*;
 use std::cell::RefCell;
+use std::sync::Arc;
 use std::time::Instant;
 use superflow_schemas::Stamp;
 use superflow_schemas::sensor::PointCloud;
@@ -68,8 +69,8 @@ pub(super) struct SampleContext<'a> {
 
 /// A sweep decoded, de-skewed and in its LiDAR frame at its stamp.
 pub(super) struct LoadedSweep {
-    /// The points.
-    pub cloud: PointCloud,
+    /// The points (shared with the frame cache under the `blocks` order).
+    pub cloud: Arc<PointCloud>,
     /// Non-finite points dropped when decoding.
     pub dropped: u64,
     /// Time spent.
@@ -139,8 +140,10 @@ impl SampleContext<'_> {
             sweep,
         });
         let (entry, times) = cache.sweep(key, used, || self.decode_sweep(sweep))?;
+        // Shared, not copied: only the dense cloud's earlier sweeps are changed, and
+        // `load_into_key_frame` copies one only while a later sample still holds it.
         Ok(LoadedSweep {
-            cloud: entry.cloud.clone(),
+            cloud: Arc::clone(&entry.cloud),
             dropped: entry.dropped,
             times,
         })
@@ -178,7 +181,7 @@ impl SampleContext<'_> {
             times.sweeps += elapsed(t);
         }
         let entry = SweepEntry {
-            cloud,
+            cloud: Arc::new(cloud),
             dropped: decoded.dropped_non_finite as u64,
         };
         Ok((entry, times))
@@ -203,7 +206,7 @@ impl SampleContext<'_> {
                 .map_err(|e| self.transform_error(format!("pose of {}", lidar.topic), stamp, e))
         };
         let key_from_sweep = lookup(key_stamp)?.inverse() * lookup(loaded.cloud.stamp)?;
-        for p in &mut loaded.cloud.xyz {
+        for p in &mut Arc::make_mut(&mut loaded.cloud).xyz {
             let q = key_from_sweep * Point3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
             *p = [q.x as f32, q.y as f32, q.z as f32];
         }
